@@ -1,0 +1,38 @@
+"""rigidjax: rotational dynamics of rigid bodies in JAX.
+
+Conventions (see the README): SI units, radians; quaternions are unit and scalar-first
+``(w, x, y, z)``; orientations map body-frame to space-frame components; ``omega`` is in body-frame
+components; Euler angles default to the 3-1-3 (``"zxz"``) sequence.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from ._dynamics import angular_momentum as angular_momentum
+from ._dynamics import euler_equations as euler_equations
+from ._dynamics import free_precession_rate as free_precession_rate
+from ._dynamics import inertia_times as inertia_times
+from ._dynamics import is_full_tensor as is_full_tensor
+from ._dynamics import kinetic_energy as kinetic_energy
+from ._dynamics import space_angular_momentum as space_angular_momentum
+from ._euler import PROPER_SEQUENCES as PROPER_SEQUENCES
+from ._euler import SEQUENCES as SEQUENCES
+from ._euler import TAIT_BRYAN_SEQUENCES as TAIT_BRYAN_SEQUENCES
+from ._euler import body_angular_velocity as body_angular_velocity
+from ._euler import euler_from_matrix as euler_from_matrix
+from ._euler import euler_from_quat as euler_from_quat
+from ._euler import euler_rates as euler_rates
+from ._euler import is_proper_sequence as is_proper_sequence
+from ._euler import matrix_from_euler as matrix_from_euler
+from ._euler import quat_from_euler as quat_from_euler
+from ._euler import space_angular_velocity as space_angular_velocity
+from ._quaternion import matrix_from_quat as matrix_from_quat
+from ._quaternion import quat_conjugate as quat_conjugate
+from ._quaternion import quat_from_matrix as quat_from_matrix
+from ._quaternion import quat_multiply as quat_multiply
+from ._quaternion import quat_normalize as quat_normalize
+from ._quaternion import quat_rotate as quat_rotate
+
+try:
+    __version__ = version("rigidjax")
+except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0.0.0+unknown"

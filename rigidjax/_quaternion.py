@@ -1,0 +1,107 @@
+"""Unit quaternions, scalar first ``(w, x, y, z)``.
+
+A quaternion ``q`` and the matrix ``R = matrix_from_quat(q)`` mean the same rotation: they map
+body-frame components to space-frame components, ``v_space = R @ v_body = quat_rotate(q, v_body)``.
+``q`` and ``-q`` are the same rotation.
+"""
+
+import jax.numpy as jnp
+
+from ._misc import check_last_axis, check_last_two_axes, common_float
+from ._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
+
+
+def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
+    """Hamilton product ``p ⊗ q`` (apply ``q`` first, then ``p``, as with matrices ``P @ Q``)."""
+    p, q = common_float(p, q, names=["p", "q"])
+    check_last_axis(p, 4, "p")
+    check_last_axis(q, 4, "q")
+    pw, px, py, pz = jnp.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = jnp.moveaxis(q, -1, 0)
+    return jnp.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q: Quaternion) -> QuaternionOut:
+    """``(w, -x, -y, -z)``: the inverse rotation of a unit quaternion."""
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
+    """Rotates body-frame components ``v`` into space-frame components: ``q ⊗ (0, v) ⊗ q*``."""
+    q, v = common_float(q, v, names=["q", "v"])
+    check_last_axis(q, 4, "q")
+    check_last_axis(v, 3, "v")
+    w = q[..., :1]
+    u = q[..., 1:]
+    uv = jnp.cross(u, v)
+    return v + 2.0 * (w * uv + jnp.cross(u, uv))
+
+
+def quat_normalize(q: Quaternion) -> QuaternionOut:
+    """Scales ``q`` to unit norm."""
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def matrix_from_quat(q: Quaternion) -> MatrixOut:
+    """Rotation matrix of ``q`` (``v_space = R @ v_body``).
+
+    Uses ``2 / |q|^2`` rather than 2, so a quaternion that drifted slightly off unit norm still gives
+    an exactly orthogonal matrix (up to roundoff).
+    """
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    w, x, y, z = jnp.moveaxis(q, -1, 0)
+    s = 2.0 / jnp.sum(q * q, axis=-1)
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    xx, xy, xz = s * x * x, s * x * y, s * x * z
+    yy, yz, zz = s * y * y, s * y * z, s * z * z
+    rows = [
+        [1.0 - (yy + zz), xy - wz, xz + wy],
+        [xy + wz, 1.0 - (xx + zz), yz - wx],
+        [xz - wy, yz + wx, 1.0 - (xx + yy)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def quat_from_matrix(R: Matrix) -> QuaternionOut:
+    """Unit quaternion of a rotation matrix, with ``w >= 0``.
+
+    Shepperd's method: the component with the largest magnitude is found from the trace and
+    diagonal and the others are divided by it, so the result is accurate for every rotation
+    (including 180 degrees). Branches are selected with ``where`` on safe inputs, so the gradient is
+    finite everywhere.
+    """
+    (R,) = common_float(R, names=["R"])
+    check_last_two_axes(R, "R")
+    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    trace = r00 + r11 + r22
+    # Four candidate "4 * component^2" values; the largest is well away from zero (>= 1).
+    diag = jnp.stack([trace, r00 - r11 - r22, r11 - r00 - r22, r22 - r00 - r11], axis=-1)
+    k = jnp.argmax(diag, axis=-1)
+    big = jnp.sqrt(jnp.maximum(1.0 + jnp.max(diag, axis=-1), 1e-30)) * 2.0  # = 4 |q_k|
+    s21, s02, s10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
+    a01, a02, a12 = R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1]
+    candidates = jnp.stack(
+        [
+            jnp.stack([big * big / 4.0, s21, s02, s10], axis=-1),
+            jnp.stack([s21, big * big / 4.0, a01, a02], axis=-1),
+            jnp.stack([s02, a01, big * big / 4.0, a12], axis=-1),
+            jnp.stack([s10, a02, a12, big * big / 4.0], axis=-1),
+        ],
+        axis=-2,
+    ) / big[..., None, None]
+    q = jnp.take_along_axis(candidates, k[..., None, None], axis=-2)[..., 0, :]
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    return jnp.where(q[..., :1] < 0, -q, q)
