@@ -25,12 +25,24 @@ from ._euler import is_proper_sequence as is_proper_sequence
 from ._euler import matrix_from_euler as matrix_from_euler
 from ._euler import quat_from_euler as quat_from_euler
 from ._euler import space_angular_velocity as space_angular_velocity
+from ._models import AbstractModel as AbstractModel
+from ._models import AbstractTorque as AbstractTorque
+from ._models import ConstantTorque as ConstantTorque
+from ._models import FreeBody as FreeBody
+from ._models import HeavyTop as HeavyTop
+from ._models import RigidBody as RigidBody
+from ._models import State as State
+from ._models import Torque as Torque
+from ._models import ViscousDamping as ViscousDamping
 from ._quaternion import matrix_from_quat as matrix_from_quat
 from ._quaternion import quat_conjugate as quat_conjugate
 from ._quaternion import quat_from_matrix as quat_from_matrix
 from ._quaternion import quat_multiply as quat_multiply
 from ._quaternion import quat_normalize as quat_normalize
 from ._quaternion import quat_rotate as quat_rotate
+from ._simulate import PRESETS as PRESETS
+from ._simulate import simulate as simulate
+from ._trajectory import Trajectory as Trajectory
 
 try:
     __version__ = version("rigidjax")

@@ -1,0 +1,357 @@
+"""Scenes: the state of a body, the models that move it, and the torques a user can add.
+
+Models are ``eqx.Module`` pytrees: their numbers (inertia, mass, centre of mass, torque values) are
+leaves, so ``jax.grad`` with respect to them works through :func:`rigidjax.simulate`. A batch is a
+leading axis on the model's array fields and on the state's fields.
+
+Every model answers three questions the integrator asks: does it need the orientation (if not, only
+Euler's three equations are integrated), what is the body-frame angular acceleration, and what is
+the potential energy. Torques are body-frame, in N m.
+"""
+
+import abc
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._dynamics import euler_equations, is_full_tensor
+from ._dynamics import inertia_times
+from ._misc import as_float_array, check_last_axis
+from ._quaternion import quat_rotate
+
+_Z = (0.0, 0.0, 1.0)
+
+
+class State(eqx.Module):
+    """Body-frame angular velocity ``omega`` (rad/s) and, optionally, a unit quaternion
+    ``orientation`` (scalar first, body -> space). With ``orientation=None`` a scene that does not
+    need the orientation integrates only Euler's equations."""
+
+    omega: Float[Array, "*batch 3"]
+    orientation: Float[Array, "*batch 4"] | None = None
+
+    def __init__(self, omega, orientation=None):
+        omega = as_float_array(omega, "omega")
+        check_last_axis(omega, 3, "State.omega")
+        self.omega = omega
+        if orientation is not None:
+            orientation = as_float_array(orientation, "orientation")
+            check_last_axis(orientation, 4, "State.orientation")
+            dtype = jnp.result_type(omega.dtype, orientation.dtype)
+            self.omega = omega.astype(dtype)
+            orientation = orientation.astype(dtype)
+        self.orientation = orientation
+
+
+# ---------------------------------------------------------------------------------------------
+# Torques
+
+
+class AbstractTorque(eqx.Module):
+    """A body-frame torque ``tau(t, state, args)`` (N m) acting on one body."""
+
+    needs_orientation: eqx.AbstractClassVar[bool]
+    conservative: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def __call__(self, t, state: State, args: Any) -> Float[Array, "3"]:
+        ...
+
+
+class ConstantTorque(AbstractTorque):
+    """A constant torque, given in body-frame (``frame="body"``) or space-frame components.
+
+    A space-frame torque is fixed in space and is rotated into the body frame with the orientation.
+    """
+
+    torque: Float[Array, "*batch 3"]
+    frame: str = eqx.field(static=True, default="body")
+
+    def __check_init__(self):
+        if self.frame not in ("body", "space"):
+            raise ValueError(f"ConstantTorque frame must be 'body' or 'space', got {self.frame!r}.")
+        check_last_axis(jnp.asarray(self.torque), 3, "ConstantTorque.torque")
+
+    @property
+    def needs_orientation(self) -> bool:  # type: ignore[override]
+        return self.frame == "space"
+
+    def __call__(self, t, state, args):
+        tau = jnp.asarray(self.torque, state.omega.dtype)
+        if self.frame == "space":
+            q = state.orientation
+            conj = q * jnp.array([1.0, -1.0, -1.0, -1.0], q.dtype)
+            return quat_rotate(conj, tau)
+        return tau
+
+
+class ViscousDamping(AbstractTorque):
+    """Linear viscous damping ``tau = -coefficient * omega`` (coefficient in N m s, scalar or per
+    body axis)."""
+
+    coefficient: Float[Array, "*batch"] | Float[Array, "*batch 3"]
+    needs_orientation: ClassVar[bool] = False
+
+    def __call__(self, t, state, args):
+        return -jnp.asarray(self.coefficient, state.omega.dtype) * state.omega
+
+
+class Torque(AbstractTorque):
+    """A user torque: any callable ``fn(t, state, args) -> (3,)`` body-frame torque in N m.
+
+    ``fn`` sees one body (``state.omega`` of shape ``(3,)``); batching is done for you. Set
+    ``needs_orientation=False`` when ``fn`` ignores ``state.orientation``, so that scenes without an
+    orientation can integrate only Euler's equations. Numbers ``fn`` closes over are constants; put
+    numbers you want gradients for in ``params`` and read them as ``fn(t, state, params)``.
+    """
+
+    fn: Callable = eqx.field(static=True)
+    params: Any = None
+    needs_orientation: bool = eqx.field(static=True, default=True)
+
+    def __call__(self, t, state, args):
+        out = self.fn(t, state, self.params if self.params is not None else args)
+        return jnp.asarray(out, state.omega.dtype)
+
+
+def _total_torque(torques, t, state, args):
+    total = jnp.zeros_like(state.omega)
+    for torque in torques:
+        total = total + torque(t, state, args)
+    return total
+
+
+def _as_torque_tuple(torque) -> tuple:
+    if torque is None:
+        return ()
+    if isinstance(torque, AbstractTorque):
+        return (torque,)
+    if isinstance(torque, list | tuple) and all(isinstance(x, AbstractTorque) for x in torque):
+        return tuple(torque)
+    if callable(torque):
+        return (Torque(torque),)
+    raise TypeError(
+        "torque must be an AbstractTorque (ConstantTorque, ViscousDamping, Torque(fn)), a callable "
+        f"fn(t, state, args), or a tuple of them; got {type(torque).__name__}."
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Models
+
+
+class AbstractModel(eqx.Module):
+    """A scene: how one rigid body's angular velocity changes."""
+
+    @property
+    @abc.abstractmethod
+    def needs_orientation(self) -> bool:
+        ...
+
+    @abc.abstractmethod
+    def angular_acceleration(self, t, state: State, args: Any) -> Float[Array, "3"]:
+        """Body-frame ``d(omega)/dt`` for one body."""
+
+    def potential_energy(self, orientation) -> Float[Array, ""]:
+        """Potential energy (J) of one body at ``orientation``; 0 unless the scene has a field."""
+        return jnp.zeros(jnp.shape(orientation)[:-1], jnp.result_type(orientation))
+
+    @property
+    def torque_free(self) -> bool:
+        return False
+
+    @property
+    def conserves_energy(self) -> bool:
+        return False
+
+    def omega_scale(self, state: State, duration, args: Any) -> Float[Array, "3"]:
+        """Per-component angular-velocity scale (rad/s) for one body, used to make tolerances
+        dimensionless: |omega0|, or, for a body starting at rest, |d(omega)/dt| times the duration."""
+        speed = jnp.linalg.norm(state.omega)
+        accel = jnp.linalg.norm(self.angular_acceleration(0.0, state, args))
+        scale = jnp.where(speed > 0, speed, accel * duration)
+        return jnp.broadcast_to(scale, (3,))
+
+    @abc.abstractmethod
+    def _leaf_core_ndims(self) -> dict[str, int]:
+        """Number of trailing (per-body) axes of each array field; the rest are batch axes."""
+
+    def batch_shape(self) -> tuple[int, ...]:
+        shapes = []
+        for name, core in self._leaf_core_ndims().items():
+            value = getattr(self, name)
+            if value is None:
+                continue
+            shape = jnp.shape(value)
+            shapes.append(shape[: len(shape) - core])
+        return jnp.broadcast_shapes(*shapes) if shapes else ()
+
+    @property
+    def inertia_core_ndim(self) -> int:
+        return 2 if is_full_tensor(self.inertia) else 1
+
+
+def _inertia_field(inertia):
+    inertia = as_float_array(inertia, "inertia")
+    is_full_tensor(inertia)  # validates the shape
+    return inertia
+
+
+class FreeBody(AbstractModel):
+    """A torque-free rigid body. ``inertia``: principal moments ``(..., 3)`` or a tensor
+    ``(..., 3, 3)`` in body axes (kg m^2). Energy, ``|L|`` and space-frame ``L`` are conserved."""
+
+    inertia: Float[Array, "*batch 3"] | Float[Array, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+
+    @property
+    def needs_orientation(self) -> bool:
+        return False
+
+    @property
+    def torque_free(self) -> bool:
+        return True
+
+    @property
+    def conserves_energy(self) -> bool:
+        return True
+
+    def angular_acceleration(self, t, state, args):
+        return euler_equations(self.inertia, state.omega)
+
+    def omega_scale(self, state, duration, args):
+        if is_full_tensor(self.inertia):
+            return jnp.broadcast_to(jnp.linalg.norm(state.omega), (3,))
+        return _polhode_scale(self.inertia, state.omega)
+
+    def _leaf_core_ndims(self):
+        return {"inertia": self.inertia_core_ndim}
+
+
+class RigidBody(AbstractModel):
+    """A rigid body under user torques (body frame, N m): ``torque`` is an :class:`AbstractTorque`,
+    a callable ``fn(t, state, args)``, or a tuple of them (summed)."""
+
+    inertia: Float[Array, "*batch 3"] | Float[Array, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    torques: tuple = eqx.field(converter=_as_torque_tuple, default=())
+
+    def __init__(self, inertia, torque=None):
+        self.inertia = inertia
+        self.torques = torque
+
+    @property
+    def needs_orientation(self) -> bool:
+        return any(t.needs_orientation for t in self.torques)
+
+    @property
+    def torque_free(self) -> bool:
+        return not self.torques
+
+    @property
+    def conserves_energy(self) -> bool:
+        return all(t.conservative for t in self.torques)
+
+    def angular_acceleration(self, t, state, args):
+        return euler_equations(self.inertia, state.omega, _total_torque(self.torques, t, state, args))
+
+    def omega_scale(self, state, duration, args):
+        if not self.torques and not is_full_tensor(self.inertia):
+            return _polhode_scale(self.inertia, state.omega)
+        return super().omega_scale(state, duration, args)
+
+    def _leaf_core_ndims(self):
+        return {"inertia": self.inertia_core_ndim}
+
+
+class HeavyTop(AbstractModel):
+    """A rigid body on a fixed pivot in uniform gravity (the heavy top, the gyroscope).
+
+    ``inertia`` is about the PIVOT, in body axes (kg m^2); ``mass`` in kg; ``com`` is the body-frame
+    position of the centre of mass relative to the pivot (m); gravity ``gravity`` (m/s^2) points
+    along space -Z. Extra torques (e.g. friction) may be added with ``torque``. Total energy and the
+    vertical component of the space-frame angular momentum are conserved without extra torques.
+    """
+
+    inertia: Float[Array, "*batch 3"] | Float[Array, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    mass: Float[Array, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "mass"))
+    com: Float[Array, "*batch 3"] = eqx.field(converter=lambda x: as_float_array(x, "com"))
+    gravity: Float[Array, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "gravity"))
+    torques: tuple = eqx.field(converter=_as_torque_tuple)
+
+    def __init__(self, inertia, mass, com, gravity=9.81, torque=None):
+        self.inertia = inertia
+        self.mass = mass
+        self.com = com
+        self.gravity = gravity
+        self.torques = torque
+        check_last_axis(self.com, 3, "HeavyTop.com")
+
+    @property
+    def needs_orientation(self) -> bool:
+        return True
+
+    @property
+    def conserves_energy(self) -> bool:
+        return all(t.conservative for t in self.torques)
+
+    def gravity_torque(self, orientation):
+        """Body-frame gravity torque ``com x (m g R^T (-Z))`` (N m)."""
+        dtype = orientation.dtype
+        conj = orientation * jnp.array([1.0, -1.0, -1.0, -1.0], dtype)
+        up_body = quat_rotate(conj, jnp.array(_Z, dtype))
+        weight = (self.mass * self.gravity).astype(dtype)
+        return weight[..., None] * jnp.cross(up_body, self.com.astype(dtype))
+
+    def angular_acceleration(self, t, state, args):
+        tau = self.gravity_torque(state.orientation) + _total_torque(self.torques, t, state, args)
+        return euler_equations(self.inertia, state.omega, tau)
+
+    def omega_scale(self, state, duration, args):
+        """Bound on |omega| from energy: the top can at most turn all of ``V0 - V_min`` into
+        kinetic energy, and ``KE >= I_min |omega|^2 / 2``."""
+        inertia = self.inertia
+        moments = jnp.linalg.eigvalsh(inertia) if is_full_tensor(inertia) else inertia
+        kinetic = 0.5 * jnp.sum(state.omega * inertia_times(inertia, state.omega))
+        drop = self.potential_energy(state.orientation) + self.mass * self.gravity * jnp.linalg.norm(self.com)
+        bound = jnp.sqrt(2.0 * (kinetic + jnp.maximum(drop, 0.0)) / jnp.min(moments))
+        return jnp.broadcast_to(jnp.maximum(bound, jnp.linalg.norm(state.omega)), (3,))
+
+    def potential_energy(self, orientation):
+        """``m g Z_com``: the height of the centre of mass above the pivot times the weight (J)."""
+        com_space = quat_rotate(orientation, self.com.astype(orientation.dtype))
+        return (self.mass * self.gravity).astype(orientation.dtype) * com_space[..., 2]
+
+    def _leaf_core_ndims(self):
+        return {"inertia": self.inertia_core_ndim, "mass": 0, "com": 1, "gravity": 0}
+
+
+
+# ---------------------------------------------------------------------------------------------
+# Angular-velocity scales: what "relative error" is measured against, per body and component.
+
+
+def _polhode_scale(inertia, omega):
+    """Largest value each |omega_i| reaches on a torque-free principal-axis body (rad/s).
+
+    From energy and |L|^2 conservation: for components i, k and a third axis j with
+    sign(I_j - I_i) = sign(I_j - I_k), ``omega_i^2 + r omega_k^2`` is conserved-bounded with
+    ``r = I_k (I_j - I_k) / (I_i (I_j - I_i)) >= 0``. Written in these terms there is no
+    cancellation, so the Earth's 1e-11 rad/s wobble on a 7e-5 rad/s spin gets its own scale.
+    """
+    x = omega * omega
+    # Energy bound, always valid: omega_i^2 <= 2E / I_i.
+    bounds = [x[i] + (sum(inertia[k] * x[k] for k in range(3) if k != i)) / inertia[i] for i in range(3)]
+    for i in range(3):
+        best = bounds[i]
+        for j in range(3):
+            if j == i:
+                continue
+            k = 3 - i - j
+            di, dk = inertia[j] - inertia[i], inertia[j] - inertia[k]
+            usable = (di * dk >= 0) & (di != 0)
+            r = inertia[k] * dk / (inertia[i] * jnp.where(usable, di, 1.0))
+            best = jnp.where(usable, jnp.minimum(best, x[i] + r * x[k]), best)
+        bounds[i] = best
+    return jnp.sqrt(jnp.stack(bounds))

@@ -1,0 +1,331 @@
+"""``simulate``: integrate a scene over time for one body or a batch, with diffrax.
+
+How a batch is integrated (chosen by measurement, see ``benchmarks/``): bodies are sorted by their
+angular-velocity scale and cut into chunks; each chunk is one diffrax solve with one shared step
+size, accepted only when EVERY body in it meets the tolerance (a max norm over the chunk, so a fast
+body cannot hide among slow ones). Chunks run one after another with ``lax.map`` (bounded memory for
+10^6 bodies) and, with several devices, are sharded across them.
+
+Tolerances are dimensionless. Each body's angular velocity is divided by a per-component scale
+(``model.omega_scale``: for a torque-free body, the largest value each component reaches; otherwise
+|omega0|), and the quaternion is O(1), so ``rtol`` and ``atol`` mean the same thing for the Earth in
+SI units and for a 1e5 rad/s rotor.
+"""
+
+import math
+from typing import Any, Literal
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+from ._inertia import check_inertia
+from ._models import AbstractModel, State
+from ._quaternion import quat_multiply
+from ._trajectory import Trajectory
+
+Accuracy = Literal["fast", "balanced", "precise", "exact"]
+
+# Solver and rtol per preset. Chosen from the work-precision measurement in benchmarks/.
+PRESETS: dict[str, tuple[type, float]] = {
+    "fast": (diffrax.Tsit5, 1e-5),
+    "balanced": (diffrax.Tsit5, 1e-8),
+    "precise": (diffrax.Dopri8, 1e-11),
+}
+
+
+def _max_norm(x):
+    return jnp.max(jnp.abs(jnp.concatenate([jnp.ravel(leaf) for leaf in jax.tree_util.tree_leaves(x)])))
+
+
+def _quat_derivative(q, omega):
+    """``dq/dt = q ⊗ (0, omega) / 2`` plus ``|omega| (1 - |q|^2) q``, which leaves the rotation
+    unchanged but makes unit norm attracting, so the norm does not drift."""
+    pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
+    speed = jnp.linalg.norm(omega, axis=-1, keepdims=True)
+    return 0.5 * quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
+
+
+def _body_fields(model: AbstractModel):
+    names = list(model._leaf_core_ndims())
+    return names, [getattr(model, n) for n in names]
+
+
+def _with_fields(model, names, values):
+    return eqx.tree_at(lambda m: [getattr(m, n) for n in names], model, values)
+
+
+def _check_inputs(model, omega0, q0, ts, dtype):
+    names, values = _body_fields(model)
+    inertia = check_inertia(model.inertia)
+    values = [inertia if n == "inertia" else v for n, v in zip(names, values, strict=True)]
+    model = _with_fields(model, names, values)
+    for name, value in zip(names, values, strict=True):
+        if name != "inertia":
+            setattr_value = eqx.error_if(
+                value, ~jnp.all(jnp.isfinite(value)), f"simulate: model field {name!r} contains NaN or inf."
+            )
+            model = _with_fields(model, [name], [setattr_value])
+    omega0 = eqx.error_if(omega0, ~jnp.all(jnp.isfinite(omega0)), "simulate: state0.omega contains NaN or inf.")
+    if q0 is not None:
+        q0 = eqx.error_if(q0, ~jnp.all(jnp.isfinite(q0)), "simulate: state0.orientation contains NaN or inf.")
+        tol = 1e-6 if dtype == jnp.float64 else 1e-4
+        norm = jnp.linalg.norm(q0, axis=-1)
+        q0 = eqx.error_if(
+            q0,
+            jnp.any(jnp.abs(norm - 1.0) > tol),
+            f"simulate: state0.orientation is not a unit quaternion (| |q| - 1 | > {tol:g}); "
+            "normalise it (rigidjax.quat_normalize) or build it with quat_from_euler / quat_from_matrix.",
+        )
+        q0 = q0 / norm[..., None]
+    ts = eqx.error_if(ts, ~jnp.all(jnp.isfinite(ts)), "simulate: ts contains NaN or inf.")
+    if ts.shape[0] > 1:
+        ts = eqx.error_if(
+            ts,
+            jnp.any(jnp.diff(ts) <= 0),
+            "simulate: ts must be strictly increasing (found a decreasing or repeated time); "
+            "ts[0] is the initial time.",
+        )
+    return model, omega0, q0, ts
+
+
+@eqx.filter_jit
+def _simulate_impl(
+    model, omega0, q0, ts, args, *, solver, controller, adjoint, dt0, max_steps, chunk_size, sort, throw
+):
+    dtype = omega0.dtype
+    model, omega0, q0, ts = _check_inputs(model, omega0, q0, ts, dtype)
+    names, values = _body_fields(model)
+    cores = model._leaf_core_ndims()
+    batch = jnp.broadcast_shapes(
+        model.batch_shape(), omega0.shape[:-1], () if q0 is None else q0.shape[:-1]
+    )
+    n = math.prod(batch)
+    flat = []
+    for name, value in zip(names, values, strict=True):
+        core_shape = value.shape[value.ndim - cores[name] :]
+        flat.append(jnp.broadcast_to(value, batch + core_shape).reshape((n,) + core_shape).astype(dtype))
+    omega0 = jnp.broadcast_to(omega0, batch + (3,)).reshape(n, 3)
+    if q0 is not None:
+        q0 = jnp.broadcast_to(q0, batch + (4,)).reshape(n, 4)
+    n_times = ts.shape[0]
+
+    def body_model(body_values):
+        return _with_fields(model, names, body_values)
+
+    duration = ts[-1] - ts[0]
+
+    def scale_one(body_values, w, q):
+        m = body_model(body_values)
+        return m.omega_scale(State(w, q), duration, args)
+
+    sigma = jax.vmap(scale_one, in_axes=(0, 0, None if q0 is None else 0))(flat, omega0, q0)
+    sigma = jax.lax.stop_gradient(sigma)
+    peak = jnp.max(sigma, axis=-1, keepdims=True)
+    floor = 1e3 * jnp.finfo(dtype).eps * peak
+    sigma = jnp.where(peak > 0, jnp.maximum(sigma, floor), jnp.ones_like(sigma))
+
+    chunk = min(chunk_size, n)
+    n_chunks = -(-n // chunk)
+    if sort and n_chunks > 1:
+        order = jnp.argsort(-jnp.max(sigma, axis=-1))
+    else:
+        order = jnp.arange(n)
+    take = order[jnp.minimum(jnp.arange(n_chunks * chunk), n - 1)]
+
+    def to_chunks(x):
+        return x[take].reshape((n_chunks, chunk) + x.shape[1:])
+
+    chunks = (
+        [to_chunks(v) for v in flat],
+        to_chunks(omega0 / sigma),
+        None if q0 is None else to_chunks(q0),
+        to_chunks(sigma),
+    )
+
+    def solve_chunk(c):
+        c_values, u0, cq0, c_sigma = c
+
+        def body_rhs(body_values, t, y, s):
+            u, q = y
+            w = u * s
+            dw = body_model(body_values).angular_acceleration(t, State(w, q), args)
+            return (dw / s, None if q is None else _quat_derivative(q, w))
+
+        def vector_field(t, y, _):
+            return jax.vmap(body_rhs, in_axes=(0, None, 0, 0))(c_values, t, y, c_sigma)
+
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field),
+            solver,
+            ts[0],
+            ts[-1],
+            dt0,
+            (u0, cq0),
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=controller,
+            adjoint=adjoint,
+            max_steps=max_steps,
+            throw=False,
+        )
+        u, q = sol.ys
+        return (
+            jnp.swapaxes(u, 0, 1),
+            None if q is None else jnp.swapaxes(q, 0, 1),
+            sol.result._value,
+            sol.stats["num_steps"],
+        )
+
+    if n_times == 1:
+        u_all = chunks[1][:, :, None, :]
+        q_all = None if q0 is None else chunks[2][:, :, None, :]
+        codes = jnp.zeros((n_chunks,), jnp.int32)
+        steps = jnp.zeros((n_chunks,), jnp.int32)
+    else:
+        u_all, q_all, codes, steps = jax.lax.map(solve_chunk, chunks)
+
+    ok_chunk = codes == diffrax.RESULTS.successful._value
+    max_steps_hit = codes == diffrax.RESULTS.max_steps_reached._value
+    if throw:
+        u_all = eqx.error_if(
+            u_all,
+            jnp.any(max_steps_hit),
+            f"simulate: the integrator reached max_steps={max_steps} before the last time in ts. "
+            "Increase max_steps, choose a lower accuracy, or shorten ts.",
+        )
+        u_all = eqx.error_if(
+            u_all,
+            jnp.any(~ok_chunk),
+            "simulate: the integration failed (step size underflow or a non-finite state, e.g. a "
+            "singular scene). Check the inputs, or pass throw=False to get NaN rows and a success flag.",
+        )
+
+    inverse = jnp.argsort(order)
+
+    def from_chunks(x):
+        x = x.reshape((n_chunks * chunk,) + x.shape[2:])[:n]
+        return x[inverse]
+
+    ok = from_chunks(jnp.broadcast_to(ok_chunk[:, None], (n_chunks, chunk)))
+    omega = from_chunks(u_all) * sigma[:, None, :]
+    omega = jnp.where(ok[:, None, None], omega, jnp.nan)
+    out_q = None
+    q_norm_error = None
+    if q_all is not None:
+        qs = from_chunks(q_all)
+        q_norm = jnp.linalg.norm(qs, axis=-1, keepdims=True)
+        q_norm_error = jnp.max(jnp.abs(q_norm[..., 0] - 1.0), axis=-1).reshape(batch)
+        out_q = jnp.where(ok[:, None, None], qs / q_norm, jnp.nan).reshape(batch + (n_times, 4))
+    stats = {"num_steps": steps, "chunk_size": chunk, "quaternion_norm_error": q_norm_error}
+    model_b = _with_fields(model, names, [v.reshape(batch + v.shape[1:]) for v in flat])
+    return Trajectory(
+        ts=ts,
+        omega=omega.reshape(batch + (n_times, 3)),
+        orientation=out_q,
+        model=model_b,
+        success=ok.reshape(batch),
+        stats=stats,
+    )
+
+
+def _float_dtype(*xs):
+    dtypes = [jnp.asarray(x).dtype for x in xs if x is not None]
+    dtypes = [d for d in dtypes if jnp.issubdtype(d, jnp.floating)]
+    return jnp.result_type(*dtypes) if dtypes else jnp.result_type(float)
+
+
+def simulate(
+    model: AbstractModel,
+    state0: State,
+    ts,
+    *,
+    accuracy: Accuracy = "balanced",
+    solver: diffrax.AbstractSolver | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    dt0: float | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    max_steps: int = 100_000,
+    chunk_size: int = 1024,
+    sort_by_speed: bool = True,
+    throw: bool = True,
+    args: Any = None,
+) -> Trajectory:
+    """Integrates ``model`` from ``state0`` and samples it at times ``ts``.
+
+    Args:
+        model: a scene (:class:`FreeBody`, :class:`RigidBody`, :class:`HeavyTop`), possibly batched:
+            a leading batch axis on its array fields.
+        state0: initial :class:`State`; its batch axes broadcast against the model's. With
+            ``orientation=None`` and a scene that does not need it, only Euler's equations (three
+            per body) are integrated.
+        ts: strictly increasing sample times (s), shape (T,); ``ts[0]`` is the initial time.
+        accuracy: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Tsit5, 1e-8) or ``"precise"``
+            (Dopri8, 1e-11). ``"exact"`` (closed form) is not available yet.
+        solver, rtol, atol, stepsize_controller, dt0, adjoint: override the preset with any diffrax
+            solver, step-size controller (e.g. ``ConstantStepSize`` with ``dt0``) or adjoint.
+            ``rtol``/``atol`` are dimensionless (see the module docstring); ``atol`` defaults to
+            ``rtol``.
+        max_steps: step limit per chunk; reaching it is an error (or NaN rows with ``throw=False``).
+        chunk_size: bodies per shared-step chunk.
+        sort_by_speed: group bodies of similar angular-velocity scale into the same chunk.
+        throw: raise on invalid input or failed integration (default). With ``throw=False`` a failed
+            integration gives NaN rows and ``Trajectory.success = False`` instead.
+        args: passed to user torques as ``fn(t, state, args)``.
+
+    Returns:
+        A :class:`Trajectory` with ``omega`` (*batch, T, 3) and ``orientation`` (*batch, T, 4) or None.
+    """
+    if not isinstance(model, AbstractModel):
+        raise TypeError(f"model must be a rigidjax scene such as FreeBody or HeavyTop, got {type(model).__name__}.")
+    if not isinstance(state0, State):
+        raise TypeError(f"state0 must be a rigidjax.State, got {type(state0).__name__}.")
+    if accuracy == "exact":
+        raise NotImplementedError(
+            "accuracy='exact' (the closed-form torque-free solution) is not implemented yet; "
+            "use accuracy='precise'."
+        )
+    if accuracy not in PRESETS:
+        raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
+    if state0.orientation is None and model.needs_orientation:
+        raise ValueError(
+            f"{type(model).__name__} needs an orientation: pass State(omega, orientation=q) with a unit "
+            "quaternion q (e.g. rigidjax.quat_from_euler(angles))."
+        )
+    ts = jnp.asarray(ts)
+    if ts.ndim != 1 or ts.shape[0] < 1:
+        raise ValueError(f"ts must be a 1-D array of at least one time, got shape {tuple(ts.shape)}.")
+    dtype = _float_dtype(state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array)))
+    ts = ts.astype(dtype)
+    omega0 = state0.omega.astype(dtype)
+    q0 = None if state0.orientation is None else state0.orientation.astype(dtype)
+    model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
+    preset_solver, preset_rtol = PRESETS[accuracy]
+    solver = preset_solver() if solver is None else solver
+    rtol = preset_rtol if rtol is None else float(rtol)
+    atol = rtol if atol is None else float(atol)
+    if stepsize_controller is None:
+        stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=_max_norm)
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    if max_steps < 1 or chunk_size < 1:
+        raise ValueError("max_steps and chunk_size must be positive integers.")
+    return _simulate_impl(
+        model,
+        omega0,
+        q0,
+        ts,
+        args,
+        solver=solver,
+        controller=stepsize_controller,
+        adjoint=adjoint,
+        dt0=dt0,
+        max_steps=int(max_steps),
+        chunk_size=int(chunk_size),
+        sort=bool(sort_by_speed),
+        throw=bool(throw),
+    )
+
+

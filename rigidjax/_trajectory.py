@@ -1,0 +1,113 @@
+"""The result of :func:`rigidjax.simulate` and the physics it can report about itself."""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._dynamics import inertia_times, kinetic_energy
+from ._euler import euler_from_quat
+from ._models import AbstractModel
+from ._quaternion import quat_rotate
+
+
+class Trajectory(eqx.Module):
+    """Sampled motion of one body or a batch.
+
+    ``ts`` (T,) in s; ``omega`` (*batch, T, 3) body-frame rad/s; ``orientation`` (*batch, T, 4) unit
+    quaternions (scalar first, body -> space) or None for an omega-only scene. ``success`` (*batch)
+    is False where the integration failed (only with ``throw=False``; those rows are NaN).
+    ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk), ``chunk_size``
+    and ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body).
+    """
+
+    ts: Float[Array, " T"]
+    omega: Float[Array, "*batch T 3"]
+    orientation: Float[Array, "*batch T 4"] | None
+    model: AbstractModel
+    success: Bool[Array, "*batch"]
+    stats: dict
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return self.omega.shape[:-2]
+
+    def _model_per_time(self) -> AbstractModel:
+        """The model with a length-1 time axis inserted after its batch axes, to broadcast over T."""
+        model = self.model
+        nb = len(self.batch_shape)
+        names = list(model._leaf_core_ndims())
+        values = []
+        for name in names:
+            value = jnp.asarray(getattr(model, name))
+            core = model._leaf_core_ndims()[name]
+            value = jnp.broadcast_to(value, self.batch_shape + value.shape[value.ndim - core :])
+            values.append(jnp.expand_dims(value, nb))
+        return eqx.tree_at(lambda m: [getattr(m, n) for n in names], model, values)
+
+    def euler_angles(self, seq: str = "zxz") -> Float[Array, "*batch T 3"]:
+        """Euler angles ``(phi, theta, psi)`` along the trajectory, unwrapped in time so that angles
+        that keep turning (precession, spin) are continuous over many turns."""
+        if self.orientation is None:
+            raise ValueError("This trajectory has no orientation (omega-only scene); simulate with an orientation.")
+        angles = euler_from_quat(self.orientation, seq)
+        return jnp.unwrap(angles, axis=-2)
+
+    def kinetic_energy(self) -> Float[Array, "*batch T"]:
+        """Rotational kinetic energy ``omega . I omega / 2`` (J)."""
+        return kinetic_energy(self._model_per_time().inertia, self.omega)
+
+    def potential_energy(self) -> Float[Array, "*batch T"]:
+        """Potential energy (J); zero for scenes without a field."""
+        if self.orientation is None:
+            return jnp.zeros(self.omega.shape[:-1], self.omega.dtype)
+        return self._model_per_time().potential_energy(self.orientation)
+
+    def energy(self) -> Float[Array, "*batch T"]:
+        """Total energy, kinetic plus potential (J)."""
+        return self.kinetic_energy() + self.potential_energy()
+
+    def angular_momentum(self) -> Float[Array, "*batch T 3"]:
+        """Body-frame angular momentum ``I omega`` (kg m^2/s)."""
+        return inertia_times(self._model_per_time().inertia, self.omega)
+
+    def space_angular_momentum(self) -> Float[Array, "*batch T 3"]:
+        """Space-frame angular momentum ``R I omega`` (kg m^2/s)."""
+        if self.orientation is None:
+            raise ValueError("space_angular_momentum needs an orientation; simulate with one.")
+        return quat_rotate(self.orientation, self.angular_momentum())
+
+    def invariants(self) -> dict[str, Float[Array, "*batch"]]:
+        """Largest relative drift of each quantity the scene conserves, per body.
+
+        ``energy`` (torque-free and conservative scenes), ``angular_momentum_norm`` (torque-free),
+        ``space_angular_momentum`` (torque-free with orientation, ``|L(t) - L(0)| / |L(0)|``),
+        ``vertical_angular_momentum`` (heavy top, relative to |L(0)|), ``quaternion_norm``
+        (``| |q| - 1 |`` before the output was normalised).
+        """
+        out = {}
+        model = self.model
+        tiny = jnp.finfo(self.omega.dtype).tiny
+
+        def drift(x, scale):
+            return jnp.max(jnp.abs(x - x[..., :1]), axis=-1) / jnp.maximum(scale, tiny)
+
+        if model.conserves_energy:
+            e = self.energy()
+            ke0 = self.kinetic_energy()[..., 0]
+            v0 = jnp.abs(self.potential_energy()[..., 0])
+            out["energy"] = drift(e, jnp.maximum(jnp.abs(e[..., 0]), ke0 + v0))
+        L = self.angular_momentum()
+        L_norm = jnp.linalg.norm(L, axis=-1)
+        if model.torque_free:
+            out["angular_momentum_norm"] = drift(L_norm, L_norm[..., 0])
+            if self.orientation is not None:
+                Ls = self.space_angular_momentum()
+                out["space_angular_momentum"] = jnp.max(
+                    jnp.linalg.norm(Ls - Ls[..., :1, :], axis=-1), axis=-1
+                ) / jnp.maximum(L_norm[..., 0], tiny)
+        if type(model).__name__ == "HeavyTop" and model.conserves_energy:
+            Lz = self.space_angular_momentum()[..., 2]
+            out["vertical_angular_momentum"] = drift(Lz, L_norm[..., 0])
+        if self.orientation is not None:
+            out["quaternion_norm"] = self.stats["quaternion_norm_error"]
+        return out
