@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._dynamics import euler_equations, is_full_tensor
 from ._dynamics import inertia_times
@@ -67,7 +67,7 @@ class ConstantTorque(AbstractTorque):
     A space-frame torque is fixed in space and is rotated into the body frame with the orientation.
     """
 
-    torque: Float[Array, "*batch 3"]
+    torque: Float[ArrayLike, "*batch 3"] = eqx.field(converter=lambda x: as_float_array(x, "torque"))
     frame: str = eqx.field(static=True, default="body")
 
     def __check_init__(self):
@@ -92,7 +92,9 @@ class ViscousDamping(AbstractTorque):
     """Linear viscous damping ``tau = -coefficient * omega`` (coefficient in N m s, scalar or per
     body axis)."""
 
-    coefficient: Float[Array, "*batch"] | Float[Array, "*batch 3"]
+    coefficient: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 3"] = eqx.field(
+        converter=lambda x: as_float_array(x, "coefficient")
+    )
     needs_orientation: ClassVar[bool] = False
 
     def __call__(self, t, state, args):
@@ -155,7 +157,7 @@ class AbstractModel(eqx.Module):
     def angular_acceleration(self, t, state: State, args: Any) -> Float[Array, "3"]:
         """Body-frame ``d(omega)/dt`` for one body."""
 
-    def potential_energy(self, orientation) -> Float[Array, ""]:
+    def potential_energy(self, orientation) -> Float[Array, "..."]:
         """Potential energy (J) of one body at ``orientation``; 0 unless the scene has a field."""
         return jnp.zeros(jnp.shape(orientation)[:-1], jnp.result_type(orientation))
 
@@ -204,7 +206,7 @@ class FreeBody(AbstractModel):
     """A torque-free rigid body. ``inertia``: principal moments ``(..., 3)`` or a tensor
     ``(..., 3, 3)`` in body axes (kg m^2). Energy, ``|L|`` and space-frame ``L`` are conserved."""
 
-    inertia: Float[Array, "*batch 3"] | Float[Array, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(converter=_inertia_field)
 
     @property
     def needs_orientation(self) -> bool:
@@ -234,7 +236,7 @@ class RigidBody(AbstractModel):
     """A rigid body under user torques (body frame, N m): ``torque`` is an :class:`AbstractTorque`,
     a callable ``fn(t, state, args)``, or a tuple of them (summed)."""
 
-    inertia: Float[Array, "*batch 3"] | Float[Array, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(converter=_inertia_field)
     torques: tuple = eqx.field(converter=_as_torque_tuple, default=())
 
     def __init__(self, inertia, torque=None):
@@ -274,7 +276,7 @@ class HeavyTop(AbstractModel):
     vertical component of the space-frame angular momentum are conserved without extra torques.
     """
 
-    inertia: Float[Array, "*batch 3"] | Float[Array, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(converter=_inertia_field)
     mass: Float[Array, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "mass"))
     com: Float[Array, "*batch 3"] = eqx.field(converter=lambda x: as_float_array(x, "com"))
     gravity: Float[Array, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "gravity"))

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 
+from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_euler
 from ._inertia import check_inertia
 from ._models import AbstractModel, State
 from ._quaternion import quat_multiply
@@ -93,7 +94,8 @@ def _check_inputs(model, omega0, q0, ts, dtype):
 
 @eqx.filter_jit
 def _simulate_impl(
-    model, omega0, q0, ts, args, *, solver, controller, adjoint, dt0, max_steps, chunk_size, sort, throw
+    model, omega0, q0, ts, args, *, solver, controller, adjoint, dt0, max_steps, chunk_size, sort, throw,
+    euler_seq, lock_tolerance
 ):
     dtype = omega0.dtype
     model, omega0, q0, ts = _check_inputs(model, omega0, q0, ts, dtype)
@@ -138,10 +140,21 @@ def _simulate_impl(
     def to_chunks(x):
         return x[take].reshape((n_chunks, chunk) + x.shape[1:])
 
+    if euler_seq is not None:
+        lock = _lock_distance(euler_from_quat(q0, euler_seq), euler_seq)
+        q0 = eqx.error_if(
+            q0,
+            jnp.any(lock < lock_tolerance),
+            f"simulate: the initial orientation is within {lock_tolerance:g} of gimbal lock for the "
+            f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
+        )
+        attitude0 = euler_from_quat(q0, euler_seq)
+    else:
+        attitude0 = q0
     chunks = (
         [to_chunks(v) for v in flat],
         to_chunks(omega0 / sigma),
-        None if q0 is None else to_chunks(q0),
+        None if attitude0 is None else to_chunks(attitude0),
         to_chunks(sigma),
     )
 
@@ -149,10 +162,19 @@ def _simulate_impl(
         c_values, u0, cq0, c_sigma = c
 
         def body_rhs(body_values, t, y, s):
-            u, q = y
+            u, attitude = y
             w = u * s
+            if euler_seq is None:
+                q = attitude
+                dattitude = None if q is None else _quat_derivative(q, w)
+            else:
+                q = quat_from_euler(attitude, euler_seq)
+                dattitude = euler_rates(attitude, w, euler_seq, throw=False)
             dw = body_model(body_values).angular_acceleration(t, State(w, q), args)
-            return (dw / s, None if q is None else _quat_derivative(q, w))
+            return (dw / s, dattitude)
+
+        def near_lock(t, y, args, **kwargs):
+            return jnp.any(_lock_distance(y[1], euler_seq) < lock_tolerance)
 
         def vector_field(t, y, _):
             return jax.vmap(body_rhs, in_axes=(0, None, 0, 0))(c_values, t, y, c_sigma)
@@ -169,8 +191,11 @@ def _simulate_impl(
             adjoint=adjoint,
             max_steps=max_steps,
             throw=False,
+            event=None if euler_seq is None else diffrax.Event(near_lock),
         )
         u, q = sol.ys
+        if euler_seq is not None:
+            q = quat_from_euler(q, euler_seq)
         return (
             jnp.swapaxes(u, 0, 1),
             None if q is None else jnp.swapaxes(q, 0, 1),
@@ -188,6 +213,15 @@ def _simulate_impl(
 
     ok_chunk = codes == diffrax.RESULTS.successful._value
     max_steps_hit = codes == diffrax.RESULTS.max_steps_reached._value
+    hit_lock = codes == diffrax.RESULTS.event_occurred._value
+    if throw and euler_seq is not None:
+        u_all = eqx.error_if(
+            u_all,
+            jnp.any(hit_lock),
+            f"simulate: the Euler-angle state (seq={euler_seq!r}) came within {lock_tolerance:g} of "
+            "gimbal lock (first and third axes aligned), where Euler-angle rates are unbounded. "
+            "Use representation='quaternion' (the default), or throw=False for NaN rows.",
+        )
     if throw:
         u_all = eqx.error_if(
             u_all,
@@ -230,6 +264,16 @@ def _simulate_impl(
     )
 
 
+def _lock_distance(angles, seq):
+    """sin(theta) (proper sequences) or cos(theta) (Tait-Bryan): 0 at gimbal lock.
+
+    Signed on purpose: theta starts inside (0, pi) or (-pi/2, pi/2), so a step that jumps over the
+    lock (the event is only checked at step ends) leaves a negative value and is still caught.
+    """
+    theta = angles[..., 1]
+    return jnp.sin(theta) if is_proper_sequence(seq) else jnp.cos(theta)
+
+
 def _float_dtype(*xs):
     dtypes = [jnp.asarray(x).dtype for x in xs if x is not None]
     dtypes = [d for d in dtypes if jnp.issubdtype(d, jnp.floating)]
@@ -241,7 +285,7 @@ def simulate(
     state0: State,
     ts,
     *,
-    accuracy: Accuracy = "balanced",
+    accuracy: str = "balanced",
     solver: diffrax.AbstractSolver | None = None,
     rtol: float | None = None,
     atol: float | None = None,
@@ -253,6 +297,9 @@ def simulate(
     sort_by_speed: bool = True,
     throw: bool = True,
     args: Any = None,
+    representation: str = "quaternion",
+    euler_seq: str = "zxz",
+    lock_tolerance: float = 1e-3,
 ) -> Trajectory:
     """Integrates ``model`` from ``state0`` and samples it at times ``ts``.
 
@@ -275,6 +322,12 @@ def simulate(
         throw: raise on invalid input or failed integration (default). With ``throw=False`` a failed
             integration gives NaN rows and ``Trajectory.success = False`` instead.
         args: passed to user torques as ``fn(t, state, args)``.
+        representation: how the orientation is integrated when there is one: ``"quaternion"``
+            (default; unit norm kept without drift) or ``"euler"`` (the Euler angles of
+            ``euler_seq`` as state, for users who want them). The Euler-angle state stops with an
+            error when ``|sin(theta)|`` (``|cos(theta)|`` for Tait-Bryan) falls below
+            ``lock_tolerance``: near gimbal lock its equations are singular. Output orientations
+            are quaternions either way.
 
     Returns:
         A :class:`Trajectory` with ``omega`` (*batch, T, 3) and ``orientation`` (*batch, T, 4) or None.
@@ -295,6 +348,12 @@ def simulate(
             f"{type(model).__name__} needs an orientation: pass State(omega, orientation=q) with a unit "
             "quaternion q (e.g. rigidjax.quat_from_euler(angles))."
         )
+    if representation not in ("quaternion", "euler"):
+        raise ValueError(f"representation must be 'quaternion' or 'euler', got {representation!r}.")
+    if representation == "euler":
+        if state0.orientation is None:
+            raise ValueError("representation='euler' needs an initial orientation in state0.")
+        is_proper_sequence(euler_seq)  # validates the sequence name
     ts = jnp.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 1:
         raise ValueError(f"ts must be a 1-D array of at least one time, got shape {tuple(ts.shape)}.")
@@ -304,11 +363,16 @@ def simulate(
     q0 = None if state0.orientation is None else state0.orientation.astype(dtype)
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
     preset_solver, preset_rtol = PRESETS[accuracy]
+    solver_from_preset = solver is None
     solver = preset_solver() if solver is None else solver
-    rtol = preset_rtol if rtol is None else float(rtol)
-    atol = rtol if atol is None else float(atol)
+    # Arrays, not Python floats, so that a new tolerance does not trigger a recompilation.
+    rtol = jnp.asarray(preset_rtol if rtol is None else rtol, dtype)
+    atol = rtol if atol is None else jnp.asarray(atol, dtype)
     if stepsize_controller is None:
-        stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=_max_norm)
+        # "precise" lands a step on every sample time: Dopri8's dense output is accurate to ~1e-9
+        # only, far worse than its steps; the other presets' interpolants are within their tolerance.
+        step_ts = ts if accuracy == "precise" and solver_from_preset else None
+        stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=_max_norm, step_ts=step_ts)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     if max_steps < 1 or chunk_size < 1:
         raise ValueError("max_steps and chunk_size must be positive integers.")
@@ -326,6 +390,8 @@ def simulate(
         chunk_size=int(chunk_size),
         sort=bool(sort_by_speed),
         throw=bool(throw),
+        euler_seq=euler_seq if representation == "euler" else None,
+        lock_tolerance=float(lock_tolerance),
     )
 
 

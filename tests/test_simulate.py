@@ -1,0 +1,361 @@
+"""simulate() against closed forms, conservation laws, convergence order and finite differences.
+
+Compiles are the expensive part on a small CPU, so tests share shapes and configurations: the
+tolerance is a traced array (no recompilation), and a few module-level trajectories serve several
+tests.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rigidjax as rj
+
+F64 = jnp.float64
+IDENTITY = jnp.array([1.0, 0.0, 0.0, 0.0])
+
+
+def symmetric_top_exact(I1, I3, omega0, ts):
+    """Torque-free symmetric top: w1 + i w2 = (w1 + i w2)(0) exp(i Omega t), Omega = (I3-I1)/I1 w3."""
+    Omega = (I3 - I1) / I1 * omega0[2]
+    transverse = (omega0[0] + 1j * omega0[1]) * np.exp(1j * Omega * ts)
+    return np.stack([transverse.real, transverse.imag, np.full_like(ts, omega0[2])], axis=-1)
+
+
+# One compiled configuration (FreeBody principal, omega-only, 3 bodies, 41 samples) serves the
+# symmetric-top tests: the Earth, a 1e5 rad/s rotor and a laboratory top in one batch.
+SYM_TS = np.linspace(0.0, 1.0, 41)
+SYM_INERTIA = np.array(
+    [
+        [8.0101e37, 8.0101e37, 8.0365e37],  # the Earth (kg m^2), dynamical ellipticity ~3.3e-3
+        [2.0e-6, 2.0e-6, 3.5e-6],  # a small 1e5 rad/s rotor
+        [2.0, 2.0, 3.0],  # a laboratory top
+    ]
+)
+EARTH_SPIN = 7.292115e-5
+EULER_PERIOD = 2 * np.pi / ((SYM_INERTIA[0, 2] - SYM_INERTIA[0, 0]) / SYM_INERTIA[0, 0] * EARTH_SPIN)
+SYM_OMEGA = np.array([[1e-11, 0.0, EARTH_SPIN], [300.0, -200.0, 1e5], [0.3, 0.0, 5.0]])
+# Each body gets its own time span by scaling: simulate the Earth over 1.5 Euler periods, the
+# rotor over ~3 ms and the top over 10 s, all with the same 41 samples of normalised time.
+SYM_SPANS = np.array([1.5 * EULER_PERIOD, 3e-3, 10.0])
+
+
+def _simulate_symmetric(i, accuracy):
+    ts = jnp.asarray(SYM_TS * SYM_SPANS[i])
+    return rj.simulate(
+        rj.FreeBody(jnp.asarray(SYM_INERTIA[i])), rj.State(jnp.asarray(SYM_OMEGA[i])), ts, accuracy=accuracy
+    )
+
+
+@pytest.mark.parametrize("accuracy, bound", [("fast", 1e-3), ("balanced", 1e-6), ("precise", 1e-9)])
+@pytest.mark.parametrize("body", [0, 1, 2], ids=["earth", "rotor", "top"])
+def test_symmetric_top_closed_form_in_any_units(body, accuracy, bound):
+    """The wobble is resolved relative to its own amplitude: the Earth's 1e-11 rad/s on a 7e-5 rad/s
+    spin, and a 1e5 rad/s rotor, come out at the preset's accuracy with default arguments."""
+    traj = _simulate_symmetric(body, accuracy)
+    ts = SYM_TS * SYM_SPANS[body]
+    exact = symmetric_top_exact(SYM_INERTIA[body, 0], SYM_INERTIA[body, 2], SYM_OMEGA[body], ts)
+    omega = np.asarray(traj.omega)
+    amplitude = np.hypot(*SYM_OMEGA[body, :2])
+    wobble_error = np.max(np.abs(omega[:, :2] - exact[:, :2])) / amplitude
+    assert wobble_error < bound, wobble_error
+    np.testing.assert_allclose(omega[:, 2], exact[:, 2], rtol=1e-12)
+
+
+def test_free_precession_rate_matches_simulated_wobble():
+    traj = _simulate_symmetric(0, "balanced")
+    omega = np.asarray(traj.omega)
+    phase = np.unwrap(np.arctan2(omega[:, 1], omega[:, 0]))
+    rate = np.polyfit(np.asarray(traj.ts), phase, 1)[0]
+    expected = rj.free_precession_rate(SYM_INERTIA[0, 0], SYM_INERTIA[0, 2], EARTH_SPIN)
+    np.testing.assert_allclose(rate, float(expected), rtol=1e-7)
+
+
+# The free rigid body of Hairer, Lubich & Wanner (Geometric Numerical Integration, IV.1): period
+# 10.73147 s. Their moments (2, 1, 2/3) violate the triangle inequality; the physical body with the
+# same angular-momentum motion has 1/I' = 1/I + 1.
+HLW_INERTIA = jnp.array([2 / 3, 1 / 2, 2 / 5])
+HLW_L0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
+HLW_PERIOD = 10.73147
+
+
+@pytest.fixture(scope="module")
+def hlw_trajectory():
+    ts = jnp.linspace(0.0, 3 * HLW_PERIOD, 301)
+    return rj.simulate(rj.FreeBody(HLW_INERTIA), rj.State(HLW_L0 / HLW_INERTIA, IDENTITY), ts, accuracy="precise")
+
+
+def test_hairer_lubich_wanner_period(hlw_trajectory):
+    """omega returns to its start after each published period (ts hits t = P, 2P, 3P exactly)."""
+    omega = np.asarray(hlw_trajectory.omega)
+    # The period is given to 6 digits: allow |d omega/dt| ~ 1 times 5e-6 s per period elapsed.
+    for k, index in enumerate([100, 200, 300], start=1):
+        np.testing.assert_allclose(omega[index], omega[0], atol=1e-5 * k)
+    # Half a period away it is far from the start, so the check above cannot pass by accident.
+    assert np.max(np.abs(omega[50] - omega[0])) > 0.1
+
+
+def test_torque_free_conservation(hlw_trajectory):
+    inv = {k: float(v) for k, v in hlw_trajectory.invariants().items()}
+    assert inv["energy"] < 1e-11
+    assert inv["angular_momentum_norm"] < 1e-11
+    assert inv["space_angular_momentum"] < 1e-9
+    assert inv["quaternion_norm"] < 1e-9
+    # Independent check of the space-frame momentum: R(q) @ (I omega) with matrices, not quat_rotate.
+    R = np.asarray(rj.matrix_from_quat(hlw_trajectory.orientation))
+    L_space = np.einsum("tij,tj->ti", R, np.asarray(HLW_INERTIA) * np.asarray(hlw_trajectory.omega))
+    np.testing.assert_allclose(L_space, np.broadcast_to(np.asarray(HLW_L0), L_space.shape), atol=1e-9)
+
+
+def test_omega_only_and_quaternion_agree(hlw_trajectory):
+    ts = hlw_trajectory.ts
+    omega_only = rj.simulate(rj.FreeBody(HLW_INERTIA), rj.State(HLW_L0 / HLW_INERTIA), ts, accuracy="precise")
+    assert omega_only.orientation is None
+    np.testing.assert_allclose(np.asarray(omega_only.omega), np.asarray(hlw_trajectory.omega), atol=1e-9)
+
+
+# A batch of tennis-racket bodies near each principal axis (module scope: compiled once).
+def _racket_batch(n_per_axis=4, seed=0):
+    rng = np.random.default_rng(seed)
+    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.02 * rng.uniform(-1, 1, (3 * n_per_axis, 3)))
+    omega = np.zeros((3 * n_per_axis, 3))
+    for axis in range(3):
+        rows = slice(axis * n_per_axis, (axis + 1) * n_per_axis)
+        omega[rows] = 0.01 * rng.normal(size=(n_per_axis, 3))
+        omega[rows, axis] = 3.0
+    return jnp.asarray(inertia), jnp.asarray(omega)
+
+
+@pytest.fixture(scope="module")
+def racket():
+    inertia, omega = _racket_batch()
+    q0 = jnp.broadcast_to(IDENTITY, (omega.shape[0], 4))
+    ts = jnp.linspace(0.0, 20.0, 201)
+    traj = rj.simulate(rj.FreeBody(inertia), rj.State(omega, q0), ts, chunk_size=5)
+    return inertia, omega, q0, ts, traj
+
+
+def test_tennis_racket_flip(racket):
+    _, omega0, _, _, traj = racket
+    omega = np.asarray(traj.omega)
+    n = omega.shape[0] // 3
+    for axis in range(3):
+        w = omega[axis * n : (axis + 1) * n, :, axis]
+        flipped = np.any(w < 0, axis=-1)
+        if axis == 1:
+            assert flipped.all(), "spin near the intermediate axis must flip"
+        else:
+            assert not flipped.any(), f"spin near axis {axis + 1} must stay stable"
+
+
+def test_batch_equals_per_body(racket):
+    """Chunked, sorted, shared-step batch integration agrees with one-body solves."""
+    inertia, omega0, q0, ts, traj = racket
+    for i in [0, 5, 11]:
+        single = rj.simulate(rj.FreeBody(inertia[i]), rj.State(omega0[i], q0[i]), ts)
+        # Chaotic flips amplify differences in step sequence; compare well before the first flip
+        # and the invariants everywhere.
+        np.testing.assert_allclose(np.asarray(traj.omega[i, :40]), np.asarray(single.omega[:40]), atol=1e-6)
+    inv = traj.invariants()
+    assert float(jnp.max(inv["energy"])) < 1e-7
+    assert float(jnp.max(inv["space_angular_momentum"])) < 1e-5
+
+
+def test_batch_shapes_broadcast():
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    omega = jnp.broadcast_to(jnp.array([0.1, 3.0, 0.1]), (2, 3, 3))
+    ts = jnp.linspace(0.0, 1.0, 5)
+    traj = rj.simulate(rj.FreeBody(inertia), rj.State(omega), ts)
+    assert traj.omega.shape == (2, 3, 5, 3)
+    assert traj.success.shape == (2, 3)
+    np.testing.assert_allclose(np.asarray(traj.omega[1, 2]), np.asarray(traj.omega[0, 0]), rtol=1e-12)
+
+
+def test_heavy_top_conservation_and_precession():
+    inertia = jnp.array([1.0, 1.0, 0.5]) * 1e-2
+    mass, l, g = 0.5, 0.05, 9.81
+    top = rj.HeavyTop(inertia, mass, jnp.array([0.0, 0.0, l]), g)
+    omega3 = 200.0
+    theta0 = 0.4
+    q0 = rj.quat_from_euler(jnp.array([0.0, theta0, 0.0]))
+    ts = jnp.linspace(0.0, 4.0, 401)
+    traj = rj.simulate(top, rj.State(jnp.array([0.0, 0.0, omega3]), q0), ts, accuracy="precise")
+    inv = traj.invariants()
+    assert float(inv["energy"]) < 1e-10
+    assert float(inv["vertical_angular_momentum"]) < 1e-10
+    angles = np.asarray(traj.euler_angles())
+    rate = np.polyfit(np.asarray(ts), angles[:, 0], 1)[0]
+    fast_top = mass * g * l / (float(inertia[2]) * omega3)
+    np.testing.assert_allclose(rate, fast_top, rtol=0.02)
+    # Nutation stays small for a fast top: theta within a few percent of its start.
+    assert np.max(np.abs(angles[:, 1] - theta0)) < 0.05
+
+
+def test_sleeping_top_criterion():
+    """(I3 w3)^2 > 4 I1 m g l: an upright top stays up; below it, it falls."""
+    I1, I3, mass, l, g = 1e-2, 5e-3, 0.5, 0.05, 9.81
+    critical = np.sqrt(4 * I1 * mass * g * l) / I3
+    inertia = jnp.array([[I1, I1, I3], [I1, I1, I3]])
+    top = rj.HeavyTop(inertia, mass, jnp.array([0.0, 0.0, l]), g)
+    omega = jnp.array([[0.0, 0.0, 1.3 * critical], [0.0, 0.0, 0.7 * critical]])
+    q0 = jnp.broadcast_to(rj.quat_from_euler(jnp.array([0.0, 1e-3, 0.0])), (2, 4))
+    traj = rj.simulate(top, rj.State(omega, q0), jnp.linspace(0.0, 3.0, 301))
+    theta = np.asarray(traj.euler_angles())[..., 1]
+    assert np.max(theta[0]) < 0.01
+    assert np.max(theta[1]) > 0.5
+
+
+def test_constant_and_damping_torques_on_a_sphere():
+    """For a sphere the gyroscopic term vanishes: body torque gives w0 + tau t / I, damping gives
+    w0 exp(-c t / I), and a space-fixed torque changes the space-frame momentum as L0 + tau t."""
+    I = 0.4
+    inertia = jnp.array([I, I, I])
+    ts = jnp.linspace(0.0, 2.0, 21)
+    w0 = jnp.array([1.0, -2.0, 0.5])
+    tau = jnp.array([0.1, 0.2, -0.3])
+    traj = rj.simulate(rj.RigidBody(inertia, rj.ConstantTorque(tau)), rj.State(w0), ts)
+    np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(w0 + tau * ts[:, None] / I), rtol=1e-9)
+    c = 0.3
+    traj = rj.simulate(rj.RigidBody(inertia, rj.ViscousDamping(c)), rj.State(w0), ts)
+    np.testing.assert_allclose(
+        np.asarray(traj.omega), np.asarray(w0 * jnp.exp(-c * ts / I)[:, None]), rtol=1e-7
+    )
+    q0 = rj.quat_from_euler(jnp.array([0.3, 0.7, -0.2]))
+    traj = rj.simulate(rj.RigidBody(inertia, rj.ConstantTorque(tau, frame="space")), rj.State(w0, q0), ts)
+    L0 = rj.quat_rotate(q0, I * w0)
+    np.testing.assert_allclose(
+        np.asarray(traj.space_angular_momentum()), np.asarray(L0 + tau * ts[:, None]), atol=1e-7
+    )
+
+
+def test_user_torque_callable_and_no_recompilation():
+    traces = []
+
+    def spin_up(t, state, args):
+        traces.append(1)
+        return jnp.array([0.0, 0.0, 1.0], state.omega.dtype) * args
+
+    inertia = jnp.array([1.0, 1.0, 2.0])
+    ts = jnp.linspace(0.0, 1.0, 11)
+    model = rj.RigidBody(inertia, rj.Torque(spin_up, needs_orientation=False))
+    traj = rj.simulate(model, rj.State(jnp.array([0.0, 0.0, 1.0])), ts, args=jnp.asarray(2.0))
+    np.testing.assert_allclose(np.asarray(traj.omega[:, 2]), np.asarray(1.0 + 2.0 * ts / 2.0), rtol=1e-9)
+    n_traces = len(traces)
+    # New numbers, same shapes, same tolerance preset: no new trace (hence no recompilation).
+    model2 = rj.RigidBody(inertia * 1.5, rj.Torque(spin_up, needs_orientation=False))
+    traj2 = rj.simulate(model2, rj.State(jnp.array([0.1, 0.0, 2.0])), ts * 2, args=jnp.asarray(3.0), rtol=1e-9)
+    traj2.omega.block_until_ready()
+    assert len(traces) == n_traces
+
+
+@pytest.mark.parametrize("solver, order", [(diffrax.Tsit5(), 5), (diffrax.Dopri8(), 8)])
+def test_convergence_order(solver, order):
+    """Fixed steps on a smooth scene: log(error) against log(dt) has the solver's slope."""
+    inertia = jnp.array([2.0, 2.0, 3.0])
+    w0 = jnp.array([0.3, 0.0, 5.0])
+    ts = jnp.array([0.0, 4.0])
+    exact = symmetric_top_exact(2.0, 3.0, np.asarray(w0), np.asarray(ts))[-1]
+    steps = np.array([0.2, 0.1, 0.05]) if order == 5 else np.array([0.4, 0.2, 0.1])
+    errors = []
+    for dt in steps:
+        traj = rj.simulate(
+            rj.FreeBody(inertia),
+            rj.State(w0),
+            ts,
+            solver=solver,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=float(dt),
+        )
+        errors.append(np.max(np.abs(np.asarray(traj.omega[-1]) - exact)))
+    slope = np.polyfit(np.log(steps), np.log(errors), 1)[0]
+    assert order - 0.5 < slope < order + 1.0, (slope, errors)
+
+
+def test_float32_close_to_float64_on_a_regular_scene():
+    inertia = np.array([2.0, 2.0, 3.0])
+    w0 = np.array([0.3, 0.0, 5.0])
+    ts = np.linspace(0.0, 5.0, 11)
+    q0 = np.array([1.0, 0.0, 0.0, 0.0])
+    t32 = rj.simulate(
+        rj.FreeBody(inertia.astype(np.float32)),
+        rj.State(w0.astype(np.float32), q0.astype(np.float32)),
+        ts.astype(np.float32),
+        accuracy="fast",
+    )
+    assert t32.omega.dtype == jnp.float32 and t32.orientation.dtype == jnp.float32
+    exact = symmetric_top_exact(2.0, 3.0, w0, ts)
+    np.testing.assert_allclose(np.asarray(t32.omega, np.float64), exact, atol=1e-4)
+
+
+def test_gradient_matches_finite_differences():
+    ts = jnp.array([0.0, 3.0])
+    w0 = jnp.array([0.2, 1.0, 0.3])
+
+    def final_omega(inertia):
+        return rj.simulate(rj.FreeBody(inertia), rj.State(w0), ts, accuracy="precise").omega[-1]
+
+    inertia = jnp.array([1.0, 2.0, 2.5])
+    jac = np.asarray(jax.jacrev(final_omega)(inertia))
+    h = 1e-6
+    fd = np.stack(
+        [
+            (np.asarray(final_omega(inertia.at[k].add(h))) - np.asarray(final_omega(inertia.at[k].add(-h)))) / (2 * h)
+            for k in range(3)
+        ],
+        axis=-1,
+    )
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
+
+
+def test_single_output_time_returns_initial_state():
+    q0 = rj.quat_from_euler(jnp.array([0.1, 0.2, 0.3]))
+    traj = rj.simulate(rj.FreeBody(jnp.array([1.0, 2.0, 2.5])), rj.State(jnp.array([1.0, 2.0, 3.0]), q0), jnp.array([0.5]))
+    np.testing.assert_allclose(np.asarray(traj.omega[0]), [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(np.asarray(traj.orientation[0]), np.asarray(q0), atol=1e-15)
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad input: a clear error naming the problem, also inside jit.
+
+GOOD_INERTIA = jnp.array([1.0, 2.0, 2.5])
+GOOD_TS = jnp.linspace(0.0, 1.0, 3)
+
+
+@pytest.mark.parametrize(
+    "inertia, omega, q, ts, match",
+    [
+        (jnp.array([1.0, 2.0, 4.0]), jnp.ones(3), None, GOOD_TS, "triangle"),
+        (jnp.array([-1.0, 2.0, 2.5]), jnp.ones(3), None, GOOD_TS, "positive"),
+        (GOOD_INERTIA, jnp.array([1.0, jnp.nan, 0.0]), None, GOOD_TS, "NaN"),
+        (GOOD_INERTIA, jnp.ones(3), jnp.array([1.0, 0.1, 0.0, 0.0]), GOOD_TS, "unit quaternion"),
+        (GOOD_INERTIA, jnp.ones(3), None, jnp.array([0.0, 1.0, 0.5]), "strictly increasing"),
+        (GOOD_INERTIA, jnp.ones(3), None, jnp.array([0.0, 1.0, 1.0]), "strictly increasing"),
+    ],
+)
+def test_bad_input_errors(inertia, omega, q, ts, match):
+    with pytest.raises(Exception, match=match):
+        traj = rj.simulate(rj.FreeBody(inertia), rj.State(omega, q), ts)
+        traj.omega.block_until_ready()
+
+
+def test_wrong_shapes_and_missing_orientation():
+    with pytest.raises(ValueError, match="omega"):
+        rj.State(jnp.ones(4))
+    with pytest.raises(ValueError, match="orientation"):
+        rj.simulate(rj.HeavyTop(GOOD_INERTIA, 1.0, jnp.array([0.0, 0.0, 0.1])), rj.State(jnp.ones(3)), GOOD_TS)
+    with pytest.raises(ValueError, match="ts"):
+        rj.simulate(rj.FreeBody(GOOD_INERTIA), rj.State(jnp.ones(3)), jnp.ones((2, 2)))
+    with pytest.raises(ValueError, match="accuracy"):
+        rj.simulate(rj.FreeBody(GOOD_INERTIA), rj.State(jnp.ones(3)), GOOD_TS, accuracy="sloppy")
+
+
+def test_step_limit_is_reported():
+    model, state = rj.FreeBody(GOOD_INERTIA), rj.State(jnp.array([0.1, 3.0, 0.1]))
+    ts = jnp.linspace(0.0, 20.0, 3)
+    with pytest.raises(Exception, match="max_steps"):
+        rj.simulate(model, state, ts, max_steps=5).omega.block_until_ready()
+    traj = rj.simulate(model, state, ts, max_steps=5, throw=False)
+    assert not bool(traj.success)
+    assert np.all(np.isnan(np.asarray(traj.omega)))
