@@ -69,7 +69,9 @@ def angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
 def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quaternion) -> VectorOut:
     """Angular momentum in space-frame components, ``R L_body``; conserved when torque-free."""
     L = inertia_times(inertia, omega)
-    return quat_rotate(jnp.asarray(orientation, L.dtype), L)
+    orientation = jnp.asarray(orientation, L.dtype)
+    check_last_axis(orientation, 4, "orientation")  # name the caller's argument, not quat_rotate's q
+    return quat_rotate(orientation, L)
 
 
 def kinetic_energy(inertia: Inertia, omega: Vector) -> ScalarOut:

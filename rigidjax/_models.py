@@ -342,6 +342,9 @@ def _polhode_scale(inertia, omega):
     ``r = I_k (I_j - I_k) / (I_i (I_j - I_i)) >= 0``. Written in these terms there is no
     cancellation, so the Earth's 1e-11 rad/s wobble on a 7e-5 rad/s spin gets its own scale.
     """
+    # Only ratios of moments enter: normalise first, so that SI-scale moments (the Earth, 8e37 kg m^2)
+    # do not overflow float32 in the products below.
+    inertia = inertia / jnp.max(inertia)
     x = omega * omega
     # Energy bound, always valid: omega_i^2 <= 2E / I_i.
     bounds = [x[i] + (sum(inertia[k] * x[k] for k in range(3) if k != i)) / inertia[i] for i in range(3)]

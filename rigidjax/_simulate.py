@@ -19,6 +19,8 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.sharding import AxisType, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 
 from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_euler
@@ -55,7 +57,9 @@ def _body_fields(model: AbstractModel):
 
 
 def _with_fields(model, names, values):
-    return eqx.tree_at(lambda m: [getattr(m, n) for n in names], model, values)
+    return eqx.tree_at(
+        lambda m: [getattr(m, n) for n in names], model, values, is_leaf=lambda x: x is None
+    )
 
 
 def _check_inputs(model, omega0, q0, ts, dtype):
@@ -126,11 +130,15 @@ def _simulate_impl(
     sigma = jax.vmap(scale_one, in_axes=(0, 0, None if q0 is None else 0))(flat, omega0, q0)
     sigma = jax.lax.stop_gradient(sigma)
     peak = jnp.max(sigma, axis=-1, keepdims=True)
-    floor = 1e3 * jnp.finfo(dtype).eps * peak
+    floor = 10 * jnp.finfo(dtype).eps * peak
     sigma = jnp.where(peak > 0, jnp.maximum(sigma, floor), jnp.ones_like(sigma))
 
     chunk = min(chunk_size, n)
     n_chunks = -(-n // chunk)
+    n_devices = jax.device_count()
+    shard = n_devices > 1 and n_chunks > 1 and n_times > 1
+    if shard:  # whole chunks per device; padding bodies are copies of a real one, dropped later
+        n_chunks = -(-n_chunks // n_devices) * n_devices
     if sort and n_chunks > 1:
         order = jnp.argsort(-jnp.max(sigma, axis=-1))
     else:
@@ -158,8 +166,16 @@ def _simulate_impl(
         to_chunks(sigma),
     )
 
-    def solve_chunk(c):
+    # Everything a chunk solve needs besides its own bodies, passed explicitly (not closed over) so
+    # that the same function runs under lax.map and under shard_map.
+    shared_dynamic, shared_static = eqx.partition(
+        (_with_fields(model, names, [None] * len(names)), args, ts, controller, solver, adjoint),
+        eqx.is_array,
+    )
+
+    def solve_chunk(c, shared_dynamic):
         c_values, u0, cq0, c_sigma = c
+        shared_model, args, ts, controller, solver, adjoint = eqx.combine(shared_dynamic, shared_static)
 
         def body_rhs(body_values, t, y, s):
             u, attitude = y
@@ -170,7 +186,8 @@ def _simulate_impl(
             else:
                 q = quat_from_euler(attitude, euler_seq)
                 dattitude = euler_rates(attitude, w, euler_seq, throw=False)
-            dw = body_model(body_values).angular_acceleration(t, State(w, q), args)
+            body = _with_fields(shared_model, names, body_values)
+            dw = body.angular_acceleration(t, State(w, q), args)
             return (dw / s, dattitude)
 
         def near_lock(t, y, args, **kwargs):
@@ -209,7 +226,17 @@ def _simulate_impl(
         codes = jnp.zeros((n_chunks,), jnp.int32)
         steps = jnp.zeros((n_chunks,), jnp.int32)
     else:
-        u_all, q_all, codes, steps = jax.lax.map(solve_chunk, chunks)
+
+        def solve_chunks(chunks, shared_dynamic):
+            return jax.lax.map(lambda c: solve_chunk(c, shared_dynamic), chunks)
+
+        if shard:
+            mesh = jax.make_mesh((n_devices,), ("bodies",), axis_types=(AxisType.Auto,))
+            chunks = jax.lax.with_sharding_constraint(chunks, NamedSharding(mesh, P("bodies")))
+            solve_chunks = jax.shard_map(
+                solve_chunks, mesh=mesh, in_specs=(P("bodies"), P()), out_specs=P("bodies"), check_vma=False
+            )
+        u_all, q_all, codes, steps = solve_chunks(chunks, shared_dynamic)
 
     ok_chunk = codes == diffrax.RESULTS.successful._value
     max_steps_hit = codes == diffrax.RESULTS.max_steps_reached._value
@@ -366,7 +393,9 @@ def simulate(
     solver_from_preset = solver is None
     solver = preset_solver() if solver is None else solver
     # Arrays, not Python floats, so that a new tolerance does not trigger a recompilation.
-    rtol = jnp.asarray(preset_rtol if rtol is None else rtol, dtype)
+    # A preset never asks for less than ten roundoff units (float32: 1.2e-6).
+    floor = 10 * float(jnp.finfo(dtype).eps)
+    rtol = jnp.asarray(max(preset_rtol, floor) if rtol is None else rtol, dtype)
     atol = rtol if atol is None else jnp.asarray(atol, dtype)
     if stepsize_controller is None:
         # "precise" lands a step on every sample time: Dopri8's dense output is accurate to ~1e-9

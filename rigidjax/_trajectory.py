@@ -10,6 +10,13 @@ from ._models import AbstractModel
 from ._quaternion import quat_rotate
 
 
+def _stable_norm(v):
+    """Vector norm without overflow of the squares (|L| of the Earth is 6e33 kg m^2/s)."""
+    big = jnp.max(jnp.abs(v), axis=-1, keepdims=True)
+    safe = jnp.where(big > 0, big, 1.0)
+    return big[..., 0] * jnp.linalg.norm(v / safe, axis=-1)
+
+
 class Trajectory(eqx.Module):
     """Sampled motion of one body or a batch.
 
@@ -97,13 +104,13 @@ class Trajectory(eqx.Module):
             v0 = jnp.abs(self.potential_energy()[..., 0])
             out["energy"] = drift(e, jnp.maximum(jnp.abs(e[..., 0]), ke0 + v0))
         L = self.angular_momentum()
-        L_norm = jnp.linalg.norm(L, axis=-1)
+        L_norm = _stable_norm(L)
         if model.torque_free:
             out["angular_momentum_norm"] = drift(L_norm, L_norm[..., 0])
             if self.orientation is not None:
                 Ls = self.space_angular_momentum()
                 out["space_angular_momentum"] = jnp.max(
-                    jnp.linalg.norm(Ls - Ls[..., :1, :], axis=-1), axis=-1
+                    _stable_norm(Ls - Ls[..., :1, :]), axis=-1
                 ) / jnp.maximum(L_norm[..., 0], tiny)
         if type(model).__name__ == "HeavyTop" and model.conserves_energy:
             Lz = self.space_angular_momentum()[..., 2]

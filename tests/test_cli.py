@@ -1,0 +1,250 @@
+"""The ``rigidjax simulate`` command, run in-process on small batches of each scene."""
+
+import contextlib
+import io
+import json
+import math
+import re
+import sys
+
+import numpy as np
+import pytest
+
+import rigidjax
+from rigidjax._cli import main
+
+
+def _run(argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def _field(text, label):
+    """The value printed after ``label:`` in the summary."""
+    match = re.search(rf"^\s+{re.escape(label)}:\s+(.*)$", text, re.MULTILINE)
+    assert match, f"no {label!r} line in:\n{text}"
+    return match.group(1)
+
+
+def _number(text, label):
+    return float(_field(text, label).split()[0].replace(",", ""))
+
+
+@pytest.fixture(scope="module")
+def heavy_top(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("heavy_top")
+    npz, png = tmp / "tops.npz", tmp / "tops.png"
+    argv = [
+        "simulate",
+        "-n",
+        "64",
+        "--duration",
+        "0.5",
+        "--samples",
+        "20",
+        "--out",
+        str(npz),
+        "--plot",
+        str(png),
+    ]
+    code, out, err = _run(argv)
+    return code, out, err, npz, png
+
+
+def test_heavy_top_runs_and_writes_files(heavy_top):
+    code, out, err, npz, png = heavy_top
+    assert code == 0, err
+    assert npz.stat().st_size > 0 and png.stat().st_size > 0
+    assert "compiled in" in err and "simulating [" in err and "1/1 blocks" in err
+    with np.load(npz) as data:
+        assert data["ts"].shape == (20,)
+        assert data["omega"].shape == (64, 20, 3) and data["omega"].dtype == np.float32
+        assert data["orientation"].shape == (64, 20, 4)
+        assert data["euler_angles"].shape == (64, 20, 3)
+        for key, shape in [
+            ("inertia", (64, 3)),
+            ("mass", (64,)),
+            ("com", (64, 3)),
+            ("omega0", (64, 3)),
+            ("euler0", (64, 3)),
+            ("orientation0", (64, 4)),
+            ("theta_max", (64,)),
+            ("theta_max_pred", (64,)),
+            ("success", (64,)),
+            ("drift_energy", (64,)),
+        ]:
+            assert data[key].shape == shape, key
+        assert str(data["scene"]) == "heavy-top" and int(data["save_every"]) == 1
+        # The stored samples are the simulated motion: t = 0 is the initial state.
+        np.testing.assert_allclose(data["omega"][:, 0], data["omega0"], rtol=1e-6)
+        np.testing.assert_allclose(data["euler_angles"][:, 0, 1], data["euler0"][:, 1], atol=1e-6)
+        summary = json.loads(str(data["summary_json"]))
+        drift = data["drift_energy"]
+        theta_err = np.abs(data["theta_max"] - data["theta_max_pred"])
+    # The summary prints the numbers that are in the file.
+    assert _number(out, "bodies") == 64
+    assert _number(out, "samples") == 20
+    assert _field(out, "dtype") == "float64"
+    assert _field(out, "accuracy").startswith("balanced")
+    assert _number(out, "solver steps") == summary["solver_steps"] > 0
+    assert _number(out, "body-steps") == summary["body_steps"] == summary["solver_steps"] * 64
+    assert _number(out, "wall time") > 0 and _number(out, "compile time") > 0
+    assert _number(out, "worst drift energy") == pytest.approx(drift.max(), rel=1e-3)
+    assert _number(out, "failed bodies") == 0
+    upright, fell = re.findall(r"([\d,]+) (?:stayed|fell)", _field(out, "upright / fell"))
+    assert int(upright) + int(fell) == 64
+    # Physics: energy is conserved and the nutation reaches the closed-form turning point.
+    assert drift.max() < 1e-6
+    assert _number(out, "worst drift vertical_angular_momentum") < 1e-6
+    assert np.median(theta_err) < 1e-2
+
+
+@pytest.fixture(scope="module")
+def earth(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("earth")
+    npz, png = tmp / "earth.npz", tmp / "earth.png"
+    code, out, err = _run(["simulate", "--scene", "earth", "-n", "4", "--out", str(npz), "--plot", str(png)])
+    return code, out, err, npz, png
+
+
+def test_earth_wobble_period(earth):
+    code, out, err, npz, png = earth
+    assert code == 0, err
+    assert png.exists()
+    a, c, omega3 = 8.0101e37, 8.0365e37, 7.292115e-5
+    closed = 2 * math.pi / ((c - a) / a * omega3)
+    assert closed / 86400 == pytest.approx(302.58, abs=0.01)
+    printed = _number(out, "wobble period")
+    assert printed == pytest.approx(closed, rel=1e-6)
+    with np.load(npz) as data:
+        assert data["omega"].shape == (4, 200, 3)
+        assert "orientation" not in data.files  # Euler's equations only
+        np.testing.assert_allclose(data["wobble_period"], closed, rtol=1e-6)
+        assert data["ts"][-1] == pytest.approx(3 * closed, rel=1e-6)
+        assert np.max(data["wobble_amplitude_drift"]) < 1e-6
+
+
+def test_free_bodies(tmp_path):
+    npz, png = tmp_path / "free.npz", tmp_path / "free.png"
+    argv = [
+        "simulate",
+        "--scene",
+        "free",
+        "-n",
+        "30",
+        "--duration",
+        "3",
+        "--samples",
+        "60",
+        "--out",
+        str(npz),
+        "--plot",
+        str(png),
+    ]
+    code, out, err = _run(argv)
+    assert code == 0, err
+    assert png.exists()
+    with np.load(npz) as data:
+        assert data["orientation"].shape == (30, 60, 4)
+        axis, flipped = data["spin_axis"], data["flipped"]
+        assert not flipped[axis != 1].any()  # spins about the minor and major axes are stable
+        assert flipped[axis == 1].any()  # the tennis-racket flip
+        for key in ("energy", "angular_momentum_norm", "space_angular_momentum"):
+            assert data["drift_" + key].max() < 1e-6, key
+    assert _number(out, "worst drift energy") < 1e-6
+    assert "spun near intermediate" in out
+
+
+def test_float32_without_matplotlib(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
+    npz, png = tmp_path / "f32.npz", tmp_path / "f32.png"
+    argv = [
+        "simulate",
+        "--scene",
+        "free",
+        "-n",
+        "5",
+        "--duration",
+        "1",
+        "--samples",
+        "10",
+        "--dtype",
+        "float32",
+        "--save-dtype",
+        "float64",
+        "--out",
+        str(npz),
+        "--plot",
+        str(png),
+        "--seed",
+        "3",
+    ]
+    code, out, err = _run(argv)
+    assert code == 0, err
+    assert "matplotlib is not installed" in err and not png.exists()
+    assert _field(out, "dtype") == "float32"
+    with np.load(npz) as data:
+        assert data["omega"].shape == (5, 10, 3) and data["omega"].dtype == np.float64
+        assert data["drift_energy"].max() < 1e-4
+        assert int(data["seed"]) == 3
+
+
+def test_quiet_prints_nothing(tmp_path):
+    # Same shapes as test_float32_without_matplotlib: no new compile.
+    argv = [
+        "simulate",
+        "--scene",
+        "free",
+        "-n",
+        "5",
+        "--duration",
+        "1",
+        "--samples",
+        "10",
+        "--dtype",
+        "float32",
+        "--out",
+        str(tmp_path / "q.npz"),
+        "--no-plot",
+        "--quiet",
+    ]
+    code, out, err = _run(argv)
+    assert code == 0 and out == "" and err == ""
+    assert (tmp_path / "q.npz").exists() and not (tmp_path / "rigidjax_simulate.png").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["simulate", "-n", "0"], "must be a positive integer, got 0"),
+        (["simulate", "--bodies", "ten"], "must be a positive integer, got 'ten'"),
+        (["simulate", "--duration", "-1"], "must be a positive finite number"),
+        (["simulate", "--samples", "1"], "must be at least 2"),
+        (["simulate", "--scene", "moon"], "invalid choice: 'moon'"),
+        (["simulate", "--accuracy", "exact"], "invalid choice: 'exact'"),
+    ],
+)
+def test_bad_arguments(argv, message):
+    code, out, err = _run(argv)
+    assert code == 2
+    assert message in err and "usage: rigidjax simulate" in err
+
+
+def test_help_and_version():
+    code, out, _ = _run([])
+    assert code == 0 and "simulate" in out and "usage: rigidjax" in out
+    code, out, _ = _run(["--version"])
+    assert code == 0 and out.strip() == f"rigidjax {rigidjax.__version__}"
+    code, out, _ = _run(["simulate", "--help"])
+    assert code == 0 and "--save-every" in out and "--dtype" in out
+
+
+def test_numpy_quaternion_matches_rigidjax():
+    from rigidjax._cli import _quat_from_zxz
+
+    angles = np.random.default_rng(0).uniform(-3.0, 3.0, (20, 3))
+    np.testing.assert_allclose(
+        _quat_from_zxz(angles), np.asarray(rigidjax.quat_from_euler(angles)), atol=1e-12
+    )
