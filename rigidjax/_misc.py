@@ -21,7 +21,9 @@ def common_float(*arrays, names=None):
     """Converts all inputs to float arrays of one common dtype (the widest float among them)."""
     names = names or [f"argument {i}" for i in range(len(arrays))]
     arrays = [as_float_array(a, n) for a, n in zip(arrays, names, strict=True)]
-    dtype = jnp.result_type(*[a.dtype for a in arrays])
+    # numpy's promotion, not jax's: widening float32 to float64 here is deliberate, and must not
+    # depend on the user's jax_numpy_dtype_promotion setting.
+    dtype = np.result_type(*[np.dtype(a.dtype) for a in arrays])
     return [a.astype(dtype) for a in arrays]
 
 

@@ -1,0 +1,419 @@
+"""Dynamics: Euler's equations and the quantities derived from them.
+
+References are independent of rigidjax: numpy transcriptions of the textbook equations, scipy
+rotations, central finite differences, a numpy RK4 integration, and the closed-form free precession
+of a symmetric top.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import jaxtyping
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import rigidjax as rj
+
+N = 8
+_rng = np.random.default_rng(2024)
+INERTIA = _rng.uniform(0.5, 3.0, (N, 3))
+OMEGA = _rng.normal(size=(N, 3))
+TORQUE = _rng.normal(size=(N, 3))
+ROT = Rotation.random(N, rng=np.random.default_rng(7))
+QR = ROT.as_matrix()  # (N, 3, 3): principal axes of the full tensors below, as columns
+
+
+# ----------------------------------------------------------------------------------------------
+# Independent numpy references
+# ----------------------------------------------------------------------------------------------
+
+
+def np_euler_principal(inertia, w, tau=0.0):
+    """I1 w1' = (I2 - I3) w2 w3 + tau1, and cyclic (transcribed from the textbook)."""
+    inertia, w, tau = np.broadcast_arrays(
+        np.asarray(inertia, float), np.asarray(w, float), np.asarray(tau, float)
+    )
+    I1, I2, I3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
+    w1, w2, w3 = w[..., 0], w[..., 1], w[..., 2]
+    return np.stack(
+        [
+            ((I2 - I3) * w2 * w3 + tau[..., 0]) / I1,
+            ((I3 - I1) * w3 * w1 + tau[..., 1]) / I2,
+            ((I1 - I2) * w1 * w2 + tau[..., 2]) / I3,
+        ],
+        axis=-1,
+    )
+
+
+def np_euler_tensor(T, w, tau=0.0):
+    """I w' = tau - w x (I w)."""
+    L = np.einsum("...ij,...j->...i", T, w)
+    rhs = tau - np.cross(w, L)
+    T, rhs = np.broadcast_arrays(T, rhs[..., None])
+    return np.linalg.solve(T, rhs)[..., 0]
+
+
+def tensors(inertia=INERTIA, Q=QR):
+    """Full tensors ``Q diag(I) Q^T``: the body frame rotated by ``Q^T`` away from principal axes."""
+    return np.einsum("...ij,...j,...kj->...ik", Q, inertia, Q)
+
+
+def central_jacobian(f, x, h=1e-6):
+    """d f / d x by central differences, shape ``f(x).shape + x.shape``."""
+    x = np.asarray(x, float)
+    cols = []
+    for idx in np.ndindex(*x.shape):
+        dx = np.zeros_like(x)
+        dx[idx] = h
+        cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * h))
+    out = np.stack(cols, axis=-1)
+    return out.reshape(out.shape[:-1] + x.shape)
+
+
+def np_quat_multiply(p, q):
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    return np.concatenate(
+        [pw * qw - np.sum(pv * qv, -1, keepdims=True), pw * qv + qw * pv + np.cross(pv, qv)], axis=-1
+    )
+
+
+def rk4(f, y0, h, steps):
+    ys = [y0]
+    y = y0
+    for _ in range(steps):
+        k1 = f(y)
+        k2 = f(y + 0.5 * h * k1)
+        k3 = f(y + 0.5 * h * k2)
+        k4 = f(y + h * k3)
+        y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        ys.append(y)
+    return np.stack(ys)
+
+
+# ----------------------------------------------------------------------------------------------
+# 1. Euler's equations
+# ----------------------------------------------------------------------------------------------
+
+
+def test_principal_form_matches_numpy_transcription():
+    out = rj.euler_equations(INERTIA, OMEGA, TORQUE)
+    assert out.shape == (N, 3) and out.dtype == jnp.float64
+    np.testing.assert_allclose(out, np_euler_principal(INERTIA, OMEGA, TORQUE), rtol=1e-14, atol=1e-14)
+    free = rj.euler_equations(INERTIA, OMEGA)
+    np.testing.assert_allclose(free, np_euler_principal(INERTIA, OMEGA), rtol=1e-14, atol=1e-14)
+    np.testing.assert_array_equal(free, rj.euler_equations(INERTIA, OMEGA, np.zeros(3)))
+    # A sphere feels no gyroscopic torque; a spin about a principal axis is steady.
+    np.testing.assert_allclose(rj.euler_equations(np.full(3, 2.0), OMEGA, TORQUE), TORQUE / 2.0, atol=1e-15)
+    # (Four bodies: a trailing (3, 3) would be read as one full tensor.)
+    steady = np.array([[0.0, 0.0, 3.0], [0.0, -2.0, 0.0], [1.5, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(rj.euler_equations(INERTIA[:4], steady), 0.0)
+
+
+def test_full_tensor_matches_principal_form_in_rotated_frame():
+    T = tensors()
+    w_rot = np.einsum("nij,nj->ni", QR, OMEGA)
+    tau_rot = np.einsum("nij,nj->ni", QR, TORQUE)
+    expected = np.einsum("nij,nj->ni", QR, np_euler_principal(INERTIA, OMEGA, TORQUE))
+    np.testing.assert_allclose(rj.euler_equations(T, w_rot, tau_rot), expected, rtol=1e-12, atol=1e-12)
+    expected_free = np.einsum("nij,nj->ni", QR, np_euler_principal(INERTIA, OMEGA))
+    np.testing.assert_allclose(rj.euler_equations(T, w_rot), expected_free, rtol=1e-12, atol=1e-12)
+    # Direct transcription of I w' = tau - w x (I w).
+    np.testing.assert_allclose(
+        rj.euler_equations(T, OMEGA, TORQUE), np_euler_tensor(T, OMEGA, TORQUE), atol=1e-12
+    )
+    # A diagonal tensor is the principal form.
+    diag = np.einsum("ni,ij->nij", INERTIA, np.eye(3))
+    np.testing.assert_allclose(
+        rj.euler_equations(diag, OMEGA, TORQUE), np_euler_principal(INERTIA, OMEGA, TORQUE), atol=1e-13
+    )
+
+
+@pytest.mark.parametrize("form", ["principal", "tensor"])
+def test_torque_free_conserves_energy_and_momentum(form):
+    inertia = INERTIA if form == "principal" else tensors()
+    Iw = np.einsum("nij,nj->ni", inertia, OMEGA) if form == "tensor" else inertia * OMEGA
+    wdot = np.asarray(rj.euler_equations(inertia, OMEGA))
+    Iwdot = np.einsum("nij,nj->ni", inertia, wdot) if form == "tensor" else inertia * wdot
+    scale = np.linalg.norm(OMEGA, axis=-1) * np.linalg.norm(Iw, axis=-1) * np.linalg.norm(OMEGA, axis=-1)
+    # d/dt (omega . I omega / 2) = omega . I omega'  (I symmetric)
+    np.testing.assert_allclose(np.sum(OMEGA * Iwdot, -1) / scale, 0.0, atol=1e-14)
+    # d/dt |I omega|^2 / 2 = (I omega) . (I omega')
+    np.testing.assert_allclose(
+        np.sum(Iw * Iwdot, -1) / (scale * np.linalg.norm(Iw, axis=-1)), 0.0, atol=1e-14
+    )
+    # In the body frame L' = -omega x L.
+    np.testing.assert_allclose(Iwdot, -np.cross(OMEGA, Iw), atol=1e-13)
+    # With a torque, the power is omega . tau and (I omega) . (I omega') = L . tau.
+    wdot = np.asarray(rj.euler_equations(inertia, OMEGA, TORQUE))
+    Iwdot = np.einsum("nij,nj->ni", inertia, wdot) if form == "tensor" else inertia * wdot
+    np.testing.assert_allclose(np.sum(OMEGA * Iwdot, -1), np.sum(OMEGA * TORQUE, -1), atol=1e-13)
+    np.testing.assert_allclose(np.sum(Iw * Iwdot, -1), np.sum(Iw * TORQUE, -1), atol=1e-13)
+
+
+# ----------------------------------------------------------------------------------------------
+# 2. Gradients
+# ----------------------------------------------------------------------------------------------
+
+_SYM = np.array([1.3, 1.3, 2.1])  # I1 = I2: symmetric top
+GRAD_CASES = {
+    "principal": (INERTIA[0], OMEGA[0], TORQUE[0]),
+    "symmetric": (_SYM, OMEGA[1], TORQUE[1]),
+    "symmetric-free": (_SYM, np.array([0.4, -0.7, 2.0]), None),
+    "tensor": (tensors()[2], OMEGA[2], TORQUE[2]),
+    "tensor-symmetric": (tensors(_SYM, QR[3]), OMEGA[3], None),
+}
+
+
+@pytest.mark.parametrize("case", list(GRAD_CASES))
+def test_gradients_match_finite_differences(case):
+    inertia, w, tau = GRAD_CASES[case]
+    f = functools.partial(rj.euler_equations, torque=tau)
+    for argnum, x in ((0, inertia), (1, w)):
+        g = (lambda x: f(x, w)) if argnum == 0 else (lambda x: f(inertia, x))
+        fwd = np.asarray(jax.jacfwd(g)(jnp.asarray(x)))
+        rev = np.asarray(jax.jacrev(g)(jnp.asarray(x)))
+        fd = central_jacobian(g, x)
+        assert fwd.shape == (3,) + x.shape
+        np.testing.assert_allclose(fwd, rev, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(fwd, fd, rtol=1e-7, atol=1e-8)
+    # Derivative w.r.t. the torque is the inverse inertia.
+    if tau is not None:
+        J = np.asarray(jax.jacfwd(lambda t: rj.euler_equations(inertia, w, t))(jnp.asarray(tau)))
+        Iinv = np.linalg.inv(inertia) if inertia.ndim == 2 else np.diag(1 / inertia)
+        np.testing.assert_allclose(J, Iinv, rtol=1e-13, atol=1e-13)
+
+
+def test_symmetric_top_gradient_closed_form():
+    """At I1 = I2: d w1'/d I3 = -w2 w3 / I1, d w2'/d I3 = w3 w1 / I2, d w3'/d I* = 0 when tau = 0."""
+    w = np.array([0.4, -0.7, 2.0])
+    J = np.asarray(jax.jacrev(lambda inertia: rj.euler_equations(inertia, w))(jnp.asarray(_SYM)))
+    I1, I2, I3 = _SYM
+    w1, w2, w3 = w
+    expected = np.array(
+        [
+            [-(I2 - I3) * w2 * w3 / I1**2, w2 * w3 / I1, -w2 * w3 / I1],
+            [-w3 * w1 / I2, -(I3 - I1) * w3 * w1 / I2**2, w3 * w1 / I2],
+            [w1 * w2 / I3, -w1 * w2 / I3, 0.0],  # (I1 - I2) = 0
+        ]
+    )
+    np.testing.assert_allclose(J, expected, rtol=1e-14, atol=1e-15)
+
+
+# ----------------------------------------------------------------------------------------------
+# 3. Energy, momentum, precession
+# ----------------------------------------------------------------------------------------------
+
+
+def test_kinetic_energy_and_angular_momentum():
+    np.testing.assert_allclose(
+        rj.kinetic_energy(INERTIA, OMEGA), 0.5 * np.sum(INERTIA * OMEGA**2, -1), rtol=1e-15
+    )
+    np.testing.assert_allclose(rj.angular_momentum(INERTIA, OMEGA), INERTIA * OMEGA, rtol=1e-15)
+    T = tensors()
+    w_rot = np.einsum("nij,nj->ni", QR, OMEGA)
+    L_rot = np.asarray(rj.angular_momentum(T, w_rot))
+    np.testing.assert_allclose(L_rot, np.einsum("nij,nj->ni", T, w_rot), rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(L_rot, np.einsum("nij,nj->ni", QR, INERTIA * OMEGA), rtol=1e-12, atol=1e-13)
+    # Energy is frame independent.
+    np.testing.assert_allclose(rj.kinetic_energy(T, w_rot), rj.kinetic_energy(INERTIA, OMEGA), rtol=1e-13)
+    np.testing.assert_allclose(
+        rj.kinetic_energy(T, w_rot), 0.5 * np.einsum("ni,nij,nj->n", w_rot, T, w_rot), rtol=1e-13
+    )
+    assert rj.kinetic_energy(INERTIA, OMEGA).shape == (N,)
+    assert rj.kinetic_energy(INERTIA[0], OMEGA[0]).shape == ()
+
+
+def test_space_angular_momentum():
+    q = ROT.as_quat(scalar_first=True)
+    L_space = np.asarray(rj.space_angular_momentum(INERTIA, OMEGA, q))
+    np.testing.assert_allclose(L_space, ROT.apply(INERTIA * OMEGA), rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(
+        L_space, np.einsum("nij,nj->ni", np.asarray(rj.matrix_from_quat(q)), INERTIA * OMEGA), atol=1e-14
+    )
+    T = tensors()
+    np.testing.assert_allclose(
+        rj.space_angular_momentum(T, OMEGA, q), ROT.apply(np.einsum("nij,nj->ni", T, OMEGA)), atol=1e-13
+    )
+
+
+def test_space_angular_momentum_is_conserved_along_free_motion():
+    """Integrate omega (Euler) and q (dq/dt = q ⊗ (0, omega) / 2) with a numpy RK4; R L stays fixed."""
+    inertia = np.array([1.0, 2.0, 3.5])
+    w0 = np.array([0.3, 2.0, -0.4])  # near the unstable middle axis: omega changes a lot
+    q0 = ROT[0].as_quat(scalar_first=True)
+
+    def f(y):
+        w, q = y[:3], y[3:]
+        return np.concatenate(
+            [np_euler_principal(inertia, w), 0.5 * np_quat_multiply(q, np.concatenate([[0.0], w]))]
+        )
+
+    ys = rk4(f, np.concatenate([w0, q0]), 2e-3, 1500)
+    w, q = ys[:, :3], ys[:, 3:]
+    assert np.ptp(w[:, 1]) > 1.0  # the motion is not trivial
+    L_space = np.asarray(rj.space_angular_momentum(inertia, w, q))
+    assert L_space.shape == (len(ys), 3)
+    np.testing.assert_allclose(L_space, np.broadcast_to(L_space[0], L_space.shape), atol=1e-9)
+    # The inverse rotation would not conserve it: the convention is body -> space.
+    wrong = np.asarray(rj.quat_rotate(rj.quat_conjugate(q), inertia * w))
+    assert np.max(np.abs(wrong - wrong[0])) > 0.1
+    E = np.asarray(rj.kinetic_energy(inertia, w))
+    np.testing.assert_allclose(E, E[0], rtol=1e-10)
+
+
+def test_free_precession_rate_closed_form():
+    I1, I3, w3 = INERTIA[:, 0], INERTIA[:, 2], OMEGA[:, 2]
+    out = rj.free_precession_rate(I1, I3, w3)
+    assert out.shape == (N,) and out.dtype == jnp.float64
+    np.testing.assert_allclose(out, (I3 - I1) / I1 * w3, rtol=1e-15)
+    assert rj.free_precession_rate(np.float64(2.0), np.float64(2.0), np.float64(5.0)) == 0.0  # sphere
+    # Broadcasts: one body, many spin rates.
+    assert rj.free_precession_rate(np.float64(1.0), np.float64(1.5), w3).shape == (N,)
+    # Earth-like oblate top: I3 > I1 precesses forwards (with the spin) in the body frame.
+    assert rj.free_precession_rate(np.float64(1.0), np.float64(1.0033), np.float64(1.0)) > 0
+    r32 = rj.free_precession_rate(np.float32(1.0), np.float32(2.0), np.float32(3.0))
+    assert r32.dtype == jnp.float32 and r32 == 3.0
+
+
+@pytest.mark.parametrize(("I1", "I3"), [(2.0, 1.0), (1.0, 2.5)], ids=["prolate", "oblate"])
+def test_symmetric_top_transverse_omega_turns_at_precession_rate(I1, I3):
+    """Integrate Euler's equations (rigidjax's right-hand side, numpy RK4) and compare with
+    w1 + i w2 = A exp(i Omega t), Omega = free_precession_rate(I1, I3, w3)."""
+    inertia = np.array([I1, I1, I3])
+    w0 = np.array([0.3, -0.2, 2.0])
+    rhs = jax.jit(rj.euler_equations)
+    h, steps = 0.01, 300
+    ws = rk4(lambda w: np.asarray(rhs(inertia, w)), w0, h, steps)
+    t = h * np.arange(steps + 1)
+    Omega = float(rj.free_precession_rate(np.float64(I1), np.float64(I3), np.float64(w0[2])))
+    assert abs(Omega * t[-1]) > 1.0  # turns through a good angle
+    analytic = (w0[0] + 1j * w0[1]) * np.exp(1j * Omega * t)
+    np.testing.assert_allclose(ws[:, 0] + 1j * ws[:, 1], analytic, atol=1e-8)
+    np.testing.assert_allclose(ws[:, 2], w0[2], atol=1e-14)
+    # Sign check made explicit: prolate (I3 < I1) turns backwards, against the spin.
+    phase = np.unwrap(np.angle(ws[:, 0] + 1j * ws[:, 1]))
+    assert np.sign(phase[-1] - phase[0]) == np.sign(I3 - I1) * np.sign(w0[2])
+    # The analytic solution satisfies rigidjax's Euler equations pointwise.
+    w_t = np.stack([analytic.real, analytic.imag, np.full_like(t, w0[2])], -1)
+    dw_t = np.stack([(1j * Omega * analytic).real, (1j * Omega * analytic).imag, np.zeros_like(t)], -1)
+    np.testing.assert_allclose(rhs(inertia, w_t), dw_t, atol=1e-13)
+
+
+# ----------------------------------------------------------------------------------------------
+# 4. Batch broadcasting
+# ----------------------------------------------------------------------------------------------
+
+
+def test_batch_broadcasting():
+    T = tensors()
+    cases = [
+        # (inertia, omega, torque, expected shape, numpy reference)
+        (INERTIA, OMEGA, None, (N, 3), np_euler_principal(INERTIA, OMEGA)),
+        (INERTIA[0], OMEGA, None, (N, 3), np_euler_principal(INERTIA[0], OMEGA)),
+        (INERTIA, OMEGA[0], TORQUE, (N, 3), np_euler_principal(INERTIA, OMEGA[0], TORQUE)),
+        (
+            INERTIA[:, None, :],
+            OMEGA[:3],
+            TORQUE[0],
+            (N, 3, 3),
+            np_euler_principal(INERTIA[:, None], OMEGA[:3], TORQUE[0]),
+        ),
+        (T[0], OMEGA, None, (N, 3), np_euler_tensor(T[0], OMEGA)),
+        (T[0], OMEGA, TORQUE[0], (N, 3), np_euler_tensor(T[0], OMEGA, TORQUE[0])),
+        (T, OMEGA[0], None, (N, 3), np_euler_tensor(T, OMEGA[0])),
+        (T, OMEGA, TORQUE, (N, 3), np_euler_tensor(T, OMEGA, TORQUE)),
+        (T[:4, None], OMEGA[:3], None, (4, 3, 3), np_euler_tensor(T[:4, None], OMEGA[:3])),
+    ]
+    for k, (inertia, w, tau, shape, expected) in enumerate(cases):
+        out = np.asarray(rj.euler_equations(inertia, w, tau))
+        assert out.shape == shape, k
+        np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12, err_msg=str(k))
+        # And element by element of the batch.
+        batch = shape[:-1]
+        full_I = np.broadcast_to(
+            inertia, batch + inertia.shape[-2:] if inertia.shape[-2:] == (3, 3) else shape
+        )
+        full_w = np.broadcast_to(w, shape)
+        full_tau = None if tau is None else np.broadcast_to(tau, shape)
+        for idx in [(0,) * len(batch), tuple(n - 1 for n in batch)]:
+            single = rj.euler_equations(full_I[idx], full_w[idx], None if tau is None else full_tau[idx])
+            np.testing.assert_allclose(out[idx], single, rtol=1e-14, atol=1e-14, err_msg=str(k))
+    # The derived quantities broadcast the same way.
+    assert rj.kinetic_energy(INERTIA[0], OMEGA).shape == (N,)
+    assert rj.kinetic_energy(T[0], OMEGA).shape == (N,)
+    assert rj.angular_momentum(T, OMEGA[0]).shape == (N, 3)
+    q = ROT.as_quat(scalar_first=True)
+    assert rj.space_angular_momentum(INERTIA[0], OMEGA[0], q).shape == (N, 3)
+    np.testing.assert_allclose(
+        rj.space_angular_momentum(INERTIA[0], OMEGA[0], q), ROT.apply(INERTIA[0] * OMEGA[0]), atol=1e-14
+    )
+
+
+def test_batch_matches_vmap():
+    T = jnp.asarray(tensors())
+    f = jax.vmap(rj.euler_equations)
+    np.testing.assert_allclose(
+        rj.euler_equations(T, OMEGA, TORQUE), f(T, jnp.asarray(OMEGA), jnp.asarray(TORQUE)), atol=1e-14
+    )
+    np.testing.assert_allclose(
+        rj.euler_equations(INERTIA, OMEGA, TORQUE),
+        f(jnp.asarray(INERTIA), jnp.asarray(OMEGA), jnp.asarray(TORQUE)),
+        atol=1e-15,
+    )
+
+
+def test_float32():
+    inertia, w, tau = INERTIA.astype(np.float32), OMEGA.astype(np.float32), TORQUE.astype(np.float32)
+    T = tensors().astype(np.float32)
+    for out, ref in (
+        (rj.euler_equations(inertia, w, tau), np_euler_principal(inertia, w, tau)),
+        (rj.euler_equations(T, w), np_euler_tensor(T.astype(float), w.astype(float))),
+        (rj.kinetic_energy(inertia, w), 0.5 * np.sum(inertia * w * w, -1)),
+        (rj.angular_momentum(T, w), np.einsum("nij,nj->ni", T, w)),
+    ):
+        assert out.dtype == jnp.float32
+        np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------------------------
+# 5. Bad input
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def without_runtime_typecheck():
+    """The test run checks annotations with jaxtyping first; turn that off to see rigidjax's own checks."""
+    old = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", old)
+
+
+BAD_SHAPE_CALLS = [
+    (lambda: rj.euler_equations(np.ones(3), np.zeros(4)), "omega"),
+    (lambda: rj.euler_equations(np.ones(3), np.zeros((2, 2))), "omega"),
+    (lambda: rj.euler_equations(np.ones(3), np.zeros(3), np.zeros(2)), "torque"),
+    (lambda: rj.euler_equations(np.ones(4), np.zeros(3)), "inertia"),
+    (lambda: rj.euler_equations(np.ones((2, 2)), np.zeros(3)), "inertia"),
+    (lambda: rj.euler_equations(np.ones((3, 2)), np.zeros(3)), "inertia"),
+    (lambda: rj.kinetic_energy(np.ones(2), np.zeros(3)), "inertia"),
+    (lambda: rj.angular_momentum(np.ones(3), np.zeros(2)), "omega"),
+    (lambda: rj.space_angular_momentum(np.ones(3), np.zeros(3), np.array([1.0, 0.0, 0.0])), "orientation"),
+]
+
+
+@pytest.mark.parametrize(("call", "name"), BAD_SHAPE_CALLS)
+def test_bad_shape_raises_value_error_naming_argument(call, name, without_runtime_typecheck):
+    with pytest.raises(ValueError, match=rf"\b{name}\b"):
+        call()
+
+
+@pytest.mark.parametrize(("call", "name"), BAD_SHAPE_CALLS)
+def test_bad_shape_rejected_under_runtime_typecheck(call, name):
+    with pytest.raises((ValueError, TypeError), match=rf"\b{name}\b"):
+        call()
