@@ -12,16 +12,17 @@ from ._quaternion import quat_rotate
 from ._types import Inertia, Quaternion, Scalar, ScalarOut, Vector, VectorOut
 
 
-def is_full_tensor(inertia) -> bool:
-    """True when ``inertia`` is a ``(..., 3, 3)`` tensor, False for principal moments ``(..., 3)``."""
+def is_full_tensor(inertia, name: str = "inertia") -> bool:
+    """True when ``inertia`` is a ``(..., 3, 3)`` tensor, False for principal moments ``(..., 3)``;
+    a ``ValueError`` naming ``name`` for any other shape."""
     shape = jnp.shape(inertia)
     if len(shape) >= 2 and shape[-2:] == (3, 3):
         return True
     if len(shape) >= 1 and shape[-1] == 3:
         return False
     raise ValueError(
-        f"inertia must be principal moments of shape (..., 3) or a tensor of shape (..., 3, 3), "
-        f"got shape {tuple(shape)}."
+        f"{name} must be principal moments of shape (..., 3) or a tensor of shape (..., 3, 3) "
+        f"(kg m^2), got shape {tuple(shape)}."
     )
 
 

@@ -99,15 +99,7 @@ def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
 
 
 def _check_inertia_shape(inertia, name: str) -> bool:
-    shape = jnp.shape(inertia)
-    if len(shape) >= 2 and shape[-2:] == (3, 3):
-        return True
-    if len(shape) >= 1 and shape[-1] == 3:
-        return False
-    raise ValueError(
-        f"{name} must be principal moments of shape (..., 3) or a tensor of shape (..., 3, 3) "
-        f"(kg m^2), got shape {tuple(shape)}."
-    )
+    return is_full_tensor(inertia, name)
 
 
 # Failure codes, in increasing order of how fundamental the problem is: across a batch the largest

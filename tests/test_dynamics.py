@@ -383,17 +383,6 @@ def test_float32():
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def without_runtime_typecheck():
-    """The test run checks annotations with jaxtyping first; turn that off to see rigidjax's own checks."""
-    old = jaxtyping.config.jaxtyping_disable
-    jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        jaxtyping.config.update("jaxtyping_disable", old)
-
-
 BAD_SHAPE_CALLS = [
     (lambda: rj.euler_equations(np.ones(3), np.zeros(4)), "omega"),
     (lambda: rj.euler_equations(np.ones(3), np.zeros((2, 2))), "omega"),

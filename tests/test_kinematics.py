@@ -629,17 +629,6 @@ def test_float32_quaternion_ops():
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def without_runtime_typecheck():
-    """The test run checks annotations with jaxtyping first; turn that off to see rigidjax's own checks."""
-    old = jaxtyping.config.jaxtyping_disable
-    jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        jaxtyping.config.update("jaxtyping_disable", old)
-
-
 BAD_SHAPE_CALLS = [
     (lambda: rj.matrix_from_euler(np.zeros(4)), "angles"),
     (lambda: rj.quat_from_euler(np.zeros((2, 2))), "angles"),
