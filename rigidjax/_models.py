@@ -20,7 +20,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._dynamics import euler_equations, is_full_tensor
 from ._dynamics import inertia_times
 from ._misc import as_float_array, check_last_axis
-from ._quaternion import quat_rotate
+from ._quaternion import quat_conjugate, quat_rotate
 
 _Z = (0.0, 0.0, 1.0)
 
@@ -82,9 +82,7 @@ class ConstantTorque(AbstractTorque):
     def __call__(self, t, state, args):
         tau = jnp.asarray(self.torque, state.omega.dtype)
         if self.frame == "space":
-            q = state.orientation
-            conj = q * jnp.array([1.0, -1.0, -1.0, -1.0], q.dtype)
-            return quat_rotate(conj, tau)
+            return quat_rotate(quat_conjugate(state.orientation), tau)
         return tau
 
 
@@ -167,6 +165,12 @@ class AbstractModel(eqx.Module):
 
     @property
     def conserves_energy(self) -> bool:
+        return False
+
+    @property
+    def conserves_vertical_angular_momentum(self) -> bool:
+        """True for scenes in a vertical field whose space-frame L_z is conserved (the heavy top);
+        torque-free scenes report the whole space-frame L instead."""
         return False
 
     def omega_scale(self, state: State, duration, args: Any) -> Float[Array, "3"]:
@@ -298,11 +302,15 @@ class HeavyTop(AbstractModel):
     def conserves_energy(self) -> bool:
         return all(t.conservative for t in self.torques)
 
+    @property
+    def conserves_vertical_angular_momentum(self) -> bool:
+        # Gravity along -Z exerts no torque about the vertical through the pivot.
+        return self.conserves_energy
+
     def gravity_torque(self, orientation):
         """Body-frame gravity torque ``com x (m g R^T (-Z))`` (N m)."""
         dtype = orientation.dtype
-        conj = orientation * jnp.array([1.0, -1.0, -1.0, -1.0], dtype)
-        up_body = quat_rotate(conj, jnp.array(_Z, dtype))
+        up_body = quat_rotate(quat_conjugate(orientation), jnp.array(_Z, dtype))
         weight = (self.mass * self.gravity).astype(dtype)
         return weight[..., None] * jnp.cross(up_body, self.com.astype(dtype))
 

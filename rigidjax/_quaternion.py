@@ -93,12 +93,13 @@ def quat_from_matrix(R: Matrix) -> QuaternionOut:
     big = jnp.sqrt(jnp.maximum(1.0 + jnp.max(diag, axis=-1), 1e-30)) * 2.0  # = 4 |q_k|
     s21, s02, s10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
     a01, a02, a12 = R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1]
+    d = big * big / 4.0
     candidates = jnp.stack(
         [
-            jnp.stack([big * big / 4.0, s21, s02, s10], axis=-1),
-            jnp.stack([s21, big * big / 4.0, a01, a02], axis=-1),
-            jnp.stack([s02, a01, big * big / 4.0, a12], axis=-1),
-            jnp.stack([s10, a02, a12, big * big / 4.0], axis=-1),
+            jnp.stack([d, s21, s02, s10], axis=-1),
+            jnp.stack([s21, d, a01, a02], axis=-1),
+            jnp.stack([s02, a01, d, a12], axis=-1),
+            jnp.stack([s10, a02, a12, d], axis=-1),
         ],
         axis=-2,
     ) / big[..., None, None]

@@ -13,7 +13,7 @@ SI units and for a 1e5 rad/s rotor.
 """
 
 import math
-from typing import Any, Literal
+from typing import Any
 
 import diffrax
 import equinox as eqx
@@ -28,8 +28,6 @@ from ._inertia import check_inertia
 from ._models import AbstractModel, State
 from ._quaternion import quat_multiply
 from ._trajectory import Trajectory
-
-Accuracy = Literal["fast", "balanced", "precise", "exact"]
 
 # Solver and rtol per preset, from benchmarks/batch_strategies.py (10^4 tennis-racket bodies, shared
 # step, max norm): Dopri8 needs 185 shared steps at rtol 1e-8 where Tsit5 needs 1048, and is faster
@@ -66,15 +64,15 @@ def _with_fields(model, names, values):
 
 def _check_inputs(model, omega0, q0, ts, dtype):
     names, values = _body_fields(model)
-    inertia = check_inertia(model.inertia)
-    values = [inertia if n == "inertia" else v for n, v in zip(names, values, strict=True)]
-    model = _with_fields(model, names, values)
-    for name, value in zip(names, values, strict=True):
-        if name != "inertia":
-            setattr_value = eqx.error_if(
-                value, ~jnp.all(jnp.isfinite(value)), f"simulate: model field {name!r} contains NaN or inf."
-            )
-            model = _with_fields(model, [name], [setattr_value])
+    checked = [
+        check_inertia(value)
+        if name == "inertia"
+        else eqx.error_if(
+            value, ~jnp.all(jnp.isfinite(value)), f"simulate: model field {name!r} contains NaN or inf."
+        )
+        for name, value in zip(names, values, strict=True)
+    ]
+    model = _with_fields(model, names, checked)
     omega0 = eqx.error_if(omega0, ~jnp.all(jnp.isfinite(omega0)), "simulate: state0.omega contains NaN or inf.")
     if q0 is not None:
         q0 = eqx.error_if(q0, ~jnp.all(jnp.isfinite(q0)), "simulate: state0.orientation contains NaN or inf.")

@@ -112,7 +112,7 @@ class Trajectory(eqx.Module):
                 out["space_angular_momentum"] = jnp.max(
                     _stable_norm(Ls - Ls[..., :1, :]), axis=-1
                 ) / jnp.maximum(L_norm[..., 0], tiny)
-        if type(model).__name__ == "HeavyTop" and model.conserves_energy:
+        if model.conserves_vertical_angular_momentum:
             Lz = self.space_angular_momentum()[..., 2]
             out["vertical_angular_momentum"] = drift(Lz, L_norm[..., 0])
         if self.orientation is not None:
