@@ -10,8 +10,9 @@ the potential energy. Torques are body-frame, in N m.
 """
 
 import abc
+import operator
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -56,6 +57,11 @@ class AbstractTorque(eqx.Module):
     needs_orientation: eqx.AbstractClassVar[bool]
     conservative: ClassVar[bool] = False
 
+    def _leaf_core_ndims(self) -> dict[str, int]:
+        """Per-body array fields and their trailing per-body ndims; leading axes are batch axes, so
+        a batch of bodies can have a torque each. Fields not listed are shared by the batch."""
+        return {}
+
     @abc.abstractmethod
     def __call__(self, t, state: State, args: Any) -> Float[Array, "3"]:
         ...
@@ -79,6 +85,9 @@ class ConstantTorque(AbstractTorque):
     def needs_orientation(self) -> bool:  # type: ignore[override]
         return self.frame == "space"
 
+    def _leaf_core_ndims(self):
+        return {"torque": 1}
+
     def __call__(self, t, state, args):
         tau = jnp.asarray(self.torque, state.omega.dtype)
         if self.frame == "space":
@@ -87,13 +96,18 @@ class ConstantTorque(AbstractTorque):
 
 
 class ViscousDamping(AbstractTorque):
-    """Linear viscous damping ``tau = -coefficient * omega`` (coefficient in N m s, scalar or per
-    body axis)."""
+    """Linear viscous damping ``tau = -coefficient * omega`` (coefficient in N m s): a scalar, or
+    ``(..., 3)`` per body axis. For a batch of per-body scalars use shape ``(N, 1)``."""
 
     coefficient: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 3"] = eqx.field(
         converter=lambda x: as_float_array(x, "coefficient")
     )
     needs_orientation: ClassVar[bool] = False
+
+    def _leaf_core_ndims(self):
+        # A trailing axis of 3 (or 1) is per body axis; so a batch of per-body scalars is (N, 1).
+        shape = jnp.shape(self.coefficient)
+        return {"coefficient": 1 if shape and shape[-1] in (1, 3) else 0}
 
     def __call__(self, t, state, args):
         return -jnp.asarray(self.coefficient, state.omega.dtype) * state.omega
@@ -143,6 +157,18 @@ def _as_torque_tuple(torque) -> tuple:
 # Models
 
 
+class BodyLeaf(NamedTuple):
+    """A per-body array of a scene: a label for messages, how to reach it, its per-body ndim."""
+
+    label: str
+    get: Callable
+    core: int
+
+
+def _torque_field_getter(index: int, name: str):
+    return lambda model: getattr(model.torques[index], name)
+
+
 class AbstractModel(eqx.Module):
     """A scene: how one rigid body's angular velocity changes."""
 
@@ -185,14 +211,26 @@ class AbstractModel(eqx.Module):
     def _leaf_core_ndims(self) -> dict[str, int]:
         """Number of trailing (per-body) axes of each array field; the rest are batch axes."""
 
+    def body_leaves(self) -> list[BodyLeaf]:
+        """Every per-body array of the scene, its own fields and then each torque's, with its number
+        of trailing per-body axes; leading axes beyond those are batch axes."""
+        leaves = [BodyLeaf(n, operator.attrgetter(n), c) for n, c in self._leaf_core_ndims().items()]
+        for i, torque in enumerate(getattr(self, "torques", ())):
+            for n, c in torque._leaf_core_ndims().items():
+                leaves.append(BodyLeaf(f"torques[{i}].{n}", _torque_field_getter(i, n), c))
+        return leaves
+
+    def replace_body_leaves(self, leaves: list[BodyLeaf], values: list) -> "AbstractModel":
+        """A copy with the arrays of ``leaves`` (from :meth:`body_leaves`) replaced by ``values``."""
+        return eqx.tree_at(
+            lambda m: [leaf.get(m) for leaf in leaves], self, list(values), is_leaf=lambda x: x is None
+        )
+
     def batch_shape(self) -> tuple[int, ...]:
         shapes = []
-        for name, core in self._leaf_core_ndims().items():
-            value = getattr(self, name)
-            if value is None:
-                continue
-            shape = jnp.shape(value)
-            shapes.append(shape[: len(shape) - core])
+        for leaf in self.body_leaves():
+            shape = jnp.shape(leaf.get(self))
+            shapes.append(shape[: len(shape) - leaf.core])
         return jnp.broadcast_shapes(*shapes) if shapes else ()
 
     @property

@@ -51,28 +51,18 @@ def _quat_derivative(q, omega):
     return 0.5 * quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
 
 
-def _body_fields(model: AbstractModel):
-    names = list(model._leaf_core_ndims())
-    return names, [getattr(model, n) for n in names]
-
-
-def _with_fields(model, names, values):
-    return eqx.tree_at(
-        lambda m: [getattr(m, n) for n in names], model, values, is_leaf=lambda x: x is None
-    )
-
-
-def _check_inputs(model, omega0, q0, ts, dtype):
-    names, values = _body_fields(model)
+def _check_inputs(model, leaves, omega0, q0, ts, dtype):
     checked = [
-        check_inertia(value)
-        if name == "inertia"
+        check_inertia(leaf.get(model))
+        if leaf.label == "inertia"
         else eqx.error_if(
-            value, ~jnp.all(jnp.isfinite(value)), f"simulate: model field {name!r} contains NaN or inf."
+            leaf.get(model),
+            ~jnp.all(jnp.isfinite(leaf.get(model))),
+            f"simulate: model field {leaf.label!r} contains NaN or inf.",
         )
-        for name, value in zip(names, values, strict=True)
+        for leaf in leaves
     ]
-    model = _with_fields(model, names, checked)
+    model = model.replace_body_leaves(leaves, checked)
     omega0 = eqx.error_if(omega0, ~jnp.all(jnp.isfinite(omega0)), "simulate: state0.omega contains NaN or inf.")
     if q0 is not None:
         q0 = eqx.error_if(q0, ~jnp.all(jnp.isfinite(q0)), "simulate: state0.orientation contains NaN or inf.")
@@ -102,16 +92,16 @@ def _simulate_impl(
     euler_seq, lock_tolerance
 ):
     dtype = omega0.dtype
-    model, omega0, q0, ts = _check_inputs(model, omega0, q0, ts, dtype)
-    names, values = _body_fields(model)
-    cores = model._leaf_core_ndims()
+    leaves = model.body_leaves()
+    model, omega0, q0, ts = _check_inputs(model, leaves, omega0, q0, ts, dtype)
     batch = jnp.broadcast_shapes(
         model.batch_shape(), omega0.shape[:-1], () if q0 is None else q0.shape[:-1]
     )
     n = math.prod(batch)
     flat = []
-    for name, value in zip(names, values, strict=True):
-        core_shape = value.shape[value.ndim - cores[name] :]
+    for leaf in leaves:
+        value = leaf.get(model)
+        core_shape = value.shape[value.ndim - leaf.core :]
         flat.append(jnp.broadcast_to(value, batch + core_shape).reshape((n,) + core_shape).astype(dtype))
     omega0 = jnp.broadcast_to(omega0, batch + (3,)).reshape(n, 3)
     if q0 is not None:
@@ -119,7 +109,7 @@ def _simulate_impl(
     n_times = ts.shape[0]
 
     def body_model(body_values):
-        return _with_fields(model, names, body_values)
+        return model.replace_body_leaves(leaves, body_values)
 
     duration = ts[-1] - ts[0]
 
@@ -169,7 +159,7 @@ def _simulate_impl(
     # Everything a chunk solve needs besides its own bodies, passed explicitly (not closed over) so
     # that the same function runs under lax.map and under shard_map.
     shared_dynamic, shared_static = eqx.partition(
-        (_with_fields(model, names, [None] * len(names)), args, ts, controller, solver, adjoint),
+        (model.replace_body_leaves(leaves, [None] * len(leaves)), args, ts, controller, solver, adjoint),
         eqx.is_array,
     )
 
@@ -186,7 +176,7 @@ def _simulate_impl(
             else:
                 q = quat_from_euler(attitude, euler_seq)
                 dattitude = euler_rates(attitude, w, euler_seq, throw=False)
-            body = _with_fields(shared_model, names, body_values)
+            body = shared_model.replace_body_leaves(leaves, body_values)
             dw = body.angular_acceleration(t, State(w, q), args)
             return (dw / s, dattitude)
 
@@ -284,7 +274,7 @@ def _simulate_impl(
         q_norm_error = jnp.max(jnp.abs(q_norm[..., 0] - 1.0), axis=-1).reshape(batch)
         out_q = jnp.where(ok[:, None, None], qs / q_norm, jnp.nan).reshape(batch + (n_times, 4))
     stats = {"num_steps": steps, "chunk_size": chunk, "quaternion_norm_error": q_norm_error}
-    model_b = _with_fields(model, names, [v.reshape(batch + v.shape[1:]) for v in flat])
+    model_b = model.replace_body_leaves(leaves, [v.reshape(batch + v.shape[1:]) for v in flat])
     return Trajectory(
         ts=ts,
         omega=omega.reshape(batch + (n_times, 3)),

@@ -42,14 +42,13 @@ class Trajectory(eqx.Module):
         """The model with a length-1 time axis inserted after its batch axes, to broadcast over T."""
         model = self.model
         nb = len(self.batch_shape)
-        names = list(model._leaf_core_ndims())
+        leaves = model.body_leaves()
         values = []
-        for name in names:
-            value = jnp.asarray(getattr(model, name))
-            core = model._leaf_core_ndims()[name]
-            value = jnp.broadcast_to(value, self.batch_shape + value.shape[value.ndim - core :])
+        for leaf in leaves:
+            value = jnp.asarray(leaf.get(model))
+            value = jnp.broadcast_to(value, self.batch_shape + value.shape[value.ndim - leaf.core :])
             values.append(jnp.expand_dims(value, nb))
-        return eqx.tree_at(lambda m: [getattr(m, n) for n in names], model, values)
+        return model.replace_body_leaves(leaves, values)
 
     def euler_angles(self, seq: str = "zxz") -> Float[Array, "*batch T 3"]:
         """Euler angles ``(phi, theta, psi)`` along the trajectory, unwrapped in time so that angles

@@ -438,3 +438,61 @@ def test_sharded_equals_unsharded(tmp_path):
     )
     local = np.concatenate([np.asarray(traj.omega), np.asarray(traj.orientation)], axis=-1)
     np.testing.assert_allclose(sharded, local, rtol=0, atol=1e-14)
+
+
+def test_per_body_torques_in_a_batch():
+    """Torque fields carry batch axes like the model's: each sphere gets its own torque."""
+    I = 0.4
+    n = 5
+    inertia = jnp.full((n, 3), I)
+    ts = jnp.linspace(0.0, 2.0, 11)
+    w0 = jnp.array([1.0, -2.0, 0.5])
+    tau = jnp.linspace(-0.3, 0.3, 3 * n).reshape(n, 3)
+    traj = rj.simulate(rj.RigidBody(inertia, rj.ConstantTorque(tau)), rj.State(w0), ts, accuracy="precise")
+    expected = w0 + tau[:, None, :] * ts[None, :, None] / I
+    np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(expected), rtol=1e-9, atol=1e-12)
+    c = jnp.linspace(0.1, 0.5, n)[:, None]  # per-body scalar coefficients: shape (N, 1)
+    traj = rj.simulate(rj.RigidBody(inertia, rj.ViscousDamping(c)), rj.State(w0), ts, accuracy="precise")
+    expected = w0 * jnp.exp(-c[:, :, None] * ts[None, :, None] / I)
+    np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(expected), rtol=1e-9)
+
+
+def test_one_fast_body_cannot_hide_in_a_slow_batch():
+    """63 slow symmetric tops and one 1000x faster (400 wobble cycles). The shared step is accepted
+    only when the worst body is within tolerance, so the fast body is exactly as accurate in the
+    batch as alone, and the slow ones are better than the preset; an RMS norm over the batch (what
+    diffrax does by default) lets the fast body's error grow ~14x."""
+    import optimistix as optx
+
+    n, fast = 64, 17
+    speed = np.ones(n)
+    speed[fast] = 1000.0
+    omega0 = np.stack([0.3 * speed, np.zeros(n), 5.0 * speed], axis=-1)
+    ts = np.linspace(0.0, 1.0, 21)
+    model = rj.FreeBody(jnp.array([2.0, 2.0, 3.0]))
+
+    def errors(traj, rows):
+        omega = np.asarray(traj.omega)
+        return np.array(
+            [
+                np.max(np.abs(omega[k, :, :2] - symmetric_top_exact(2.0, 3.0, omega0[i], ts)[:, :2]))
+                / (0.3 * speed[i])
+                for k, i in enumerate(rows)
+            ]
+        )
+
+    batch = errors(rj.simulate(model, rj.State(jnp.asarray(omega0)), jnp.asarray(ts)), range(n))
+    alone = errors(rj.simulate(model, rj.State(jnp.asarray(omega0[fast : fast + 1])), jnp.asarray(ts)), [fast])
+    rms = errors(
+        rj.simulate(
+            model,
+            rj.State(jnp.asarray(omega0)),
+            jnp.asarray(ts),
+            solver=diffrax.Dopri8(),
+            stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8, norm=optx.rms_norm),
+        ),
+        [fast],
+    )
+    assert batch[fast] <= 1.01 * alone[0] and batch[fast] < 5e-6, (batch[fast], alone[0])
+    assert np.max(np.delete(batch, fast)) < 1e-8
+    assert rms[0] > 5 * batch[fast], (rms[0], batch[fast])
