@@ -102,7 +102,9 @@ def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
 
 
 def _wrap(angle):
-    return jnp.where(angle < -jnp.pi, angle + 2 * jnp.pi, jnp.where(angle > jnp.pi, angle - 2 * jnp.pi, angle))
+    return jnp.where(
+        angle < -jnp.pi, angle + 2 * jnp.pi, jnp.where(angle > jnp.pi, angle - 2 * jnp.pi, angle)
+    )
 
 
 def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
@@ -202,9 +204,7 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
     tol = 16.0 * eps(omega.dtype)
     locked = jnp.abs(det) <= tol
     safe_det = jnp.where(locked, jnp.ones_like(det), det)
-    regular = jnp.stack(
-        [jnp.sum(omega * n, axis=-1) / safe_det for n in (n23, n31, n12)], axis=-1
-    )
+    regular = jnp.stack([jnp.sum(omega * n, axis=-1) / safe_det for n in (n23, n31, n12)], axis=-1)
     # At the lock u1 = ±u3 and omega must lie in span(u2, u3), whose normal is u2 x u3.
     along_u3 = jnp.sum(omega * u3, axis=-1) * jnp.sign(jnp.sum(u1 * u3, axis=-1))
     split = jnp.stack([along_u3, jnp.sum(omega * u2, axis=-1), jnp.zeros_like(det)], axis=-1)
@@ -221,5 +221,3 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
             "Use quaternions for this orientation, or pass throw=False to get NaN rates instead.",
         )
     return jnp.where(unreachable[..., None], jnp.nan, rates)
-
-

@@ -18,8 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._dynamics import euler_equations, is_full_tensor
-from ._dynamics import inertia_times
+from ._dynamics import euler_equations, inertia_times, is_full_tensor
 from ._misc import as_float_array, check_last_axis
 from ._quaternion import quat_conjugate, quat_rotate
 
@@ -63,8 +62,7 @@ class AbstractTorque(eqx.Module):
         return {}
 
     @abc.abstractmethod
-    def __call__(self, t, state: State, args: Any) -> Float[Array, "3"]:
-        ...
+    def __call__(self, t, state: State, args: Any) -> Float[Array, "3"]: ...
 
 
 class ConstantTorque(AbstractTorque):
@@ -174,8 +172,7 @@ class AbstractModel(eqx.Module):
 
     @property
     @abc.abstractmethod
-    def needs_orientation(self) -> bool:
-        ...
+    def needs_orientation(self) -> bool: ...
 
     @abc.abstractmethod
     def angular_acceleration(self, t, state: State, args: Any) -> Float[Array, "3"]:
@@ -248,7 +245,9 @@ class FreeBody(AbstractModel):
     """A torque-free rigid body. ``inertia``: principal moments ``(..., 3)`` or a tensor
     ``(..., 3, 3)`` in body axes (kg m^2). Energy, ``|L|`` and space-frame ``L`` are conserved."""
 
-    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(
+        converter=_inertia_field
+    )
 
     @property
     def needs_orientation(self) -> bool:
@@ -278,7 +277,9 @@ class RigidBody(AbstractModel):
     """A rigid body under user torques (body frame, N m): ``torque`` is an :class:`AbstractTorque`,
     a callable ``fn(t, state, args)``, or a tuple of them (summed)."""
 
-    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(
+        converter=_inertia_field
+    )
     torques: tuple = eqx.field(converter=_as_torque_tuple, default=())
 
     def __init__(self, inertia, torque=None):
@@ -318,7 +319,9 @@ class HeavyTop(AbstractModel):
     vertical component of the space-frame angular momentum are conserved without extra torques.
     """
 
-    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(converter=_inertia_field)
+    inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(
+        converter=_inertia_field
+    )
     mass: Float[Array, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "mass"))
     com: Float[Array, "*batch 3"] = eqx.field(converter=lambda x: as_float_array(x, "com"))
     gravity: Float[Array, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "gravity"))
@@ -373,7 +376,6 @@ class HeavyTop(AbstractModel):
 
     def _leaf_core_ndims(self):
         return {"inertia": self.inertia_core_ndim, "mass": 0, "com": 1, "gravity": 0}
-
 
 
 # ---------------------------------------------------------------------------------------------

@@ -94,15 +94,18 @@ def quat_from_matrix(R: Matrix) -> QuaternionOut:
     s21, s02, s10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
     a01, a02, a12 = R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1]
     d = big * big / 4.0
-    candidates = jnp.stack(
-        [
-            jnp.stack([d, s21, s02, s10], axis=-1),
-            jnp.stack([s21, d, a01, a02], axis=-1),
-            jnp.stack([s02, a01, d, a12], axis=-1),
-            jnp.stack([s10, a02, a12, d], axis=-1),
-        ],
-        axis=-2,
-    ) / big[..., None, None]
+    candidates = (
+        jnp.stack(
+            [
+                jnp.stack([d, s21, s02, s10], axis=-1),
+                jnp.stack([s21, d, a01, a02], axis=-1),
+                jnp.stack([s02, a01, d, a12], axis=-1),
+                jnp.stack([s10, a02, a12, d], axis=-1),
+            ],
+            axis=-2,
+        )
+        / big[..., None, None]
+    )
     q = jnp.take_along_axis(candidates, k[..., None, None], axis=-2)[..., 0, :]
     q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
     return jnp.where(q[..., :1] < 0, -q, q)

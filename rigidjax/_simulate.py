@@ -22,7 +22,6 @@ import jax.numpy as jnp
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-
 from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_euler
 from ._inertia import check_inertia
 from ._models import AbstractModel, State
@@ -63,7 +62,9 @@ def _check_inputs(model, leaves, omega0, q0, ts, dtype):
         for leaf in leaves
     ]
     model = model.replace_body_leaves(leaves, checked)
-    omega0 = eqx.error_if(omega0, ~jnp.all(jnp.isfinite(omega0)), "simulate: state0.omega contains NaN or inf.")
+    omega0 = eqx.error_if(
+        omega0, ~jnp.all(jnp.isfinite(omega0)), "simulate: state0.omega contains NaN or inf."
+    )
     if q0 is not None:
         q0 = eqx.error_if(q0, ~jnp.all(jnp.isfinite(q0)), "simulate: state0.orientation contains NaN or inf.")
         tol = 1e-6 if dtype == jnp.float64 else 1e-4
@@ -88,15 +89,27 @@ def _check_inputs(model, leaves, omega0, q0, ts, dtype):
 
 @eqx.filter_jit
 def _simulate_impl(
-    model, omega0, q0, ts, args, *, solver, controller, adjoint, dt0, max_steps, chunk_size, sort, throw,
-    euler_seq, lock_tolerance
+    model,
+    omega0,
+    q0,
+    ts,
+    args,
+    *,
+    solver,
+    controller,
+    adjoint,
+    dt0,
+    max_steps,
+    chunk_size,
+    sort,
+    throw,
+    euler_seq,
+    lock_tolerance,
 ):
     dtype = omega0.dtype
     leaves = model.body_leaves()
     model, omega0, q0, ts = _check_inputs(model, leaves, omega0, q0, ts, dtype)
-    batch = jnp.broadcast_shapes(
-        model.batch_shape(), omega0.shape[:-1], () if q0 is None else q0.shape[:-1]
-    )
+    batch = jnp.broadcast_shapes(model.batch_shape(), omega0.shape[:-1], () if q0 is None else q0.shape[:-1])
     n = math.prod(batch)
     flat = []
     for leaf in leaves:
@@ -354,7 +367,9 @@ def simulate(
         A :class:`Trajectory` with ``omega`` (*batch, T, 3) and ``orientation`` (*batch, T, 4) or None.
     """
     if not isinstance(model, AbstractModel):
-        raise TypeError(f"model must be a rigidjax scene such as FreeBody or HeavyTop, got {type(model).__name__}.")
+        raise TypeError(
+            f"model must be a rigidjax scene such as FreeBody or HeavyTop, got {type(model).__name__}."
+        )
     if not isinstance(state0, State):
         raise TypeError(f"state0 must be a rigidjax.State, got {type(state0).__name__}.")
     if accuracy == "exact":
@@ -378,7 +393,9 @@ def simulate(
     ts = jnp.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 1:
         raise ValueError(f"ts must be a 1-D array of at least one time, got shape {tuple(ts.shape)}.")
-    dtype = _float_dtype(state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array)))
+    dtype = _float_dtype(
+        state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
+    )
     ts = ts.astype(dtype)
     omega0 = state0.omega.astype(dtype)
     q0 = None if state0.orientation is None else state0.orientation.astype(dtype)
@@ -416,5 +433,3 @@ def simulate(
         euler_seq=euler_seq if representation == "euler" else None,
         lock_tolerance=float(lock_tolerance),
     )
-
-

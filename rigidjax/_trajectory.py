@@ -54,7 +54,9 @@ class Trajectory(eqx.Module):
         """Euler angles ``(phi, theta, psi)`` along the trajectory, unwrapped in time so that angles
         that keep turning (precession, spin) are continuous over many turns."""
         if self.orientation is None:
-            raise ValueError("This trajectory has no orientation (omega-only scene); simulate with an orientation.")
+            raise ValueError(
+                "This trajectory has no orientation (omega-only scene); simulate with an orientation."
+            )
         angles = euler_from_quat(self.orientation, seq)
         return jnp.unwrap(angles, axis=-2)
 

@@ -84,7 +84,9 @@ HLW_PERIOD = 10.73147
 @pytest.fixture(scope="module")
 def hlw_trajectory():
     ts = jnp.linspace(0.0, 3 * HLW_PERIOD, 301)
-    return rj.simulate(rj.FreeBody(HLW_INERTIA), rj.State(HLW_L0 / HLW_INERTIA, IDENTITY), ts, accuracy="precise")
+    return rj.simulate(
+        rj.FreeBody(HLW_INERTIA), rj.State(HLW_L0 / HLW_INERTIA, IDENTITY), ts, accuracy="precise"
+    )
 
 
 def test_hairer_lubich_wanner_period(hlw_trajectory):
@@ -245,7 +247,9 @@ def test_user_torque_callable_and_no_recompilation():
     n_traces = len(traces)
     # New numbers, same shapes, same tolerance preset: no new trace (hence no recompilation).
     model2 = rj.RigidBody(inertia * 1.5, rj.Torque(spin_up, needs_orientation=False))
-    traj2 = rj.simulate(model2, rj.State(jnp.array([0.1, 0.0, 2.0])), ts * 2, args=jnp.asarray(3.0), rtol=1e-9)
+    traj2 = rj.simulate(
+        model2, rj.State(jnp.array([0.1, 0.0, 2.0])), ts * 2, args=jnp.asarray(3.0), rtol=1e-9
+    )
     traj2.omega.block_until_ready()
     assert len(traces) == n_traces
 
@@ -315,7 +319,8 @@ def test_gradient_matches_finite_differences():
     h = 1e-6
     fd = np.stack(
         [
-            (np.asarray(final_omega(inertia.at[k].add(h))) - np.asarray(final_omega(inertia.at[k].add(-h)))) / (2 * h)
+            (np.asarray(final_omega(inertia.at[k].add(h))) - np.asarray(final_omega(inertia.at[k].add(-h))))
+            / (2 * h)
             for k in range(3)
         ],
         axis=-1,
@@ -325,7 +330,9 @@ def test_gradient_matches_finite_differences():
 
 def test_single_output_time_returns_initial_state():
     q0 = rj.quat_from_euler(jnp.array([0.1, 0.2, 0.3]))
-    traj = rj.simulate(rj.FreeBody(jnp.array([1.0, 2.0, 2.5])), rj.State(jnp.array([1.0, 2.0, 3.0]), q0), jnp.array([0.5]))
+    traj = rj.simulate(
+        rj.FreeBody(jnp.array([1.0, 2.0, 2.5])), rj.State(jnp.array([1.0, 2.0, 3.0]), q0), jnp.array([0.5])
+    )
     np.testing.assert_allclose(np.asarray(traj.omega[0]), [1.0, 2.0, 3.0])
     np.testing.assert_allclose(np.asarray(traj.orientation[0]), np.asarray(q0), atol=1e-15)
 
@@ -358,7 +365,9 @@ def test_wrong_shapes_and_missing_orientation():
     with pytest.raises(ValueError, match="omega"):
         rj.State(jnp.ones(4))
     with pytest.raises(ValueError, match="orientation"):
-        rj.simulate(rj.HeavyTop(GOOD_INERTIA, 1.0, jnp.array([0.0, 0.0, 0.1])), rj.State(jnp.ones(3)), GOOD_TS)
+        rj.simulate(
+            rj.HeavyTop(GOOD_INERTIA, 1.0, jnp.array([0.0, 0.0, 0.1])), rj.State(jnp.ones(3)), GOOD_TS
+        )
     with pytest.raises(ValueError, match="ts"):
         rj.simulate(rj.FreeBody(GOOD_INERTIA), rj.State(jnp.ones(3)), jnp.ones((2, 2)))
     with pytest.raises(ValueError, match="accuracy"):
@@ -482,7 +491,9 @@ def test_one_fast_body_cannot_hide_in_a_slow_batch():
         )
 
     batch = errors(rj.simulate(model, rj.State(jnp.asarray(omega0)), jnp.asarray(ts)), range(n))
-    alone = errors(rj.simulate(model, rj.State(jnp.asarray(omega0[fast : fast + 1])), jnp.asarray(ts)), [fast])
+    alone = errors(
+        rj.simulate(model, rj.State(jnp.asarray(omega0[fast : fast + 1])), jnp.asarray(ts)), [fast]
+    )
     rms = errors(
         rj.simulate(
             model,
