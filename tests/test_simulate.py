@@ -507,3 +507,31 @@ def test_one_fast_body_cannot_hide_in_a_slow_batch():
     assert batch[fast] <= 1.01 * alone[0] and batch[fast] < 5e-6, (batch[fast], alone[0])
     assert np.max(np.delete(batch, fast)) < 1e-8
     assert rms[0] > 5 * batch[fast], (rms[0], batch[fast])
+
+
+def test_heavy_top_gradients_wrt_mass_omega0_and_com():
+    """jax.grad through simulate w.r.t. the model's and the state's numbers, against central
+    finite differences (the final nutation angle's cosine, a smooth scalar)."""
+    inertia = jnp.array([1.0, 1.0, 0.5]) * 1e-2
+    q0 = rj.quat_from_euler(jnp.array([0.0, 0.4, 0.0]))
+    ts = jnp.array([0.0, 0.5])
+
+    def height(mass, omega0, com):
+        top = rj.HeavyTop(inertia, mass, com)
+        traj = rj.simulate(top, rj.State(omega0, q0), ts, accuracy="precise")
+        return rj.quat_rotate(traj.orientation[-1], jnp.array([0.0, 0.0, 1.0]))[2]
+
+    args = (jnp.asarray(0.5), jnp.array([0.3, -0.2, 40.0]), jnp.array([0.0, 0.01, 0.05]))
+    grads = jax.grad(height, argnums=(0, 1, 2))(*args)
+    h = 1e-6
+    for k, (x, g) in enumerate(zip(args, grads, strict=True)):
+        flat = np.ravel(np.asarray(x))
+        for j in range(flat.size):
+            step = np.zeros_like(flat)
+            step[j] = h * max(1.0, abs(flat[j]))
+            plus = list(args)
+            minus = list(args)
+            plus[k] = jnp.asarray((flat + step).reshape(np.shape(x)))
+            minus[k] = jnp.asarray((flat - step).reshape(np.shape(x)))
+            fd = (float(height(*plus)) - float(height(*minus))) / (2 * step[j])
+            np.testing.assert_allclose(np.ravel(np.asarray(g))[j], fd, rtol=1e-5, atol=1e-8)
