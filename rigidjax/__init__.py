@@ -55,6 +55,10 @@ from ._quaternion import quat_normalize as quat_normalize
 from ._quaternion import quat_rotate as quat_rotate
 from ._simulate import PRESETS as PRESETS
 from ._simulate import simulate as simulate
+from ._stability import SleepingTop as SleepingTop
+from ._stability import SpinStability as SpinStability
+from ._stability import sleeping_top as sleeping_top
+from ._stability import spin_stability as spin_stability
 from ._trajectory import Trajectory as Trajectory
 
 try:

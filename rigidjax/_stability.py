@@ -1,0 +1,258 @@
+"""Linear stability of steady rotations: the tennis-racket theorem and the sleeping top.
+
+Both analyses linearise the equations of motion about a steady spin and read the stability off the
+exponents ``lambda`` of perturbations ``~ exp(lambda t)``: a positive real part is an exponential
+instability (its size is the growth rate), a purely imaginary one an oscillation (its size is the
+angular frequency). Both are closed forms, broadcast over leading batch axes, work inside ``jit``
+and ``vmap``, and have finite gradients everywhere (including the boundaries between stable and
+unstable, where the square roots have an infinite slope: there the gradient of the vanishing branch
+is taken as 0).
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._dynamics import is_full_tensor
+from ._inertia import check_inertia
+from ._misc import check_last_axis, common_float
+from ._types import Inertia, Scalar, Vector
+
+# Default relative tolerance on ``I1 = I2`` and on the centre of mass lying on the symmetry axis in
+# :func:`sleeping_top`: well above the roundoff of moments from ``principal_axes`` (a few eps times
+# the largest moment, float32 included), tight enough to reject a visibly asymmetric top.
+_SYMMETRY_RTOL = 1e-4
+
+
+def _safe_sqrt(x):
+    """``sqrt(max(x, 0))`` with a zero (finite) gradient where ``x <= 0``: the unsafe input is
+    replaced by 1 before the square root, so the unused branch has no NaN/inf cotangent."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
+
+
+def _common_float(*args, names):
+    """Float arrays of one dtype: the widest float among the array arguments (``common_float``).
+    Plain Python numbers (e.g. the default ``gravity=9.81``) take that dtype instead of widening
+    float32 input to float64."""
+    typed = [(a, n) for a, n in zip(args, names, strict=True) if type(a) not in (int, float)]
+    if typed:
+        arrays = common_float(*[a for a, _ in typed], names=[n for _, n in typed])
+        dtype = arrays[0].dtype
+    else:
+        dtype = jnp.result_type(float)
+    out = []
+    for a in args:
+        out.append(jnp.asarray(a, dtype) if type(a) in (int, float) else arrays.pop(0))
+    return out
+
+
+def _principal_moments(inertia, function: str):
+    if is_full_tensor(inertia):
+        raise ValueError(
+            f"{function} needs principal moments of shape (..., 3) (kg m^2), got a tensor of shape "
+            f"{tuple(jnp.shape(inertia))}. Diagonalise it first: moments, axes = "
+            "rigidjax.principal_axes(tensor); the spin axes are then the columns of `axes`. (A "
+            "trailing (3, 3) is always read as a tensor; a batch of three bodies' moments is "
+            "inertia[:, None, :].)"
+        )
+    check_last_axis(inertia, 3, "inertia")
+    return check_inertia(inertia)
+
+
+class SpinStability(eqx.Module):
+    """Linear stability of steady torque-free spin about each principal axis.
+
+    Every field has shape ``(..., 3)``; entry ``i`` is about spin about principal axis ``i``.
+
+    - ``growth_rate``: the real part of ``lambda`` (1/s), ``> 0`` only for the axis of the
+      intermediate moment: a perturbation grows as ``exp(growth_rate * t)`` (the tennis-racket /
+      Dzhanibekov instability). 0 elsewhere.
+    - ``frequency``: the imaginary part of ``lambda`` (rad/s), ``> 0`` for the axes of the largest
+      and smallest moments: the transverse body-frame angular velocity circles the spin axis (on an
+      ellipse) at this angular frequency. 0 elsewhere.
+    - ``stable``: ``lambda^2 < 0``: bounded oscillation about the axis.
+    - ``marginal``: ``lambda^2 == 0``: no exponential growth and no oscillation. This happens for
+      spin about an axis whose moment equals another's (see :func:`spin_stability`) and at zero
+      spin rate.
+
+    An axis is exponentially unstable where neither ``stable`` nor ``marginal`` holds
+    (``growth_rate > 0``); :attr:`unstable` says so.
+    """
+
+    growth_rate: Float[Array, "*batch 3"]
+    frequency: Float[Array, "*batch 3"]
+    stable: Bool[Array, "*batch 3"]
+    marginal: Bool[Array, "*batch 3"]
+
+    @property
+    def unstable(self) -> Bool[Array, "*batch 3"]:
+        """``lambda^2 > 0``: an exponentially growing perturbation (``growth_rate > 0``)."""
+        return ~(self.stable | self.marginal)
+
+
+def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
+    """Stability of a torque-free body spinning steadily about each of its principal axes.
+
+    For spin at rate ``Omega`` about principal axis ``i`` (the other two being ``j``, ``k``), Euler's
+    equations linearised in the small transverse components give ``d^2 dw_j / dt^2 = lambda^2 dw_j``
+    with
+
+        ``lambda^2 = Omega^2 (I_i - I_j) (I_k - I_i) / (I_j I_k)``.
+
+    ``lambda^2 > 0`` only when ``I_i`` lies strictly between ``I_j`` and ``I_k``: spin about the
+    intermediate axis is unstable with growth rate ``|lambda|`` (the tennis-racket theorem). About the
+    largest and the smallest axes ``lambda^2 < 0``: the perturbation oscillates with body-frame
+    angular frequency ``|lambda|``.
+
+    Equal moments (a symmetric top, ``I1 = I2 != I3``): spin about the odd axis is stable, with
+    frequency ``|I3 - I1| / I1 * Omega``, the free precession rate
+    (:func:`rigidjax.free_precession_rate`). Spin about any axis in the degenerate plane has
+    ``lambda = 0`` and is reported ``marginal``: the linearised perturbation grows linearly, not
+    exponentially (the spin axis drifts through the degenerate plane, where every axis is
+    principal, while the symmetry axis stays put). For a sphere every axis is marginal. Moments are
+    compared exactly: two moments that differ by roundoff count as distinct and give a tiny
+    ``growth_rate`` or ``frequency``.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` (kg m^2). A full tensor ``(..., 3, 3)`` is
+      rejected with a ``ValueError``: diagonalise it with :func:`rigidjax.principal_axes` first.
+      Non-physical moments (non-positive, violating the triangle inequality, NaN) are an error
+      (``equinox.error_if``, so also inside ``jit``).
+    - `omega_magnitude`: spin rate ``Omega`` (rad/s), shape ``(...)``, broadcast against the batch
+      axes of `inertia`; its sign does not matter.
+
+    **Returns:** a :class:`SpinStability` with ``growth_rate``, ``frequency``, ``stable`` and
+    ``marginal``, each ``(..., 3)``. Gradients with respect to both arguments are finite everywhere;
+    at ``lambda = 0`` (the square root's branch point) the derivative of the vanishing part is 0.
+    """
+    inertia, omega = _common_float(inertia, omega_magnitude, names=["inertia", "omega_magnitude"])
+    inertia = _principal_moments(inertia, "spin_stability")
+    # Axis i with its neighbours j = i + 1 and k = i + 2 (cyclic); the product is symmetric in j, k.
+    I_i = inertia
+    I_j = jnp.roll(inertia, -1, axis=-1)
+    I_k = jnp.roll(inertia, -2, axis=-1)
+    shape = (I_i - I_j) * (I_k - I_i) / (I_j * I_k)  # lambda^2 / Omega^2, dimensionless
+    speed = jnp.abs(omega)[..., None]
+    lam2 = speed * speed * shape
+    return SpinStability(
+        growth_rate=speed * _safe_sqrt(shape),
+        frequency=speed * _safe_sqrt(-shape),
+        stable=lam2 < 0,
+        marginal=lam2 == 0,
+    )
+
+
+class SleepingTop(eqx.Module):
+    """Linear stability of a heavy symmetric top spinning upright ("sleeping"); fields ``(...)``.
+
+    - ``margin``: ``(I3 w3)^2 - 4 I1 m g l`` (kg^2 m^4 / s^2); positive means stable.
+    - ``critical_spin``: ``w_crit = 2 sqrt(I1 m g l) / I3`` (rad/s), the spin below which the upright
+      top falls; 0 when ``l <= 0`` (centre of mass at or below the pivot: stable at any spin).
+    - ``stable``: ``margin > 0`` (at ``margin == 0`` the two modes merge and the tilt grows linearly).
+    - ``slow_rate``, ``fast_rate``: the two roots ``lambda`` of ``I1 lambda^2 - I3 w3 lambda + m g l
+      = 0`` (rad/s): the tilt of the symmetry axis, as the complex number ``X + iY`` of its space
+      -frame direction, is a sum of two circular modes ``exp(i lambda t)``: the slow precession
+      (``~ m g l / (I3 w3)`` for a fast top) and the fast nutation (``~ I3 w3 / I1``); positive in
+      the sense of the spin. ``fast_rate`` is the root of larger magnitude. Below ``w_crit`` the
+      roots are complex conjugates: both fields are then their common real part ``I3 w3 / (2 I1)``,
+      the rate at which the growing tilt turns about the vertical.
+    - ``growth_rate``: the imaginary part of the roots (1/s): 0 when stable, else
+      ``sqrt(4 I1 m g l - (I3 w3)^2) / (2 I1)``: the tilt grows as ``exp(growth_rate * t)``.
+    """
+
+    margin: Float[Array, "*batch"]
+    critical_spin: Float[Array, "*batch"]
+    stable: Bool[Array, "*batch"]
+    slow_rate: Float[Array, "*batch"]
+    fast_rate: Float[Array, "*batch"]
+    growth_rate: Float[Array, "*batch"]
+
+
+def sleeping_top(
+    inertia: Inertia,
+    mass: Scalar,
+    com: Vector,
+    omega3: Scalar,
+    gravity: Scalar = 9.81,
+    *,
+    symmetry_rtol: float = _SYMMETRY_RTOL,
+) -> SleepingTop:
+    """Stability of a heavy symmetric top spinning upright about its vertical symmetry axis.
+
+    The top is the :class:`rigidjax.HeavyTop` scene: a fixed pivot, gravity ``g`` along space -Z,
+    the body z axis (the symmetry axis) vertical and spinning at ``w3``. Linearising in the tilt
+    gives the characteristic equation ``I1 lambda^2 - I3 w3 lambda + m g l = 0`` for circular modes
+    ``exp(i lambda t)`` of the tilt, so the upright top is stable when
+
+        ``(I3 w3)^2 > 4 I1 m g l``,  i.e.  ``|w3| > w_crit = 2 sqrt(I1 m g l) / I3``.
+
+    **Assumptions.** A symmetric top: ``I1 = I2`` (the transverse moments about the PIVOT) and the
+    centre of mass on the symmetry axis. The moments are checked to within `symmetry_rtol`
+    (``|I1 - I2| <= symmetry_rtol * (I1 + I2) / 2``) and their mean is used as ``I1``; a more
+    asymmetric top is an error (its upright stability is not given by this criterion), as is a
+    centre of mass off the body z axis (``|(com_x, com_y)| > symmetry_rtol * |com|``). These are
+    ``equinox.error_if`` checks, so they also run inside ``jit``. ``l = com_z`` is signed: with the
+    centre of mass below the pivot (``l < 0``, a hanging top) the criterion holds at any spin.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` about the pivot, ``(I1, I2, I3)`` with ``I3`` about
+      the symmetry axis body z (kg m^2). A tensor ``(..., 3, 3)`` is rejected (``ValueError``):
+      diagonalise it and express `com` in the principal axes first. Non-physical moments are an
+      error, as in :func:`rigidjax.check_inertia`.
+    - `mass`: mass (kg), shape ``(...)``.
+    - `com`: body-frame position of the centre of mass relative to the pivot ``(..., 3)`` (m), on
+      the z axis: ``(0, 0, l)``.
+    - `omega3`: spin about the symmetry axis (rad/s), shape ``(...)``; its sign sets the sense of
+      the precession rates.
+    - `gravity`: ``g`` (m/s^2), shape ``(...)``.
+    - `symmetry_rtol`: relative tolerance of the symmetry checks above.
+
+    **Returns:** a :class:`SleepingTop` with ``margin``, ``critical_spin``, ``stable``,
+    ``slow_rate``, ``fast_rate`` and ``growth_rate``, each ``(...)`` (the broadcast batch shape).
+    Gradients are finite everywhere, including at ``margin = 0``.
+    """
+    inertia, mass, com, omega3, gravity = _common_float(
+        inertia, mass, com, omega3, gravity, names=["inertia", "mass", "com", "omega3", "gravity"]
+    )
+    check_last_axis(com, 3, "com")
+    inertia = _principal_moments(inertia, "sleeping_top")
+    I1, I2, I3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
+    I1 = eqx.error_if(
+        I1,
+        jnp.abs(I1 - I2) > symmetry_rtol * 0.5 * (I1 + I2),
+        f"sleeping_top: inertia must be that of a symmetric top, I1 = I2 (to a relative "
+        f"{symmetry_rtol:g}): the criterion (I3 w3)^2 > 4 I1 m g l does not hold for an asymmetric "
+        "top. Put the symmetry axis along body z, or raise symmetry_rtol to use (I1 + I2) / 2.",
+    )
+    transverse = jnp.sqrt(com[..., 0] ** 2 + com[..., 1] ** 2)
+    lever = eqx.error_if(
+        com[..., 2],
+        transverse > symmetry_rtol * jnp.sqrt(transverse**2 + com[..., 2] ** 2),
+        "sleeping_top: com must lie on the symmetry axis, com = (0, 0, l) in body axes: a centre of "
+        "mass off the axis has no upright equilibrium.",
+    )
+    I1 = 0.5 * (I1 + I2)
+    k = mass * gravity * lever  # m g l (N m), signed
+    b = I3 * omega3  # axial angular momentum
+    disc = b * b - 4.0 * I1 * k  # the margin
+    root = _safe_sqrt(disc)
+    # Roots without cancellation: q = (b + sign(b) sqrt(disc)) / 2, fast = q / I1, slow = k / q.
+    sign = jnp.where(b < 0, -1.0, 1.0).astype(b.dtype)
+    q = 0.5 * (b + sign * root)
+    q_safe = jnp.where(q == 0, jnp.ones_like(q), q)
+    stable = disc > 0
+    fast = jnp.where(stable, q / I1, b / (2.0 * I1))
+    slow = jnp.where(stable, jnp.where(q == 0, jnp.zeros_like(q), k / q_safe), b / (2.0 * I1))
+    growth = _safe_sqrt(-disc) / (2.0 * I1)
+    critical = jnp.broadcast_to(2.0 * _safe_sqrt(I1 * k) / I3, disc.shape)
+    return SleepingTop(
+        margin=disc,
+        critical_spin=critical,
+        stable=stable,
+        slow_rate=slow,
+        fast_rate=fast,
+        growth_rate=growth,
+    )
