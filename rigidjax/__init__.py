@@ -14,6 +14,13 @@ from ._dynamics import inertia_times as inertia_times
 from ._dynamics import is_full_tensor as is_full_tensor
 from ._dynamics import kinetic_energy as kinetic_energy
 from ._dynamics import space_angular_momentum as space_angular_momentum
+from ._elliptic import ellipe as ellipe
+from ._elliptic import ellipeinc as ellipeinc
+from ._elliptic import ellipj as ellipj
+from ._elliptic import ellipj_m1 as ellipj_m1
+from ._elliptic import ellipk as ellipk
+from ._elliptic import ellipkinc as ellipkinc
+from ._elliptic import ellipkm1 as ellipkm1
 from ._euler import PROPER_SEQUENCES as PROPER_SEQUENCES
 from ._euler import SEQUENCES as SEQUENCES
 from ._euler import TAIT_BRYAN_SEQUENCES as TAIT_BRYAN_SEQUENCES
@@ -59,6 +66,8 @@ from ._stability import SleepingTop as SleepingTop
 from ._stability import SpinStability as SpinStability
 from ._stability import sleeping_top as sleeping_top
 from ._stability import spin_stability as spin_stability
+from ._torque_free import torque_free_omega as torque_free_omega
+from ._torque_free import torque_free_period as torque_free_period
 from ._trajectory import Trajectory as Trajectory
 
 try:

@@ -22,10 +22,12 @@ import jax.numpy as jnp
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from ._dynamics import is_full_tensor
 from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_euler
 from ._inertia import check_inertia
-from ._models import AbstractModel, State
+from ._models import AbstractModel, FreeBody, State
 from ._quaternion import quat_multiply
+from ._torque_free import torque_free_omega
 from ._trajectory import Trajectory
 
 # Solver and rtol per preset, from benchmarks/batch_strategies.py (10^4 tennis-racket bodies, shared
@@ -314,6 +316,50 @@ def _float_dtype(*xs):
     return jnp.result_type(*dtypes) if dtypes else jnp.result_type(float)
 
 
+@eqx.filter_jit
+def _exact_impl(model, omega0, ts):
+    model, omega0, _, ts = _check_inputs(model, model.body_leaves(), omega0, None, ts, omega0.dtype)
+    batch = jnp.broadcast_shapes(model.inertia.shape[:-1], omega0.shape[:-1])
+    inertia = jnp.broadcast_to(model.inertia, batch + (3,))
+    omega0 = jnp.broadcast_to(omega0, batch + (3,))
+    omega = torque_free_omega(inertia[..., None, :], omega0[..., None, :], ts - ts[0])
+    return Trajectory(
+        ts=ts,
+        omega=omega,
+        orientation=None,
+        model=model.replace_body_leaves(model.body_leaves(), [inertia]),
+        success=jnp.ones(batch, bool),
+        stats={"num_steps": jnp.zeros((), jnp.int32), "chunk_size": 0, "quaternion_norm_error": None},
+    )
+
+
+def _simulate_exact(model, state0, ts, *, throw):
+    """``accuracy="exact"``: the closed-form torque-free solution, no integration."""
+    del throw  # the closed form cannot fail; invalid input still raises
+    if not (isinstance(model, AbstractModel) and model.torque_free):
+        raise ValueError(
+            "accuracy='exact' is the closed-form torque-free solution: it needs a FreeBody (or a "
+            f"RigidBody without torques), got {type(model).__name__} with torques or a field."
+        )
+    if is_full_tensor(model.inertia):
+        raise ValueError(
+            "accuracy='exact' needs principal moments (..., 3); diagonalise the tensor with "
+            "rigidjax.principal_axes and rotate omega into those axes first."
+        )
+    if state0.orientation is not None:
+        raise NotImplementedError(
+            "accuracy='exact' gives omega(t) in closed form; the closed-form orientation is not "
+            "implemented yet. Pass State(omega) for omega only, or use accuracy='precise'."
+        )
+    ts = jnp.asarray(ts)
+    if ts.ndim != 1 or ts.shape[0] < 1:
+        raise ValueError(f"ts must be a 1-D array of at least one time, got shape {tuple(ts.shape)}.")
+    dtype = _float_dtype(state0.omega, model.inertia)
+    return _exact_impl(
+        FreeBody(jnp.asarray(model.inertia, dtype)), state0.omega.astype(dtype), ts.astype(dtype)
+    )
+
+
 def simulate(
     model: AbstractModel,
     state0: State,
@@ -345,7 +391,8 @@ def simulate(
             per body) are integrated.
         ts: strictly increasing sample times (s), shape (T,); ``ts[0]`` is the initial time.
         accuracy: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8, 1e-8) or ``"precise"``
-            (Dopri8, 1e-11). ``"exact"`` (closed form) is not available yet.
+            (Dopri8, 1e-11), or ``"exact"``: the closed-form torque-free solution (Jacobi elliptic
+            functions; FreeBody with principal moments, omega only for now), no integration.
         solver, rtol, atol, stepsize_controller, dt0, adjoint: override the preset with any diffrax
             solver, step-size controller (e.g. ``ConstantStepSize`` with ``dt0``) or adjoint.
             ``rtol``/``atol`` are dimensionless (see the module docstring); ``atol`` defaults to
@@ -373,10 +420,7 @@ def simulate(
     if not isinstance(state0, State):
         raise TypeError(f"state0 must be a rigidjax.State, got {type(state0).__name__}.")
     if accuracy == "exact":
-        raise NotImplementedError(
-            "accuracy='exact' (the closed-form torque-free solution) is not implemented yet; "
-            "use accuracy='precise'."
-        )
+        return _simulate_exact(model, state0, ts, throw=throw)
     if accuracy not in PRESETS:
         raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
     if state0.orientation is None and model.needs_orientation:
