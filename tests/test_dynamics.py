@@ -405,3 +405,19 @@ def test_bad_shape_raises_value_error_naming_argument(call, name, without_runtim
 def test_bad_shape_rejected_under_runtime_typecheck(call, name):
     with pytest.raises((ValueError, TypeError), match=rf"\b{name}\b"):
         call()
+
+
+def test_inertia_times_and_tensor_shape_rule():
+    rng = np.random.default_rng(7)
+    moments = rng.uniform(1.0, 2.0, (4, 3))
+    omega = rng.normal(size=(4, 3))
+    np.testing.assert_allclose(np.asarray(rj.inertia_times(moments, omega)), moments * omega, rtol=1e-15)
+    A = rng.normal(size=(4, 3, 3))
+    tensor = A @ np.swapaxes(A, -1, -2) + 3 * np.eye(3)
+    np.testing.assert_allclose(
+        np.asarray(rj.inertia_times(tensor, omega)), np.einsum("nij,nj->ni", tensor, omega), rtol=1e-13
+    )
+    assert rj.is_full_tensor(np.ones((3, 3))) and rj.is_full_tensor(np.ones((5, 3, 3)))
+    assert not rj.is_full_tensor(np.ones(3)) and not rj.is_full_tensor(np.ones((5, 3)))
+    with pytest.raises(ValueError, match="inertia"):
+        rj.is_full_tensor(np.ones((2, 4)))

@@ -535,3 +535,27 @@ def test_heavy_top_gradients_wrt_mass_omega0_and_com():
             minus[k] = jnp.asarray((flat - step).reshape(np.shape(x)))
             fd = (float(height(*plus)) - float(height(*minus))) / (2 * step[j])
             np.testing.assert_allclose(np.ravel(np.asarray(g))[j], fd, rtol=1e-5, atol=1e-8)
+
+
+class _SpinUp(rj.AbstractTorque):
+    """A user-defined torque class: a body-frame torque growing linearly in time."""
+
+    rate: jax.Array
+    needs_orientation = False
+
+    def __call__(self, t, state, args):
+        return jnp.array([0.0, 0.0, 1.0], state.omega.dtype) * self.rate * t
+
+
+def test_user_torque_subclass_and_public_types():
+    """A subclass of AbstractTorque works in simulate: on a sphere omega3 = w0 + rate t^2 / (2 I)."""
+    I = 0.5
+    ts = jnp.linspace(0.0, 2.0, 9)
+    model = rj.RigidBody(jnp.full(3, I), _SpinUp(jnp.asarray(0.3)))
+    assert isinstance(model, rj.AbstractModel)
+    traj = rj.simulate(model, rj.State(jnp.array([0.0, 0.0, 1.0])), ts, accuracy="precise")
+    assert isinstance(traj, rj.Trajectory)
+    np.testing.assert_allclose(
+        np.asarray(traj.omega[:, 2]), np.asarray(1.0 + 0.3 * ts**2 / (2 * I)), rtol=1e-10
+    )
+    assert set(rj.PRESETS) == {"fast", "balanced", "precise"}
