@@ -62,6 +62,9 @@ from ._quaternion import quat_normalize as quat_normalize
 from ._quaternion import quat_rotate as quat_rotate
 from ._simulate import PRESETS as PRESETS
 from ._simulate import simulate as simulate
+from ._splitting import LiePoissonSplitting as LiePoissonSplitting
+from ._splitting import split_free_body as split_free_body
+from ._splitting import splitting_step as splitting_step
 from ._stability import SleepingTop as SleepingTop
 from ._stability import SpinStability as SpinStability
 from ._stability import sleeping_top as sleeping_top
