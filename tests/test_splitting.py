@@ -1,4 +1,7 @@
-"""Lie–Poisson splitting for the free rigid body: orders, invariants, diffrax wrapper, batch, float32."""
+"""Lie–Poisson splitting for the free rigid body and the heavy top: orders, invariants, diffrax
+wrappers, batch, float32."""
+
+import functools
 
 import diffrax
 import jax
@@ -6,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rigidjax._quaternion import matrix_from_quat, quat_normalize, quat_rotate
+from rigidjax._quaternion import matrix_from_quat, quat_multiply, quat_normalize, quat_rotate
 from rigidjax._splitting import (
     LiePoissonSplitting,
     free_body_vector_field,
@@ -223,3 +226,192 @@ def test_float32(order):
         stepsize_controller=diffrax.ConstantStepSize(),
     )
     assert sol.ys[0].dtype == jnp.float32
+
+
+# ---------------------------------------------------------------------------------------------
+# The heavy top: gravity kick + free-body splitting.
+
+from scipy.integrate import solve_ivp  # noqa: E402
+
+from rigidjax._models import HeavyTop, State  # noqa: E402
+from rigidjax._splitting import (  # noqa: E402
+    HeavyTopSplitting,
+    _gravity_kick,
+    _strang,
+    heavy_top_splitting_step,
+    heavy_top_vector_field,
+    heavy_top_weight_com,
+    split_heavy_top,
+)
+
+# An asymmetric top, com off every axis, fast spin plus a wobble: nothing special about it.
+TOP = HeavyTop(jnp.array([1.0, 1.4, 0.6]), 1.2, jnp.array([0.05, -0.03, 0.4]), 9.81)
+TOP_OMEGA0 = jnp.array([0.8, -0.4, 9.0])
+TOP_L0 = TOP.inertia * TOP_OMEGA0
+TOP_Q0 = quat_normalize(jnp.array([0.95, 0.25, -0.1, 0.15]))
+TOP_WCOM = heavy_top_weight_com(TOP.mass, TOP.com, TOP.gravity)
+TOP_T = 2.0
+
+
+def _top_energy(L, q):
+    return 0.5 * jnp.sum(L * L / TOP.inertia, axis=-1) + TOP.potential_energy(q)
+
+
+def _top_Lz(L, q):
+    return quat_rotate(q, L)[..., 2]
+
+
+@functools.cache
+def _top_reference(T_end):
+    """scipy DOP853 at rtol = atol = 1e-13 on HeavyTop.angular_acceleration (the model's own equations,
+    not the splitting's) with dq/dt = q ⊗ (0, omega) / 2."""
+    accel = jax.jit(lambda w, q: TOP.angular_acceleration(0.0, State(w, q), None))
+    qdot = jax.jit(lambda q, w: 0.5 * quat_multiply(q, jnp.concatenate([jnp.zeros(1), w])))
+
+    def rhs(t, y):
+        w, q = jnp.asarray(y[:3]), jnp.asarray(y[3:])
+        return np.concatenate([np.asarray(accel(w, q)), np.asarray(qdot(q, w))])
+
+    y0 = np.concatenate([np.asarray(TOP_OMEGA0), np.asarray(TOP_Q0)])
+    sol = solve_ivp(rhs, (0.0, T_end), y0, method="DOP853", rtol=1e-13, atol=1e-13)
+    assert sol.success
+    w, q = sol.y[:3, -1], sol.y[3:, -1]
+    return np.asarray(TOP.inertia) * w, q
+
+
+def test_heavy_top_vector_field_matches_model():
+    """The splitting's equations are the model's: dL/dt = I domega/dt along the model, at random states."""
+    key = jax.random.PRNGKey(3)
+    w = jax.random.normal(key, (5, 3))
+    q = quat_normalize(jax.random.normal(jax.random.PRNGKey(4), (5, 4)))
+    dL, dq = heavy_top_vector_field(TOP.inertia, TOP.mass, TOP.com, TOP.gravity)(
+        0.0, (TOP.inertia * w, q), None
+    )
+    expected = TOP.inertia * jax.vmap(lambda a, b: TOP.angular_acceleration(0.0, State(a, b), None))(w, q)
+    np.testing.assert_allclose(dL, expected, rtol=1e-13, atol=1e-13)
+    # The kick alone (omega = 0 part): L changes by h times the model's gravity torque.
+    kicked = _gravity_kick(TOP_WCOM, TOP_L0, TOP_Q0, 0.3)
+    np.testing.assert_allclose(kicked - TOP_L0, 0.3 * TOP.gravity_torque(TOP_Q0), rtol=1e-13, atol=1e-14)
+
+
+@functools.cache
+def _top_integrator(order):
+    """One compiled run for every step count (a dynamic trip count) of the given order."""
+
+    def run(dt, n):
+        def body(_, state):
+            return heavy_top_splitting_step(TOP.inertia, TOP_WCOM, *state, dt, order)
+
+        return jax.lax.fori_loop(0, n, body, (TOP_L0, TOP_Q0))
+
+    return jax.jit(run)
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_heavy_top_convergence_order(order):
+    L_ref, q_ref = _top_reference(TOP_T)
+    R_ref = matrix_from_quat(jnp.asarray(q_ref))
+    ns = (100, 200, 400, 800)
+    hs, err_L, err_R = [], [], []
+    for n in ns:
+        L, q = _top_integrator(order)(jnp.asarray(TOP_T / n), n)
+        hs.append(TOP_T / n)
+        err_L.append(float(jnp.max(jnp.abs(L - L_ref))))
+        err_R.append(float(jnp.max(jnp.abs(matrix_from_quat(q) - R_ref))))
+    slope_L = np.polyfit(np.log(hs), np.log(err_L), 1)[0]
+    slope_R = np.polyfit(np.log(hs), np.log(err_R), 1)[0]
+    print(
+        f"heavy top order {order}: L errors {err_L} slope {slope_L:.4f}; R errors {err_R} slope {slope_R:.4f}"
+    )
+    assert abs(slope_L - order) < 0.1
+    assert abs(slope_R - order) < 0.1
+    assert err_L[-1] < (1e-4 if order == 2 else 1e-7)
+
+
+def test_heavy_top_substeps_conserve_Lz():
+    """Each sub-flow alone conserves the vertical angular momentum (R L) . Z to roundoff."""
+    q = quat_normalize(jax.random.normal(jax.random.PRNGKey(5), (64, 4)))
+    L = jax.random.normal(jax.random.PRNGKey(6), (64, 3))
+    Lz0 = _top_Lz(L, q)
+    L_kick = jax.jit(_gravity_kick)(TOP_WCOM, L, q, 0.7)
+    L_free, q_free = jax.jit(_strang)(TOP.inertia, L, q, 0.7)
+    scale = jnp.linalg.norm(L, axis=-1) + 0.7 * jnp.linalg.norm(TOP_WCOM)
+    kick_dev = float(jnp.max(jnp.abs(_top_Lz(L_kick, q) - Lz0) / scale))
+    free_dev = float(jnp.max(jnp.abs(_top_Lz(L_free, q_free) - Lz0) / scale))
+    print(f"L_Z change: kick {kick_dev:.2e}, free Strang {free_dev:.2e}")
+    assert jnp.max(jnp.abs(L_kick - L)) > 0.1  # the kick does change L
+    assert kick_dev < 1e-15 * 8
+    assert free_dev < 1e-15 * 8
+
+
+def _top_run_recording(n_steps, dt, order):
+    def body(state, _):
+        state = heavy_top_splitting_step(TOP.inertia, TOP_WCOM, *state, dt, order)
+        L, q = state
+        return state, (_top_energy(L, q), _top_Lz(L, q), jnp.linalg.norm(q))
+
+    return jax.jit(lambda s: jax.lax.scan(body, s, None, length=n_steps))((TOP_L0, TOP_Q0))
+
+
+def test_heavy_top_invariants_long_run():
+    n, dt = 100_000, jnp.asarray(0.005)
+    _, (E, Lz, normq) = _top_run_recording(n, dt, 2)
+    E0, Lz0, normL0 = _top_energy(TOP_L0, TOP_Q0), _top_Lz(TOP_L0, TOP_Q0), jnp.linalg.norm(TOP_L0)
+    # Energy relative to kinetic + |potential| at t = 0 (the potential may cross zero).
+    E_scale = 0.5 * jnp.sum(TOP_L0**2 / TOP.inertia) + jnp.abs(TOP.potential_energy(TOP_Q0))
+    dE = jnp.abs(E - E0) / E_scale
+    first, second = float(jnp.max(dE[: n // 2])), float(jnp.max(dE[n // 2 :]))
+    lz = float(jnp.max(jnp.abs(Lz - Lz0)) / normL0)
+    q_dev = float(jnp.max(jnp.abs(normq - 1.0)))
+    print(
+        f"heavy top 1e5 Strang steps dt={float(dt)}: max |dE|/E first half {first:.3e}, second half "
+        f"{second:.3e}; max |dL_Z|/|L| {lz:.2e}; max ||q|-1| {q_dev:.2e}"
+    )
+    assert second <= 1.5 * first  # bounded, no drift
+    assert first < 1e-3
+    assert lz < 1e-12
+    assert q_dev < 1e-13
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_heavy_top_diffrax_wrapper(order):
+    n = 200
+    dt = TOP_T / n
+    vf = heavy_top_vector_field(TOP.inertia, TOP.mass, TOP.com, TOP.gravity)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf),
+        HeavyTopSplitting.from_model(TOP, order=order),
+        0.0,
+        TOP_T,
+        dt,
+        (TOP_L0, TOP_Q0),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        saveat=diffrax.SaveAt(t1=True),
+    )
+    L, q = split_heavy_top(TOP.inertia, TOP.mass, TOP.com, TOP.gravity, TOP_L0, TOP_Q0, dt, n, order)
+    assert sol.stats["num_steps"] == n
+    np.testing.assert_allclose(sol.ys[0][-1], L, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.ys[1][-1], q, rtol=0, atol=1e-12)
+    assert HeavyTopSplitting(TOP.inertia, TOP.mass, TOP.com, order=order).order(None) == order
+
+
+def test_heavy_top_errors():
+    with pytest.raises(ValueError, match="order"):
+        HeavyTopSplitting(TOP.inertia, 1.0, TOP.com, order=3)
+    with pytest.raises(ValueError, match="principal moments"):
+        HeavyTopSplitting(jnp.eye(3), 1.0, TOP.com)
+    with pytest.raises(ValueError, match="extra torques"):
+        HeavyTopSplitting.from_model(HeavyTop(TOP.inertia, 1.0, TOP.com, torque=lambda t, s, a: -s.omega))
+
+
+def test_heavy_top_batch_matches_single():
+    """Leading batch axes (per-body mass and com) agree with one body at a time."""
+    masses = jnp.array([0.5, 1.0, 2.0])
+    coms = jnp.array([[0.0, 0.0, 0.3], [0.05, -0.03, 0.4], [0.1, 0.1, 0.2]])
+    n = 100
+    L_b, q_b = split_heavy_top(TOP.inertia, masses, coms, 9.81, TOP_L0, TOP_Q0, 0.01, n, 4)
+    assert L_b.shape == (3, 3) and q_b.shape == (3, 4)
+    for b in range(3):
+        L1, q1 = split_heavy_top(TOP.inertia, masses[b], coms[b], 9.81, TOP_L0, TOP_Q0, 0.01, n, 4)
+        np.testing.assert_allclose(L_b[b], L1, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(q_b[b], q1, rtol=0, atol=1e-12)
