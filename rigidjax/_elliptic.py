@@ -497,3 +497,75 @@ def _ellipj_checked(u, m, p):
     p_ok = jnp.where(bad, jnp.ones_like(p), p)
     out = _ellipj(u, m_ok, p_ok)
     return tuple(jnp.where(bad, jnp.nan, o) for o in out)
+
+
+# --------------------------------------------------------------------------------------------------
+# Carlson's integral of the third kind
+
+
+def _rc_one(e):
+    """``R_C(1, 1 + e)`` for ``e > -1``: ``atan(sqrt e) / sqrt e`` (``e > 0``), ``atanh(sqrt(-e)) /
+    sqrt(-e)`` (``e < 0``) and a Taylor series for ``|e| < 1/64`` (relative error < 1e-17)."""
+    small = jnp.abs(e) < 1 / 64
+    positive = e > 0
+    e_pos = jnp.where(positive & ~small, e, jnp.ones_like(e))
+    e_neg = jnp.where(~positive & ~small, -e, jnp.full_like(e, 0.5))
+    r_pos = jnp.arctan(jnp.sqrt(e_pos)) / jnp.sqrt(e_pos)
+    r_neg = jnp.arctanh(jnp.sqrt(e_neg)) / jnp.sqrt(e_neg)
+    e_small = jnp.where(small, e, jnp.zeros_like(e))
+    series = jnp.zeros_like(e)
+    for k in range(10, -1, -1):  # sum_k (-e)^k / (2k + 1)
+        series = series * (-e_small) + 1.0 / (2 * k + 1)
+    return jnp.where(small, series, jnp.where(positive, r_pos, r_neg))
+
+
+def _carlson_rj(x, y, z, p):
+    """Carlson's ``R_J(x, y, z, p)`` (DLMF 19.16.2) by duplication, Carlson (1995) algorithm for R_J.
+
+    ``x, y, z >= 0`` with at most one zero and ``p > 0`` (no Cauchy principal value). Differentiable
+    by automatic differentiation through the fixed number of steps, finite where every argument is
+    positive.
+    """
+    a = (x + y + z + 2 * p) / 5
+    delta = (p - x) * (p - y) * (p - z)
+    fx, fy, fz = a - x, a - y, a - z
+    total = jnp.zeros_like(x)
+    scale = 1.0
+    for _ in range(_steps(_CARLSON_STEPS, x.dtype)):
+        sx, sy, sz, sp = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z), _safe_sqrt(p)
+        lam = sx * (sy + sz) + sy * sz
+        d = (sp + sx) * (sp + sy) * (sp + sz)
+        total = total + scale * _rc_one(delta * scale**3 / (d * d)) / d
+        scale = scale / 4
+        x, y, z, p, a = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, (a + lam) / 4
+    X, Y, Z = fx * (scale / a), fy * (scale / a), fz * (scale / a)
+    P = -(X + Y + Z) / 2
+    e2 = X * Y + X * Z + Y * Z - 3 * P * P
+    xyz = X * Y * Z
+    e3 = xyz + 2 * e2 * P + 4 * P**3
+    e4 = (2 * xyz + e2 * P + 3 * P**3) * P
+    e5 = xyz * P * P
+    series = 1 - 3 * e2 / 14 + e3 / 6 + 9 * e2 * e2 / 88 - 3 * e4 / 22 - 9 * e2 * e3 / 52 + 3 * e5 / 26
+    return scale * series / (a * jnp.sqrt(a)) + 6 * total
+
+
+def _carlson_rf(x, y, z):
+    return _carlson_rf_rd(x, y, z)[0]
+
+
+def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
+    """Carlson's symmetric integral of the third kind, as ``scipy.special.elliprj`` for real arguments::
+
+        R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t + p) sqrt((t + x) (t + y) (t + z))).
+
+    Needs ``x, y, z >= 0`` (at most one of them zero) and ``p > 0``; NaN otherwise (the principal
+    value for ``p < 0`` is not implemented). Gradients by automatic differentiation through the
+    duplication, finite wherever all arguments are positive.
+    """
+    x, y, z, p = common_float(x, y, z, p, names=["x", "y", "z", "p"])
+    x, y, z, p = jnp.broadcast_arrays(x, y, z, p)
+    zeros = (x == 0).astype(jnp.int32) + (y == 0).astype(jnp.int32) + (z == 0).astype(jnp.int32)
+    bad = (x < 0) | (y < 0) | (z < 0) | (p <= 0) | (zeros > 1) | jnp.isnan(x + y + z + p)
+    one = jnp.ones_like(x)
+    value = _carlson_rj(*(jnp.where(bad, one, v) for v in (x, y, z, p)))
+    return jnp.where(bad, jnp.nan, value)

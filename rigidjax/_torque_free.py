@@ -17,9 +17,10 @@ nearly symmetric bodies (m -> 0). Steady rotations (spin about a principal axis,
 
 import jax.numpy as jnp
 
-from ._elliptic import ellipj_m1, ellipkm1
-from ._misc import check_last_axis, common_float
-from ._types import Scalar, ScalarOut, Vector, VectorOut
+from ._elliptic import _carlson_rf, _carlson_rj, ellipj_m1, ellipkm1
+from ._misc import check_last_axis, common_float, safe_norm
+from ._quaternion import quat_multiply
+from ._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 
 
 def _sorted_frame(inertia, omega0):
@@ -64,19 +65,16 @@ def _solution_parameters(moments, omega):
     return around_largest, (amp_a, amp_b, amp_c), rate, m, p
 
 
-def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
-    """Body-frame angular velocity of a torque-free body at time ``t`` (s) after ``omega0`` (rad/s).
-
-    ``inertia`` are principal moments ``(..., 3)`` in any order (kg m^2); ``t`` broadcasts against
-    the batch axes (for a batch of bodies at T times use ``inertia[:, None]``, ``omega0[:, None]``,
-    ``ts[None, :]``). Exact up to roundoff: no integration, so the cost does not grow with ``t``.
-    """
+def _broadcast_inputs(inertia, omega0, t):
     inertia, omega0, t = common_float(inertia, omega0, t, names=["inertia", "omega0", "t"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
     batch = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], t.shape)
-    inertia = jnp.broadcast_to(inertia, batch + (3,))
-    omega0 = jnp.broadcast_to(omega0, batch + (3,))
+    return jnp.broadcast_to(inertia, batch + (3,)), jnp.broadcast_to(omega0, batch + (3,)), t
+
+
+def _motion_parts(inertia, omega0, t):
+    """The elliptic solution at ``t`` and the pieces the orientation reuses (all in the sorted frame)."""
     perm, moments, omega, parity = _sorted_frame(inertia, omega0)
     around_largest, (amp_a, amp_b, amp_c), rate, m, p = _solution_parameters(moments, omega)
     w_a = jnp.where(around_largest, omega[..., 0], omega[..., 2])
@@ -106,7 +104,32 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     # the intermediate axis, the unstable equilibrium on the separatrix.
     steady = (rate == 0) | ((w_a == 0) & (w_c == 0))
     sorted_out = jnp.where(steady[..., None], omega, sorted_out)
-    return jnp.take_along_axis(sorted_out, jnp.argsort(perm, axis=-1), axis=-1)
+    omega_t = jnp.take_along_axis(sorted_out, jnp.argsort(perm, axis=-1), axis=-1)
+    return omega_t, dict(
+        perm=perm,
+        moments=moments,
+        omega=omega,
+        around_largest=around_largest,
+        rate=rate,
+        m=m,
+        p=p,
+        steady=steady,
+        u=u,
+        speed=parity * sign_c * rate,
+        start=(sn0, cn0, dn0),
+        now=(sn_t, cn_t, dn_t),
+    )
+
+
+def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
+    """Body-frame angular velocity of a torque-free body at time ``t`` (s) after ``omega0`` (rad/s).
+
+    ``inertia`` are principal moments ``(..., 3)`` in any order (kg m^2); ``t`` broadcasts against
+    the batch axes (for a batch of bodies at T times use ``inertia[:, None]``, ``omega0[:, None]``,
+    ``ts[None, :]``). Exact up to roundoff: no integration, so the cost does not grow with ``t``.
+    """
+    inertia, omega0, t = _broadcast_inputs(inertia, omega0, t)
+    return _motion_parts(inertia, omega0, t)[0]
 
 
 def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
@@ -123,3 +146,216 @@ def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     _, _, rate, _, p = _solution_parameters(moments, omega)
     quarter = ellipkm1(jnp.where(p > 0, p, 1.0))
     return jnp.where((rate > 0) & (p > 0), 4.0 * quarter / jnp.where(rate > 0, rate, 1.0), jnp.inf)
+
+
+# --------------------------------------------------------------------------------------------------
+# Orientation
+
+
+def _phase_integrals(sn, cn, dn, p, n):
+    """Reduced phase of the point ``(sn, cn, dn)`` of the elliptic solution and ``G`` there.
+
+    ``G(tau) = int_0^tau dtau' / (1 + n sn^2(tau')) = Pi(-n; am(tau) | m)``. The point fixes ``tau`` up to
+    multiples of ``2K``: ``tau = rho + 2 j K`` with ``|rho| <= K``, and then ``G(tau) = gamma + 2 j G(K)``.
+    Points are stacked on a leading axis; returns ``rho``, ``gamma``, ``am(rho)`` per point and ``K``,
+    ``G(K)`` (from the first point's ``p``, ``n``). Carlson forms (DLMF 19.25.5, 19.25.14)
+    on ``|sn| <= 1/sqrt 2``; above, the same integrals measured back from ``K`` (substituting
+    ``theta -> pi/2 - theta``), whose ``R_F``/``R_J`` arguments are ``O(p)`` but never zero, so that the
+    terms are positive and ``rho``, ``gamma`` keep their accuracy as ``p = 1 - m -> 0``. ``p = 0`` is
+    handled by the caller.
+    """
+    c = jnp.abs(cn)
+    s = jnp.abs(sn)
+    sign_s = jnp.where(sn < 0, -1.0, 1.0).astype(sn.dtype)
+    sign_c = jnp.where(cn < 0, -1.0, 1.0).astype(sn.dtype)
+    direct = s * s <= 0.5
+    one, zero = jnp.ones_like(s), jnp.zeros_like(s)
+    pc = jnp.where(p > 0, p, one)
+    # Unselected branches get harmless points (all arguments positive), so gradients stay finite.
+    sd, cd, dd = jnp.where(direct, s, zero), jnp.where(direct, c, one), jnp.where(direct, dn, one)
+    sc, cc, dc = jnp.where(direct, one, s), jnp.where(direct, zero, c), jnp.where(direct, one, dn)
+    rf = _carlson_rf(
+        jnp.stack([cd * cd, pc * sc * sc, zero]),
+        jnp.stack([dd * dd, dc * dc, one]),
+        jnp.stack([one, pc, pc]),
+    )
+    rj = _carlson_rj(
+        jnp.stack([cd * cd, pc * sc * sc, zero]),
+        jnp.stack([dd * dd, dc * dc, one]),
+        jnp.stack([one, pc, pc]),
+        jnp.stack([1 + n * sd * sd, pc * (1 + n * sc * sc) / (1 + n), pc / (1 + n)]),
+    )
+    f_direct = sd * rf[0]
+    g_direct = f_direct - (n / 3) * sd**3 * rj[0]
+    weight = n / (1 + n) * pc / 3
+    quarter_f = rf[2]
+    quarter_g = (rf[2] + weight * rj[2]) / (1 + n)
+    f_comp = quarter_f - cc * rf[1]
+    g_comp = quarter_g - (cc * rf[1] + weight * cc**3 * rj[1]) / (1 + n)
+    f = sign_s * jnp.where(direct, f_direct, f_comp)
+    g = sign_s * jnp.where(direct, g_direct, g_comp)
+    return sign_c * f, sign_c * g, jnp.arctan2(sign_c * sn, c), quarter_f[0], quarter_g[0]
+
+
+def _half_angles(momentum):
+    """Half-angle cosines and sines of the 3-1-3 angles ``theta`` (nutation, in [0, pi]) and ``psi``
+    (spin, in (-pi, pi]) with ``momentum / |momentum| = (sin theta sin psi, sin theta cos psi, cos theta)``.
+
+    Formed from the components without dividing by ``sin theta`` and without cancellation.
+    """
+    lx, ly, lc = momentum[..., 0], momentum[..., 1], momentum[..., 2]
+    size = safe_norm(momentum)
+    st = safe_norm(momentum[..., :2])
+    up = lc >= 0
+    t_cos = jnp.where(up, size + lc, st)
+    t_sin = jnp.where(up, st, size - lc)
+    t_norm = safe_norm(jnp.stack([t_cos, t_sin], axis=-1))
+    t_norm = jnp.where(t_norm > 0, t_norm, 1.0)
+    right = ly >= 0
+    sign_x = jnp.where(lx < 0, -1.0, 1.0).astype(momentum.dtype)
+    p_cos = jnp.where(right, st + ly, jnp.abs(lx))
+    p_sin = jnp.where(right, lx, sign_x * (st - ly))
+    p_norm = safe_norm(jnp.stack([p_cos, p_sin], axis=-1))
+    p_cos = jnp.where(p_norm > 0, p_cos, 1.0)
+    p_norm = jnp.where(p_norm > 0, p_norm, 1.0)
+    return t_cos / t_norm, t_sin / t_norm, p_cos / p_norm, p_sin / p_norm
+
+
+def _nutation_spin_quat(momentum):
+    """``Rx(theta) Rz(psi)`` as a quaternion (it turns ``momentum`` onto ``+z``) and ``psi`` in (-pi, pi]."""
+    ct, st, cp, sp = _half_angles(momentum)
+    q = jnp.stack([ct * cp, st * cp, -st * sp, ct * sp], axis=-1)
+    return q, 2 * jnp.arctan2(sp, cp)
+
+
+def _steady(inertia, omega0):
+    """Rotations about a fixed body axis: a principal axis, or any axis of a sphere, or one in the
+    degenerate plane of a symmetric body (also ``omega0 = 0``)."""
+    _, moments, omega, _ = _sorted_frame(inertia, omega0)
+    _, _, rate, _, _ = _solution_parameters(moments, omega)
+    zeros = sum((omega[..., i] == 0).astype(jnp.int32) for i in range(3))
+    return (rate == 0) | (zeros >= 2)
+
+
+def _broadcast_motion_inputs(inertia, omega0, q0, t):
+    inertia, omega0, q0, t = common_float(inertia, omega0, q0, t, names=["inertia", "omega0", "q0", "t"])
+    check_last_axis(inertia, 3, "inertia")
+    check_last_axis(omega0, 3, "omega0")
+    check_last_axis(q0, 4, "q0")
+    batch = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], q0.shape[:-1], t.shape)
+    return (
+        jnp.broadcast_to(inertia, batch + (3,)),
+        jnp.broadcast_to(omega0, batch + (3,)),
+        jnp.broadcast_to(q0, batch + (4,)),
+        jnp.broadcast_to(t, batch),
+    )
+
+
+def torque_free_motion(
+    inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar
+) -> tuple[VectorOut, QuaternionOut]:
+    """Body-frame angular velocity and orientation of a torque-free body at time ``t`` (s).
+
+    ``q0`` is the unit quaternion at ``t = 0`` (scalar first, body -> space); the other arguments and
+    the broadcasting are as in :func:`torque_free_omega`. Returns ``(omega, q)``; ``q`` is continuous
+    in ``t`` with ``q(0) = q0`` (the same sign as integrating ``dq/dt = q (0, omega) / 2``).
+
+    Method (Landau & Lifshitz section 37, with the space axes along the conserved ``L``): with ``c`` the
+    axis that ``omega`` circles, ``R(t) = R_L Rz(phi(t)) Rx(theta(t)) Rz(psi(t)) P``, where ``P`` relabels
+    the body axes cyclically so that ``c`` is the third, ``theta`` and ``psi`` are the 3-1-3 angles of the
+    body-frame unit momentum (exact from ``omega(t)``), ``R_L`` is constant (fixed by ``q0``) and
+
+        dphi/dt = |L| (I_a w_a^2 + I_b w_b^2) / (I_a^2 w_a^2 + I_b^2 w_b^2)
+                = (|L| / I_c) (1 + ((I_c - I_a) / I_a) / (1 + n sn^2(tau))),
+        n = I_c (I_b - I_a) / (I_a (I_c - I_b)) >= 0,
+
+    integrated in closed form: ``phi = (|L| / I_c) (t + (I_c - I_a)/I_a [G(tau(t)) - G(tau(0))] / (dtau/dt))``
+    with ``G(tau) = Pi(-n; am(tau) | m)`` from Carlson's ``R_F`` and ``R_J`` (whole half-periods ``2 G(K)``
+    plus reduced parts). The space-frame momentum ``R(t) I omega(t)`` is therefore constant to roundoff at
+    any ``t``. Accuracy: a few ulp of the angles involved, i.e. an absolute error of order
+    ``eps * (|omega| t + precession per period)`` (the first term is the conditioning of ``q`` in ``t``);
+    near the separatrix (``p = 1 - m`` down to the smallest normal number) the integrals stay accurate
+    because they are measured from the nearest quarter period, and exactly on it (``p = 0``)
+    ``G = tau / (1 + n) + sqrt(n) atan(sqrt(n) tanh tau) / (1 + n)``. Symmetric bodies (``m = n = 0``) give
+    the familiar rotation about ``L`` at ``|L| / I_1`` composed with the body spin. Steady rotations (about a
+    principal axis, any axis of a sphere, ``omega0 = 0``) return ``q0 (cos(|w| t/2), sin(|w| t/2) w/|w|)``;
+    there the gradient is that of the steady rotation (finite, but not the sensitivity to a perturbation
+    that starts a wobble), as for :func:`torque_free_omega`. Elsewhere values and gradients are finite.
+    """
+    inertia, omega0, q0, t = _broadcast_motion_inputs(inertia, omega0, q0, t)
+    dtype = inertia.dtype
+    steady = _steady(inertia, omega0)
+    # A generic body stands in for steady ones, whose motion is below: no 0/0 in the general branch.
+    inertia_g = jnp.where(steady[..., None], jnp.array([1.0, 2.0, 3.0], dtype), inertia)
+    omega0_g = jnp.where(steady[..., None], jnp.array([1.0, 1.0, 1.0], dtype), omega0)
+    omega_g, parts = _motion_parts(inertia_g, omega0_g, t)
+    q_g = _general_orientation(inertia_g, omega0_g, omega_g, t, parts)
+    q_g = quat_multiply(q0, q_g)
+
+    speed = safe_norm(omega0)
+    axis = omega0 / jnp.where(speed > 0, speed, 1.0)[..., None]
+    half = speed * t / 2
+    q_s = quat_multiply(q0, jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * axis], -1))
+    omega = jnp.where(steady[..., None], omega0, omega_g)
+    return omega, jnp.where(steady[..., None], q_s, q_g)
+
+
+def _general_orientation(inertia, omega0, omega_t, t, parts):
+    """``q0* q(t)`` for a body that is not in steady rotation (see :func:`torque_free_motion`)."""
+    perm, moments = parts["perm"], parts["moments"]
+    around_largest, m, p, u = parts["around_largest"], parts["m"], parts["p"], parts["u"]
+    del m
+    I_a = jnp.where(around_largest, moments[..., 0], moments[..., 2])
+    I_b = moments[..., 1]
+    I_c = jnp.where(around_largest, moments[..., 2], moments[..., 0])
+    n = jnp.maximum(_safe_div(I_c * (I_b - I_a), I_a * (I_c - I_b)), 0.0)
+
+    # The precession angle phi.
+    (sn0, cn0, dn0), (sn1, cn1, dn1) = parts["start"], parts["now"]
+    rho, gamma, am, quarter_f, quarter_g = _phase_integrals(
+        jnp.stack([sn0, sn1]), jnp.stack([cn0, cn1]), jnp.stack([dn0, dn1]), p, n
+    )
+    on_separatrix = p == 0
+    quarter_f = jnp.where(on_separatrix, 1.0, quarter_f)
+    turns = jnp.where(on_separatrix, 0.0, jnp.round((u + rho[0] - rho[1]) / (2 * quarter_f)))
+    delta_g = gamma[1] - gamma[0] + 2 * turns * jnp.where(on_separatrix, 0.0, quarter_g)
+    # p = 0: G(tau) = tau / (1 + n) + sqrt(n) atan(sqrt(n) tanh(tau)) / (1 + n), tanh(tau) = sn.
+    root_n = jnp.sqrt(jnp.where(on_separatrix, n, 1.0))
+    delta_g_separatrix = (u + root_n * (jnp.arctan(root_n * sn1) - jnp.arctan(root_n * sn0))) / (1 + n)
+    delta_g = jnp.where(on_separatrix, delta_g_separatrix, delta_g)
+    delta_am = am[1] - am[0] + jnp.pi * turns
+    speed = parts["speed"]
+    size = safe_norm(inertia * omega0)
+    phi = (size / I_c) * (t + (I_c - I_a) / I_a * delta_g / jnp.where(speed != 0, speed, 1.0))
+
+    # Cyclic relabelling of the body axes: (x, y, c) = (c + 1, c + 2, c) mod 3, a proper rotation.
+    c_index = jnp.take_along_axis(perm, jnp.where(around_largest, 2, 0)[..., None], axis=-1)
+    a_index = jnp.take_along_axis(perm, jnp.where(around_largest, 0, 2)[..., None], axis=-1)[..., 0]
+    to_cyclic = (c_index + jnp.arange(1, 4)) % 3
+    from_cyclic = (jnp.arange(3) - c_index - 1) % 3
+    l0 = jnp.take_along_axis(inertia * omega0, to_cyclic, axis=-1)
+    l1 = jnp.take_along_axis(inertia * omega_t, to_cyclic, axis=-1)
+    b0, psi0 = _nutation_spin_quat(l0)
+    b1, psi1 = _nutation_spin_quat(l1)
+
+    # psi is continuous in t; its principal values wrap. Relative to am(tau), psi = eps beta + const
+    # with |beta - am| < pi/2 (beta the angle of (l_a, l_b)), eps = -1 when (x, y) = (a, b); the number
+    # of wraps k flips the sign of the half-angle quaternion.
+    eps = jnp.where(to_cyclic[..., 0] == a_index, -1.0, 1.0).astype(inertia.dtype)
+    wraps = jnp.round((eps * delta_am - (psi1 - psi0)) / (2 * jnp.pi))
+    flip = jnp.where(jnp.mod(wraps, 2) == 0, 1.0, -1.0).astype(inertia.dtype)
+
+    zero = jnp.zeros_like(phi)
+    precession = jnp.stack([jnp.cos(phi / 2), zero, zero, jnp.sin(phi / 2)], axis=-1)
+    b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], inertia.dtype)
+    q = quat_multiply(b0_conj, quat_multiply(precession, b1)) * flip[..., None]
+    vector = jnp.take_along_axis(q[..., 1:], from_cyclic, axis=-1)
+    return jnp.concatenate([q[..., :1], vector], axis=-1)
+
+
+def torque_free_orientation(inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar) -> QuaternionOut:
+    """Orientation (unit quaternion, scalar first, body -> space) of a torque-free body at time ``t``.
+
+    The closed form of :func:`torque_free_motion`, which also returns ``omega(t)``.
+    """
+    return torque_free_motion(inertia, omega0, q0, t)[1]
