@@ -15,6 +15,7 @@ nearly symmetric bodies (m -> 0). Steady rotations (spin about a principal axis,
 ``omega0`` unchanged.
 """
 
+import jax
 import jax.numpy as jnp
 
 from ._elliptic import _carlson_rf, _carlson_rj, ellipj_m1, ellipkm1
@@ -44,6 +45,16 @@ def _safe_div(num, den):
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
+def _clip(x, low, high):
+    """``clip`` for roundoff only: the value is clipped, the derivative is that of ``x``.
+
+    At a symmetric body ``m`` and ``n`` touch 0 from above under either labelling of the equal axes;
+    the formulas continue analytically to ``m < 0``, so the derivative of the unclipped expression is
+    the derivative of the motion (``jnp.clip`` would halve it at the boundary).
+    """
+    return x + jax.lax.stop_gradient(jnp.clip(x, low, high) - x)
+
+
 def _solution_parameters(moments, omega):
     """Amplitudes, rate, parameter m and 1 - m of the elliptic solution, in the sorted frame."""
     x = omega * omega
@@ -60,8 +71,8 @@ def _solution_parameters(moments, omega):
     amp_b = jnp.sqrt(jnp.maximum(_safe_div(-Dc, Ib * (Ic - Ib)), 0.0))
     amp_c = jnp.sqrt(jnp.maximum(_safe_div(Da, Ic * (Ic - Ia)), 0.0))
     rate = jnp.sqrt(jnp.maximum(_safe_div((Ic - Ib) * Da, Ia * Ib * Ic), 0.0))
-    m = jnp.clip(_safe_div((Ib - Ia) * -Dc, (Ic - Ib) * Da), 0.0, 1.0)
-    p = jnp.clip(_safe_div((Ic - Ia) * Db, (Ic - Ib) * Da), 0.0, 1.0)
+    m = _clip(_safe_div((Ib - Ia) * -Dc, (Ic - Ib) * Da), 0.0, 1.0)
+    p = _clip(_safe_div((Ic - Ia) * Db, (Ic - Ib) * Da), 0.0, 1.0)
     return around_largest, (amp_a, amp_b, amp_c), rate, m, p
 
 
@@ -308,7 +319,7 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     I_a = jnp.where(around_largest, moments[..., 0], moments[..., 2])
     I_b = moments[..., 1]
     I_c = jnp.where(around_largest, moments[..., 2], moments[..., 0])
-    n = jnp.maximum(_safe_div(I_c * (I_b - I_a), I_a * (I_c - I_b)), 0.0)
+    n = _clip(_safe_div(I_c * (I_b - I_a), I_a * (I_c - I_b)), 0.0, jnp.inf)
 
     # The precession angle phi.
     (sn0, cn0, dn0), (sn1, cn1, dn1) = parts["start"], parts["now"]
