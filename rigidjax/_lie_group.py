@@ -313,17 +313,18 @@ def _structure_preserving_impl(model, omega0, q0, ts, counts, args, solver, n_ma
             return body.angular_acceleration(t, State(w, q), a)
 
         def accel(t, w, q, a):
-            return jax.vmap(accel_one, in_axes=(0, None, 0, 0, None))(flat, t, w, q, a)
+            return jax.vmap(accel_one, in_axes=(0, None, 0, 0, None))(flat, t, w, q, a).astype(dtype)
 
+        # The state carries d(omega)/dt at its own time: FSAL, one evaluation fewer per step.
         def to_y(w, q):
-            return w, q
+            return w, q, accel(ts[0], w, q, args)
 
         def from_y(y):
-            return y
+            return y[0], y[1]
 
         def step(t, y, h):
-            w, q, *_ = _rkmk(accel, t, y[0], y[1], h, args, solver.tableau)
-            return w, q
+            w, q, _, _, _, f1 = _rkmk(accel, t, y[0], y[1], h, args, solver.tableau, y[2])
+            return w, q, f1
 
     else:
         inertia = values["inertia"]

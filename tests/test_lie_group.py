@@ -71,21 +71,25 @@ def test_quat_exp_vs_scipy_and_small_angles():
     np.testing.assert_allclose(matrix_from_quat(q), R_scipy, rtol=0, atol=1e-15 * 4)
     assert float(jnp.max(jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0))) < 4e-16
     # Value and gradient at exactly zero are finite; d Exp / d theta at 0 is [0; I/2].
-    jac0 = jax.jacfwd(quat_exp)(jnp.zeros(3))
+    jac0, grad0 = jax.jit(lambda t: (jax.jacfwd(quat_exp)(t), jax.grad(lambda u: jnp.sum(quat_exp(u)))(t)))(
+        jnp.zeros(3)
+    )
     np.testing.assert_allclose(jac0, np.vstack([np.zeros(3), 0.5 * np.eye(3)]), atol=1e-15)
-    assert jnp.all(jnp.isfinite(jax.grad(lambda t: jnp.sum(quat_exp(t)))(jnp.zeros(3))))
+    assert jnp.all(jnp.isfinite(grad0))
 
 
 def test_dexpinv_vs_finite_differences():
     """theta(t) on a curve: the body rate of Exp(theta(t)) is 2 vec(Exp* dExp/dt); dexpinv of it must
     give d(theta)/dt up to the first dropped term, O(|theta|^4 |omega|)."""
-    errs = []
-    for size in (0.2, 0.1, 0.05):
-        theta = size * jnp.array([0.6, -0.3, 0.74])
+
+    @jax.jit
+    def error(theta):
         theta_dot = jnp.array([0.3, 1.1, -0.5])
         dq = jax.jvp(quat_exp, (theta,), (theta_dot,))[1]
         omega = 2.0 * quat_multiply(quat_conjugate(quat_exp(theta)), dq)[1:]
-        errs.append(float(jnp.linalg.norm(dexpinv(theta, omega) - theta_dot)))
+        return jnp.linalg.norm(dexpinv(theta, omega) - theta_dot)
+
+    errs = [float(error(size * jnp.array([0.6, -0.3, 0.74]))) for size in (0.2, 0.1, 0.05)]
     slope = np.polyfit(np.log([0.2, 0.1, 0.05]), np.log(errs), 1)[0]
     print(f"dexpinv truncation errors {errs}, slope {slope:.3f}")
     assert abs(slope - 4.0) < 0.15
@@ -96,9 +100,9 @@ def test_dexpinv_vs_finite_differences():
 def _fixed_step_runner(tableau):
     """One compile per tableau for every step count (dynamic trip count)."""
 
-    def run(h, n, w0, q0):
+    def run(h, n, w0, q0, amp=1.0):
         def body(k, y):
-            return rkmk_step(_accel, k.astype(h.dtype) * h, *y, h, None, tableau)
+            return rkmk_step(_accel, k.astype(h.dtype) * h, *y, h, amp, tableau)
 
         return jax.lax.fori_loop(0, n, body, (w0, q0))
 
@@ -214,35 +218,20 @@ def test_adaptive_pid_matches_reference_under_vmap():
 
 
 def test_jacfwd_vs_finite_differences():
-    """d(omega(T), q(T)) / d(omega0, drive amplitude) through 100 fixed RKMK steps; the central
-    differences are one vmapped solve over the perturbed inputs (same compile)."""
+    """d(omega(T), q(T)) / d(omega0, drive amplitude) through 100 fixed RKMK steps."""
+    run = _fixed_step_runner("bosh3")
+    h, n, amp = jnp.asarray(0.01), 100, jnp.asarray(1.5)
 
-    def final(w0, amp):
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(VF),
-            RKMK("bosh3"),
-            0.0,
-            1.0,
-            0.01,
-            (w0, Q0),
-            args=amp,
-            stepsize_controller=diffrax.ConstantStepSize(),
-            adjoint=diffrax.ForwardMode(),
-        )
-        return jnp.concatenate([sol.ys[0][-1], sol.ys[1][-1]])
+    def final(w0, a):
+        return jnp.concatenate(run(h, n, w0, Q0, a))
 
+    jac_w, jac_a = jax.jit(jax.jacfwd(final, argnums=(0, 1)))(OMEGA0, amp)
     eps = 1e-6
-    amp = jnp.asarray(1.5)
-    steps = jnp.concatenate([jnp.eye(4), -jnp.eye(4)]) * eps  # (omega0, amp) perturbations
-
-    @jax.jit
-    def both(w0, amp):
-        jac = jax.jacfwd(final, argnums=(0, 1))(w0, amp)
-        outs = jax.vmap(final)(w0 + steps[:, :3], amp + steps[:, 3])
-        return jac, (outs[:4] - outs[4:]).T / (2 * eps)
-
-    (jac_w, jac_a), fd = both(OMEGA0, amp)
-    fd_w, fd_a = fd[:, :3], fd[:, 3]
+    fd_w = jnp.stack(
+        [(final(OMEGA0 + eps * e, amp) - final(OMEGA0 - eps * e, amp)) / (2 * eps) for e in jnp.eye(3)],
+        axis=-1,
+    )
+    fd_a = (final(OMEGA0, amp + eps) - final(OMEGA0, amp - eps)) / (2 * eps)
     dw, da = float(jnp.max(jnp.abs(jac_w - fd_w))), float(jnp.max(jnp.abs(jac_a - fd_a)))
     print(f"jacfwd vs FD: omega0 {dw:.2e}, amplitude {da:.2e}")
     np.testing.assert_allclose(jac_w, fd_w, rtol=0, atol=1e-7 * float(jnp.max(jnp.abs(fd_w))))
@@ -261,8 +250,8 @@ def test_bad_tableau():
 # simulate_structure_preserving
 
 
-def test_simulate_heavy_top_batch_splitting_and_rkmk():
-    """A batch of two tops (per-body mass): both solvers vs scipy on body 0, invariants of the splitting."""
+def test_simulate_heavy_top_batch_splitting():
+    """A batch of two tops (per-body mass): body 0 vs scipy, invariants of the splitting."""
     model = HeavyTop(TOP.inertia, jnp.array([1.2, 0.4]), TOP.com, 9.81)
     state0 = State(jnp.stack([OMEGA0, 0.5 * OMEGA0]), Q0)
     ts = jnp.linspace(0.0, 1.0, 6)
@@ -284,12 +273,10 @@ def test_simulate_heavy_top_batch_splitting_and_rkmk():
         t_eval=np.asarray(ts),
     )
     split = simulate_structure_preserving(model, state0, ts, HeavyTopSplitting.from_model(TOP, order=4), 0.01)
-    rk = simulate_structure_preserving(model, state0, ts, RKMK("dopri5"), 0.01)
-    for traj, tol in ((split, 1e-6), (rk, 1e-9)):
-        assert traj.omega.shape == (2, 6, 3) and traj.orientation.shape == (2, 6, 4)
-        assert int(traj.stats["num_steps"]) == 100
-        np.testing.assert_allclose(traj.omega[0], ref.y[:3].T, rtol=0, atol=tol * 10)
-        np.testing.assert_allclose(traj.orientation[0], ref.y[3:].T, rtol=0, atol=tol)
+    assert split.omega.shape == (2, 6, 3) and split.orientation.shape == (2, 6, 4)
+    assert int(split.stats["num_steps"]) == 100
+    np.testing.assert_allclose(split.omega[0], ref.y[:3].T, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(split.orientation[0], ref.y[3:].T, rtol=0, atol=1e-6)
     inv = split.invariants()
     print({k: np.asarray(v) for k, v in inv.items()})
     assert jnp.all(inv["vertical_angular_momentum"] < 1e-14)
@@ -305,7 +292,7 @@ def test_simulate_free_body_splitting_vs_closed_form():
         FreeBody(inertia), State(omega0), ts, LiePoissonSplitting(inertia[0], 4), 0.02
     )
     assert traj.orientation is None and traj.omega.shape == (2, 4, 3)
-    exact = torque_free_omega(inertia[:, None, :], omega0[:, None, :], ts - ts[0])
+    exact = jax.jit(torque_free_omega)(inertia[:, None, :], omega0[:, None, :], ts - ts[0])
     err = float(jnp.max(jnp.abs(traj.omega - exact)))
     print(f"free body, Yoshida dt <= 0.02: max omega error {err:.2e}")
     assert err < 1e-6
