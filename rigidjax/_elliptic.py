@@ -519,26 +519,50 @@ def _rc_one(e):
     return jnp.where(small, series, jnp.where(positive, r_pos, r_neg))
 
 
-def _carlson_rj(x, y, z, p):
-    """Carlson's ``R_J(x, y, z, p)`` (DLMF 19.16.2) by duplication, Carlson (1995) algorithm for R_J.
+def _carlson_rf_rj(x, y, z, p):
+    """Carlson's ``R_F(x, y, z)`` and ``R_J(x, y, z, p)`` (DLMF 19.16.1-2) by duplication (Carlson 1995).
 
-    ``x, y, z >= 0`` with at most one zero and ``p > 0`` (no Cauchy principal value). Differentiable
-    by automatic differentiation through the fixed number of steps, finite where every argument is
-    positive.
+    Both share the duplication of ``x, y, z``. ``x, y, z >= 0`` with at most one zero and ``p > 0``
+    (no Cauchy principal value). Differentiable by automatic differentiation through the fixed number
+    of steps, finite where every argument is positive.
     """
-    a = (x + y + z + 2 * p) / 5
+    a_f = (x + y + z) / 3
+    a_j = (x + y + z + 2 * p) / 5
     delta = (p - x) * (p - y) * (p - z)
-    fx, fy, fz = a - x, a - y, a - z
-    total = jnp.zeros_like(x)
-    scale = 1.0
-    for _ in range(_steps(_CARLSON_STEPS, x.dtype)):
+    dev_f = (a_f - x, a_f - y)
+    dev_j = (a_j - x, a_j - y, a_j - z)
+
+    def step(_, carry):
+        # A loop rather than unrolled steps: R_C's atan/atanh per step made the unrolled form slow to
+        # compile (seconds on CPU).
+        x, y, z, p, a_f, a_j, total, scale = carry
         sx, sy, sz, sp = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z), _safe_sqrt(p)
         lam = sx * (sy + sz) + sy * sz
         d = (sp + sx) * (sp + sy) * (sp + sz)
         total = total + scale * _rc_one(delta * scale**3 / (d * d)) / d
-        scale = scale / 4
-        x, y, z, p, a = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, (a + lam) / 4
-    X, Y, Z = fx * (scale / a), fy * (scale / a), fz * (scale / a)
+        x, y, z, p = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4
+        return x, y, z, p, (a_f + lam) / 4, (a_j + lam) / 4, total, scale / 4
+
+    carry = (x, y, z, p, a_f, a_j, jnp.zeros_like(x), jnp.ones_like(x))
+    *_, a_f, a_j, total, scale = jax.lax.fori_loop(0, _steps(_CARLSON_STEPS, x.dtype), step, carry)
+
+    X, Y = dev_f[0] * (scale / a_f), dev_f[1] * (scale / a_f)
+    Z = -(X + Y)
+    e2 = X * Y - Z * Z
+    e3 = X * Y * Z
+    series_f = (
+        1
+        - e2 / 10
+        + e3 / 14
+        + e2 * e2 / 24
+        - 3 * e2 * e3 / 44
+        - 5 * e2**3 / 208
+        + 3 * e3 * e3 / 104
+        + e2 * e2 * e3 / 16
+    )
+    rf = series_f / jnp.sqrt(a_f)
+
+    X, Y, Z = (dev * (scale / a_j) for dev in dev_j)
     P = -(X + Y + Z) / 2
     e2 = X * Y + X * Z + Y * Z - 3 * P * P
     xyz = X * Y * Z
@@ -546,11 +570,7 @@ def _carlson_rj(x, y, z, p):
     e4 = (2 * xyz + e2 * P + 3 * P**3) * P
     e5 = xyz * P * P
     series = 1 - 3 * e2 / 14 + e3 / 6 + 9 * e2 * e2 / 88 - 3 * e4 / 22 - 9 * e2 * e3 / 52 + 3 * e5 / 26
-    return scale * series / (a * jnp.sqrt(a)) + 6 * total
-
-
-def _carlson_rf(x, y, z):
-    return _carlson_rf_rd(x, y, z)[0]
+    return rf, scale * series / (a_j * jnp.sqrt(a_j)) + 6 * total
 
 
 def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
@@ -567,5 +587,5 @@ def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
     zeros = (x == 0).astype(jnp.int32) + (y == 0).astype(jnp.int32) + (z == 0).astype(jnp.int32)
     bad = (x < 0) | (y < 0) | (z < 0) | (p <= 0) | (zeros > 1) | jnp.isnan(x + y + z + p)
     one = jnp.ones_like(x)
-    value = _carlson_rj(*(jnp.where(bad, one, v) for v in (x, y, z, p)))
+    value = _carlson_rf_rj(*(jnp.where(bad, one, v) for v in (x, y, z, p)))[1]
     return jnp.where(bad, jnp.nan, value)

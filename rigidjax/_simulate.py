@@ -27,7 +27,7 @@ from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_
 from ._inertia import check_inertia
 from ._models import AbstractModel, FreeBody, State
 from ._quaternion import quat_multiply
-from ._torque_free import torque_free_omega
+from ._torque_free import torque_free_motion, torque_free_omega
 from ._trajectory import Trajectory
 
 # Solver and rtol per preset, from benchmarks/batch_strategies.py (10^4 tennis-racket bodies, shared
@@ -317,19 +317,30 @@ def _float_dtype(*xs):
 
 
 @eqx.filter_jit
-def _exact_impl(model, omega0, ts):
-    model, omega0, _, ts = _check_inputs(model, model.body_leaves(), omega0, None, ts, omega0.dtype)
-    batch = jnp.broadcast_shapes(model.inertia.shape[:-1], omega0.shape[:-1])
+def _exact_impl(model, omega0, q0, ts):
+    model, omega0, q0, ts = _check_inputs(model, model.body_leaves(), omega0, q0, ts, omega0.dtype)
+    batch = jnp.broadcast_shapes(
+        model.inertia.shape[:-1], omega0.shape[:-1], () if q0 is None else q0.shape[:-1]
+    )
     inertia = jnp.broadcast_to(model.inertia, batch + (3,))
     omega0 = jnp.broadcast_to(omega0, batch + (3,))
-    omega = torque_free_omega(inertia[..., None, :], omega0[..., None, :], ts - ts[0])
+    if q0 is None:
+        omega = torque_free_omega(inertia[..., None, :], omega0[..., None, :], ts - ts[0])
+        orientation = None
+        q_norm_error = None
+    else:
+        q0 = jnp.broadcast_to(q0, batch + (4,))
+        omega, orientation = torque_free_motion(
+            inertia[..., None, :], omega0[..., None, :], q0[..., None, :], ts - ts[0]
+        )
+        q_norm_error = jnp.max(jnp.abs(jnp.linalg.norm(orientation, axis=-1) - 1.0), axis=-1)
     return Trajectory(
         ts=ts,
         omega=omega,
-        orientation=None,
+        orientation=orientation,
         model=model.replace_body_leaves(model.body_leaves(), [inertia]),
         success=jnp.ones(batch, bool),
-        stats={"num_steps": jnp.zeros((), jnp.int32), "chunk_size": 0, "quaternion_norm_error": None},
+        stats={"num_steps": jnp.zeros((), jnp.int32), "chunk_size": 0, "quaternion_norm_error": q_norm_error},
     )
 
 
@@ -346,17 +357,13 @@ def _simulate_exact(model, state0, ts, *, throw):
             "accuracy='exact' needs principal moments (..., 3); diagonalise the tensor with "
             "rigidjax.principal_axes and rotate omega into those axes first."
         )
-    if state0.orientation is not None:
-        raise NotImplementedError(
-            "accuracy='exact' gives omega(t) in closed form; the closed-form orientation is not "
-            "implemented yet. Pass State(omega) for omega only, or use accuracy='precise'."
-        )
     ts = jnp.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 1:
         raise ValueError(f"ts must be a 1-D array of at least one time, got shape {tuple(ts.shape)}.")
-    dtype = _float_dtype(state0.omega, model.inertia)
+    dtype = _float_dtype(state0.omega, state0.orientation, model.inertia)
+    q0 = None if state0.orientation is None else jnp.asarray(state0.orientation, dtype)
     return _exact_impl(
-        FreeBody(jnp.asarray(model.inertia, dtype)), state0.omega.astype(dtype), ts.astype(dtype)
+        FreeBody(jnp.asarray(model.inertia, dtype)), state0.omega.astype(dtype), q0, ts.astype(dtype)
     )
 
 
@@ -391,8 +398,11 @@ def simulate(
             per body) are integrated.
         ts: strictly increasing sample times (s), shape (T,); ``ts[0]`` is the initial time.
         accuracy: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8, 1e-8) or ``"precise"``
-            (Dopri8, 1e-11), or ``"exact"``: the closed-form torque-free solution (Jacobi elliptic
-            functions; FreeBody with principal moments, omega only for now), no integration.
+            (Dopri8, 1e-11), or ``"exact"``: the closed-form torque-free solution, no integration
+            (FreeBody with principal moments; omega by Jacobi elliptic functions and, when ``state0``
+            has an orientation, the orientation by Carlson's ``R_J``: see
+            ``rigidjax.torque_free_motion``). Accurate to roundoff at any time; the cost does not
+            grow with the duration.
         solver, rtol, atol, stepsize_controller, dt0, adjoint: override the preset with any diffrax
             solver, step-size controller (e.g. ``ConstantStepSize`` with ``dt0``) or adjoint.
             ``rtol``/``atol`` are dimensionless (see the module docstring); ``atol`` defaults to

@@ -18,7 +18,7 @@ nearly symmetric bodies (m -> 0). Steady rotations (spin about a principal axis,
 import jax
 import jax.numpy as jnp
 
-from ._elliptic import _carlson_rf, _carlson_rj, ellipj_m1, ellipkm1
+from ._elliptic import _carlson_rf_rj, ellipj_m1, ellipkm1
 from ._misc import check_last_axis, common_float, safe_norm
 from ._quaternion import quat_multiply
 from ._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
@@ -185,12 +185,7 @@ def _phase_integrals(sn, cn, dn, p, n):
     # Unselected branches get harmless points (all arguments positive), so gradients stay finite.
     sd, cd, dd = jnp.where(direct, s, zero), jnp.where(direct, c, one), jnp.where(direct, dn, one)
     sc, cc, dc = jnp.where(direct, one, s), jnp.where(direct, zero, c), jnp.where(direct, one, dn)
-    rf = _carlson_rf(
-        jnp.stack([cd * cd, pc * sc * sc, zero]),
-        jnp.stack([dd * dd, dc * dc, one]),
-        jnp.stack([one, pc, pc]),
-    )
-    rj = _carlson_rj(
+    rf, rj = _carlson_rf_rj(
         jnp.stack([cd * cd, pc * sc * sc, zero]),
         jnp.stack([dd * dd, dc * dc, one]),
         jnp.stack([one, pc, pc]),
