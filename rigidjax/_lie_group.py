@@ -30,10 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._dynamics import inertia_times, is_full_tensor
+from ._inertia import principal_axes
 from ._misc import check_last_axis, eps
 from ._models import AbstractModel, HeavyTop, State
-from ._quaternion import quat_multiply
+from ._quaternion import quat_conjugate, quat_from_matrix, quat_multiply
 from ._splitting import (
     HeavyTopSplitting,
     LiePoissonSplitting,
@@ -251,7 +251,7 @@ class RKMK(diffrax.AbstractAdaptiveSolver):
         return _TABLEAUX[self.tableau][4]
 
     def init(self, terms, t0, t1, y0, args):
-        return self._accel(terms)(t0, *y0, args)
+        return jnp.asarray(self._accel(terms)(t0, *y0, args), y0[0].dtype)
 
     @staticmethod
     def _accel(terms):
@@ -328,8 +328,19 @@ def _structure_preserving_impl(model, omega0, q0, ts, counts, args, solver, n_ma
 
     else:
         inertia = values["inertia"]
+        if inertia.ndim == 3:  # (n, 3, 3) tensors: integrate in each body's principal axes
+            inertia, axes = principal_axes(inertia)  # axes: principal -> body components
+            axes_q = quat_from_matrix(axes)
+        else:
+            axes = axes_q = None
+
+        def to_principal(v):
+            return v if axes is None else jnp.einsum("nji,nj->ni", axes, v)
+
         if isinstance(solver, HeavyTopSplitting):
-            weight_com = heavy_top_weight_com(values["mass"], values["com"], values["gravity"], dtype)
+            weight_com = to_principal(
+                heavy_top_weight_com(values["mass"], values["com"], values["gravity"], dtype)
+            )
 
             def step(t, y, h):
                 return heavy_top_splitting_step(inertia, weight_com, *y, h, solver.splitting_order)
@@ -340,10 +351,15 @@ def _structure_preserving_impl(model, omega0, q0, ts, counts, args, solver, n_ma
                 return splitting_step(inertia, *y, h, solver.splitting_order)
 
         def to_y(w, q):
-            return inertia_times(inertia, w), q
+            if axes is not None:
+                w, q = to_principal(w), quat_multiply(q, axes_q)
+            return inertia * w, q
 
         def from_y(y):
-            return y[0] / inertia, y[1]
+            w, q = y[0] / inertia, y[1]
+            if axes is not None:
+                w, q = jnp.einsum("nij,nj->ni", axes, w), quat_multiply(q, quat_conjugate(axes_q))
+            return w, q
 
     def interval(y, xs):
         t_start, gap, count = xs
@@ -362,6 +378,7 @@ def _structure_preserving_impl(model, omega0, q0, ts, counts, args, solver, n_ma
     _, (omegas, qs) = jax.lax.scan(interval, y0, xs)
     omega = jnp.concatenate([omega0[None], omegas], axis=0)  # (T, n, 3)
     q = jnp.concatenate([q0[None], qs], axis=0)
+    finite = jnp.all(jnp.isfinite(omega), axis=(0, 2)) & jnp.all(jnp.isfinite(q), axis=(0, 2))
     q_norm = jnp.linalg.norm(q, axis=-1)
     q_norm_error = jnp.max(jnp.abs(q_norm - 1.0), axis=0).reshape(batch)
     n_times = ts.shape[0]
@@ -378,7 +395,7 @@ def _structure_preserving_impl(model, omega0, q0, ts, counts, args, solver, n_ma
         omega=omega,
         orientation=q if has_orientation else None,
         model=model_b,
-        success=jnp.ones(batch, bool),
+        success=finite.reshape(batch),
         stats=stats,
     )
 
@@ -404,15 +421,18 @@ def simulate_structure_preserving(
         solver: chooses the method; the physical parameters always come from ``model`` (the
             solver's own numeric fields are not used). :class:`HeavyTopSplitting` for a
             :class:`HeavyTop` without extra torques, :class:`LiePoissonSplitting` for a torque-free
-            body (both need principal moments ``(..., 3)``); :class:`RKMK` for any scene.
+            body (a ``(..., 3, 3)`` inertia tensor is diagonalised once per body and the motion
+            integrated in its principal axes); :class:`RKMK` for any scene.
         dt: largest step (s), a Python float. Each interval ``[ts[i], ts[i+1]]`` is cut into
             ``ceil((ts[i+1] - ts[i]) / dt)`` equal steps, so samples fall on steps (no interpolation).
         args: passed to user torques.
 
     Returns:
-        A :class:`Trajectory`; ``stats["num_steps"]`` is the number of steps per body and
-        ``stats["quaternion_norm_error"]`` the largest ``| |q| - 1 |`` before the output was
-        normalised. Differentiable (forward and reverse mode) with respect to the model and state.
+        A :class:`Trajectory` (``success`` is False for a body whose state became non-finite;
+        there is no other failure mode at a fixed step); ``stats["num_steps"]`` is the number of
+        steps per body and ``stats["quaternion_norm_error"]`` the largest ``| |q| - 1 |`` before
+        the output was normalised. Differentiable (forward and reverse mode) with respect to the
+        model and the state.
     """
     if not isinstance(model, AbstractModel):
         raise TypeError(f"model must be a rigidjax scene such as HeavyTop, got {type(model).__name__}.")
@@ -433,11 +453,6 @@ def simulate_structure_preserving(
     elif not isinstance(solver, RKMK):
         raise TypeError(
             f"solver must be HeavyTopSplitting, LiePoissonSplitting or RKMK, got {type(solver).__name__}."
-        )
-    if not isinstance(solver, RKMK) and is_full_tensor(model.inertia):
-        raise ValueError(
-            "The splitting solvers need principal moments (..., 3); diagonalise the tensor with "
-            "rigidjax.principal_axes (and rotate com and the state into those axes) or use RKMK."
         )
     if state0.orientation is None and model.needs_orientation:
         raise ValueError(

@@ -87,7 +87,18 @@ def splitting_step(inertia, L, q, h, order: int = 2):
     raise ValueError(f"order must be 2 or 4, got {order!r}.")
 
 
+def _check_principal(inertia, who: str):
+    """Trace-time ValueError for a ``(..., 3, 3)`` tensor: the axis flows need principal moments."""
+    if jnp.ndim(inertia) >= 2 and jnp.shape(inertia)[-2:] == (3, 3):
+        raise ValueError(
+            f"{who} needs principal moments (..., 3), got a (..., 3, 3) inertia tensor: diagonalise it "
+            "with rigidjax.principal_axes and express the state (and com) in those axes, or use "
+            "simulate_structure_preserving, which does that for you."
+        )
+
+
 def _as_state(inertia, L0, q0, dt):
+    _check_principal(inertia, "the splitting")
     dtype = jnp.result_type(jnp.asarray(L0).dtype, jnp.asarray(q0).dtype, jnp.asarray(inertia).dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.asarray(1.0).dtype
@@ -178,6 +189,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         L0, q0 = y0
+        _check_principal(self.inertia, "LiePoissonSplitting")
         h = jnp.asarray(t1 - t0).astype(L0.dtype)
         inertia = self.inertia.astype(L0.dtype)
         y1 = splitting_step(inertia, L0, q0, h, self.splitting_order)
@@ -302,7 +314,9 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     The state is the pytree ``(L, q)`` (body angular momentum about the pivot ``(..., 3)``, unit
     quaternion ``(..., 4)``); the parameters come from the fields (principal moments ``inertia``,
     ``mass``, ``com``, ``gravity`` as in :class:`rigidjax.HeavyTop`), not from the term, which is only
-    used by ``func``. :func:`heavy_top_vector_field` gives a matching term::
+    used by ``func``. In diffrax the inertia must be principal moments ``(..., 3)``; with
+    ``simulate_structure_preserving`` (which takes the parameters from the model) a tensor works too.
+    :func:`heavy_top_vector_field` gives a matching term::
 
         diffrax.diffeqsolve(diffrax.ODETerm(heavy_top_vector_field(I, m, com, g)),
                             HeavyTopSplitting(I, m, com, g, order=4), t0, t1, dt, (L0, q0),
@@ -326,12 +340,8 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         if order not in (2, 4):
             raise ValueError(f"order must be 2 or 4, got {order!r}.")
         inertia = as_float_array(inertia, "inertia")
-        if inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3):
-            raise ValueError(
-                "HeavyTopSplitting needs principal moments (..., 3), got a (3, 3) tensor: diagonalise "
-                "it with rigidjax.principal_axes and express com and the state in those axes."
-            )
-        check_last_axis(inertia, 3, "inertia")
+        if not (inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)):
+            check_last_axis(inertia, 3, "inertia")
         self.inertia = inertia
         self.mass = as_float_array(mass, "mass")
         self.com = as_float_array(com, "com")
@@ -341,7 +351,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
 
     @classmethod
     def from_model(cls, model, order: int = 2) -> "HeavyTopSplitting":
-        """The splitting for a :class:`rigidjax.HeavyTop` (principal moments, no extra torques)."""
+        """The splitting for a :class:`rigidjax.HeavyTop` without extra torques."""
         if getattr(model, "torques", ()):
             raise ValueError(
                 "HeavyTopSplitting integrates gravity only; the model has extra torques. Use "
@@ -358,6 +368,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         L0, q0 = y0
+        _check_principal(self.inertia, "HeavyTopSplitting as a diffrax solver")
         dtype = L0.dtype
         h = jnp.asarray(t1 - t0).astype(dtype)
         weight_com = heavy_top_weight_com(self.mass, self.com, self.gravity, dtype)
