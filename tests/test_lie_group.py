@@ -36,7 +36,8 @@ T = 2.0
 def _accel(t, w, q, args):
     drive = 0.3 * jnp.sin(2.0 * t) * jnp.array([1.0, 0.0, 0.0], w.dtype)
     scale = 1.0 if args is None else args
-    return TOP.angular_acceleration(t, State(w, q), None) + scale * drive / TOP.inertia
+    gravity = TOP.angular_acceleration(t, State(w, q), None).astype(w.dtype)  # TOP's fields are float64
+    return gravity + scale * drive / TOP.inertia.astype(w.dtype)
 
 
 VF = rigid_body_vector_field(_accel)
@@ -237,6 +238,18 @@ def test_jacfwd_vs_finite_differences():
     np.testing.assert_allclose(jac_w, fd_w, rtol=0, atol=1e-7 * float(jnp.max(jnp.abs(fd_w))))
     np.testing.assert_allclose(jac_a, fd_a, rtol=0, atol=1e-7 * float(jnp.max(jnp.abs(fd_a))))
     assert float(jnp.max(jnp.abs(fd_a))) > 1e-3  # the parameter matters
+
+
+def test_float32():
+    f32 = jnp.float32
+    w, q = _fixed_step_runner("dopri5")(f32(T / 200), 200, OMEGA0.astype(f32), Q0.astype(f32), f32(1.0))
+    assert w.dtype == f32 and q.dtype == f32
+    w_ref, q_ref = (x[-1] for x in _reference())
+    err = float(jnp.max(jnp.abs(w.astype(jnp.float64) - w_ref)) / jnp.linalg.norm(OMEGA0))
+    q_dev = abs(float(jnp.linalg.norm(q.astype(jnp.float64))) - 1.0)
+    print(f"float32 RKMK dopri5, 200 steps: rel omega error {err:.2e}, ||q| - 1| {q_dev:.2e}")
+    assert err < 1e-5
+    assert q_dev < 3e-6  # ~25 float32 ulps after 200 unit-quaternion products
 
 
 def test_bad_tableau():
