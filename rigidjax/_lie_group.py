@@ -296,8 +296,8 @@ def _flatten_model(model, batch, dtype):
     return leaves, flat
 
 
-@eqx.filter_jit
-def _structure_preserving_impl(model, omega0, q0, ts, counts, args, solver, n_max, has_orientation):
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces, for the no-recompile test
+def _structure_preserving_traced(model, omega0, q0, ts, counts, args, solver, n_max, has_orientation):
     dtype = omega0.dtype
     batch = jnp.broadcast_shapes(model.batch_shape(), omega0.shape[:-1], q0.shape[:-1])
     n = math.prod(batch)
@@ -398,6 +398,9 @@ def _structure_preserving_impl(model, omega0, q0, ts, counts, args, solver, n_ma
         success=finite.reshape(batch),
         stats=stats,
     )
+
+
+_structure_preserving_impl = eqx.filter_jit(_structure_preserving_traced)
 
 
 def simulate_structure_preserving(

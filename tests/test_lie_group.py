@@ -5,6 +5,7 @@ unit quaternions, vmap/jit, jacfwd vs finite differences, scenes vs closed forms
 import functools
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from rigidjax._lie_group import (
     RKMK,
+    _structure_preserving_traced,
     dexpinv,
     quat_exp,
     rigid_body_vector_field,
@@ -318,6 +320,13 @@ def test_simulate_free_body_splitting_vs_closed_form():
     print(f"free body, Yoshida dt <= 0.02: max omega error {err:.2e}")
     assert err < 1e-6
     assert int(traj.stats["num_steps"]) == 18 + 33 + 60
+    # New values of the same shapes (and the same largest per-interval step count) do not retrace.
+    traces = eqx.debug.get_num_traces(_structure_preserving_traced)
+    again = simulate_structure_preserving(
+        FreeBody(1.1 * inertia), State(-omega0), ts + 0.01, LiePoissonSplitting(inertia[0], 4), 0.02
+    )
+    assert eqx.debug.get_num_traces(_structure_preserving_traced) == traces
+    assert not jnp.allclose(again.omega, traj.omega)
 
 
 def test_simulate_rkmk_damped_sphere_closed_form_and_grad():
