@@ -32,6 +32,9 @@ from ._euler import is_proper_sequence as is_proper_sequence
 from ._euler import matrix_from_euler as matrix_from_euler
 from ._euler import quat_from_euler as quat_from_euler
 from ._euler import space_angular_velocity as space_angular_velocity
+from ._fit import InertiaFit as InertiaFit
+from ._fit import estimate_inertia as estimate_inertia
+from ._fit import fit_inertia as fit_inertia
 from ._inertia import check_inertia as check_inertia
 from ._inertia import composite_inertia as composite_inertia
 from ._inertia import hollow_cylinder as hollow_cylinder

@@ -1,0 +1,652 @@
+"""Fit an inertia tensor (and the initial angular velocity) to an observed torque-free wobble.
+
+The forward model is the closed-form torque-free motion (:func:`torque_free_omega`): exact, cheap,
+and smooth in the parameters, so no integration error enters the fit and the cost does not grow with
+the length of the record.
+
+Parametrisation (every parameter value is a valid inertia; nothing is clipped or penalised):
+
+- principal moments: ``I_k = (J_i + J_j) / 2`` with second moments ``J = softmax(z1, z2, 0)``
+  (``J_k = int x_k^2 dm`` up to scale). Positive ``J`` is exactly the set of moments satisfying the
+  triangle inequalities strictly, and ``sum(J) = 1`` fixes the scale gauge: ``trace(I) = 1``.
+- full tensor: the same moments in principal axes ``R(r)`` (rotation vector ``r``), so the tensor is
+  ``R diag(I) R^T``; the axes are returned as well.
+
+The scale gauge: the torque-free motion of ``c I`` is that of ``I``, so the record fixes the inertia
+only up to a common factor. The fit returns ``trace(I) = 1`` unless a scale is supplied
+(``inertia_trace=`` or ``known_moment=``), in which case the result is in kg m^2.
+"""
+
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, Bool, Float
+
+from ._torque_free import torque_free_omega
+
+_LOSSES = ("squared", "huber", "soft_l1", "cauchy")
+_METHODS = ("levenberg-marquardt", "optax")
+
+
+class InertiaFit(eqx.Module):
+    """The result of :func:`fit_inertia`.
+
+    - ``inertia``: principal moments ``(3,)`` about the sensor axes, or the full tensor ``(3, 3)`` in
+      sensor axes with ``full_tensor=True``; trace 1 unless a scale was given (then kg m^2).
+    - ``omega0``: fitted initial angular velocity (rad/s), ``(3,)``, or ``(segments, 3)``: one per
+      window, at ``segment_starts``.
+    - ``loss``: final mean (robust) squared residual, (rad/s)^2; ``history``: loss per iteration.
+    - ``converged``: the optimiser met its tolerance before its step limit.
+    - ``inertia_stderr`` / ``omega0_stderr``: standard errors (Gauss–Newton approximation of the
+      covariance at the optimum, scaled by the residual variance), same shapes as the values.
+    - ``principal_moments`` (ascending) and ``principal_axes`` (columns, sensor-frame components,
+      ``det = +1``) of the fitted inertia.
+    - ``residual_rms``: root-mean-square residual per component (rad/s).
+    - ``initial_inertia``: the data-driven starting estimate (same gauge as ``inertia``).
+    """
+
+    inertia: Float[Array, "3"] | Float[Array, "3 3"]
+    omega0: Float[Array, "3"] | Float[Array, "segments 3"]
+    loss: Float[Array, ""]
+    history: Float[Array, " steps"]
+    converged: Bool[Array, ""]
+    num_steps: int
+    inertia_stderr: Float[Array, "3"] | Float[Array, "3 3"]
+    omega0_stderr: Float[Array, "3"] | Float[Array, "segments 3"]
+    principal_moments: Float[Array, "3"]
+    principal_axes: Float[Array, "3 3"]
+    residual_rms: Float[Array, "3"]
+    segment_starts: Float[Array, " segments"]
+    initial_inertia: Float[Array, "3"] | Float[Array, "3 3"]
+    covariance: Float[Array, "p p"]
+    normalised: bool = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+
+    def predict_omega(self, ts) -> Float[Array, "T 3"]:
+        """The fitted model's angular velocity (rad/s) at times ``ts`` (s), each from its window."""
+        ts = jnp.asarray(ts, self.inertia.dtype)
+        starts = self.segment_starts
+        omega0 = self.omega0.reshape(-1, 3)
+        window = jnp.clip(jnp.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
+        if self.inertia.ndim == 2:
+            axes = self.principal_axes
+            w = torque_free_omega(self.principal_moments, omega0[window] @ axes, ts - starts[window])
+            return w @ axes.T
+        return torque_free_omega(self.inertia, omega0[window], ts - starts[window])
+
+
+# --- parametrisation -------------------------------------------------------------------------
+
+
+def _moments_from_z(z):
+    """Principal moments with trace 1 from two free numbers (see the module docstring)."""
+    J = jax.nn.softmax(jnp.concatenate([z, jnp.zeros((1,), z.dtype)]))
+    return 0.5 * jnp.stack([J[1] + J[2], J[0] + J[2], J[0] + J[1]])
+
+
+def _z_from_moments(moments):
+    """Inverse of :func:`_moments_from_z` for valid moments (numpy, used for the starting point)."""
+    moments = np.asarray(moments, float)
+    moments = moments / moments.sum()
+    J = np.maximum(0.5 * moments.sum() - moments, 1e-3)  # J_k = trace/2 - I_k; keep it strictly valid
+    J = J / J.sum()
+    return np.log(J[:2] / J[2])
+
+
+def _rotation_matrix(r):
+    """Rotation matrix of the rotation vector ``r`` (Rodrigues), NaN-free with its gradient at 0."""
+    angle2 = jnp.sum(r * r)
+    small = angle2 < 1e-8
+    safe2 = jnp.where(small, 1.0, angle2)
+    angle = jnp.sqrt(safe2)
+    sinc = jnp.where(small, 1.0 - angle2 / 6.0, jnp.sin(angle) / angle)
+    cosc = jnp.where(small, 0.5 - angle2 / 24.0, (1.0 - jnp.cos(angle)) / safe2)
+    K = jnp.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]], dtype=r.dtype)
+    return jnp.eye(3, dtype=r.dtype) + sinc * K + cosc * (K @ K)
+
+
+def _rotvec_from_matrix(R):
+    """Rotation vector of a proper rotation matrix (numpy; starting point only)."""
+    R = np.asarray(R, float)
+    angle = math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    if angle < 1e-8:
+        return np.zeros(3)
+    if angle > math.pi - 1e-6:
+        axis = np.sqrt(np.maximum((np.diag(R) + 1.0) / 2.0, 0.0))
+        k = int(np.argmax(axis))
+        axis = R[:, k] + np.eye(3)[:, k]
+        return angle * axis / np.linalg.norm(axis)
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2.0 * math.sin(angle))
+    return angle * axis
+
+
+class _Problem(eqx.Module):
+    """Residuals of the fit as a function of one flat parameter vector (all in scaled units)."""
+
+    t: Float[Array, "segments samples"]  # time since the window start, times omega_scale
+    observed: Float[Array, "segments samples 3"]  # omega / omega_scale, 0 where missing
+    mask: Bool[Array, "segments samples 3"]
+    f_scale: Float[Array, ""]
+    full_tensor: bool = eqx.field(static=True)
+    loss_kind: str = eqx.field(static=True)
+
+    @property
+    def n_inertia_params(self) -> int:
+        return 5 if self.full_tensor else 2
+
+    def split(self, p):
+        k = self.n_inertia_params
+        return p[:k], p[k:].reshape(-1, 3)
+
+    def tensor_parts(self, p_inertia):
+        moments = _moments_from_z(p_inertia[:2])
+        if self.full_tensor:
+            return moments, _rotation_matrix(p_inertia[2:])
+        return moments, None
+
+    def inertia(self, p_inertia):
+        moments, axes = self.tensor_parts(p_inertia)
+        if axes is None:
+            return moments
+        return (axes * moments) @ axes.T
+
+    def predict(self, p):
+        p_inertia, w0 = self.split(p)
+        moments, axes = self.tensor_parts(p_inertia)
+        if axes is not None:
+            w0 = w0 @ axes  # sensor -> principal components: axes^T w0
+        omega = torque_free_omega(moments, w0[:, None, :], self.t)
+        if axes is not None:
+            omega = omega @ axes.T
+        return omega
+
+    def raw_residuals(self, p):
+        return jnp.where(self.mask, self.predict(p) - self.observed, 0.0)
+
+    def residuals(self, p):
+        """Residuals whose sum of squares is the robust loss (``f^2 rho((r/f)^2)``), flattened."""
+        r = self.raw_residuals(p)
+        if self.loss_kind == "squared":
+            return r.reshape(-1)
+        z = (r / self.f_scale) ** 2
+        safe_z = jnp.where(z > 0, z, 1.0)
+        if self.loss_kind == "huber":
+            rho = jnp.where(z <= 1.0, z, 2.0 * jnp.sqrt(safe_z) - 1.0)
+        elif self.loss_kind == "soft_l1":
+            rho = 2.0 * (jnp.sqrt(1.0 + z) - 1.0)
+        else:  # cauchy
+            rho = jnp.log1p(z)
+        ratio = jnp.where(z > 0, rho / safe_z, 1.0)  # -> 1 at r = 0, so the residual stays smooth
+        return (r * jnp.sqrt(ratio)).reshape(-1)
+
+    def count(self):
+        return jnp.sum(self.mask).astype(self.observed.dtype)
+
+    def loss(self, p):
+        r = self.residuals(p)
+        return jnp.sum(r * r) / self.count()
+
+
+# --- optimisers --------------------------------------------------------------------------------
+
+
+def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float):
+    """Levenberg–Marquardt with Marquardt's diagonal scaling; the Jacobian by forward mode (few
+    parameters, many residuals)."""
+    jacobian = jax.jacfwd(problem.residuals)
+    n = problem.count()
+
+    def cond(carry):
+        _, _, _, i, _, done, _, _ = carry
+        return (i < steps) & ~done
+
+    def body(carry):
+        p, r, lam, i, history, _, _, last_decrease = carry
+        J = jacobian(p)
+        g = J.T @ r
+        A = J.T @ J
+        d = jnp.maximum(jnp.diag(A), 1e-12 * jnp.max(jnp.diag(A)) + 1e-300)
+        f = jnp.sum(r * r)
+
+        # Try the step, raising the damping until it lowers the loss (at most 12 tries); the loop
+        # runs at least once, and tracing the residuals once keeps the compile small.
+        def retry_cond(c):
+            _, _, f_new, tries, _ = c
+            return (tries == 0) | (~(f_new < f) & (tries < 12))
+
+        def retry_body(c):
+            lam, _, _, tries, _ = c
+            lam = jnp.where(tries == 0, lam, lam * 4.0)
+            step = jnp.linalg.solve(A + lam * jnp.diag(d), -g)
+            r_new = problem.residuals(p + step)
+            return lam, step, jnp.sum(r_new * r_new), tries + 1, r_new
+
+        init = (lam, jnp.zeros_like(p), jnp.asarray(jnp.inf, f.dtype), 0, r)
+        lam, step, f_new, _, r_new = jax.lax.while_loop(retry_cond, retry_body, init)
+        improved = jnp.isfinite(f_new) & (f_new < f)
+        p_next = jnp.where(improved, p + step, p)
+        r_next = jnp.where(improved, r_new, r)
+        f_next = jnp.where(improved, f_new, f)
+        lam = jnp.where(improved, jnp.maximum(lam / 5.0, 1e-12), lam)
+        small_change = (f - f_next) <= tol * f_next
+        small_step = jnp.max(jnp.abs(step)) <= tol * (1.0 + jnp.max(jnp.abs(p)))
+        tiny_gradient = jnp.max(jnp.abs(g)) <= tol * tol * (f + 1e-300)
+        converged = (improved & (small_change | small_step)) | tiny_gradient
+        # No damping makes the step lower the loss: a minimum to roundoff if the last accepted step
+        # barely changed the loss, a failure otherwise.
+        stalled = ~improved
+        converged = converged | (stalled & (last_decrease <= jnp.sqrt(tol)))
+        decrease = jnp.where(improved, (f - f_next) / jnp.maximum(f_next, 1e-300), last_decrease)
+        history = history.at[i].set(f_next / n)
+        return p_next, r_next, lam, i + 1, history, converged | stalled, converged, decrease
+
+    r0 = problem.residuals(p0)
+    history = jnp.full((steps,), jnp.nan, p0.dtype)
+    false = jnp.asarray(False)
+    init = (
+        p0,
+        r0,
+        jnp.asarray(1.0, p0.dtype),
+        jnp.asarray(0),
+        history,
+        false,
+        false,
+        jnp.asarray(jnp.inf, p0.dtype),
+    )
+    p, _, _, i, history, _, converged, _ = jax.lax.while_loop(cond, body, init)
+    return p, history, i, converged
+
+
+def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float):
+    optimizer = optax.with_extra_args_support(optimizer)
+    value_and_grad = optax.value_and_grad_from_state(problem.loss)
+
+    def cond(carry):
+        _, _, i, _, done, _ = carry
+        return (i < steps) & ~done
+
+    def body(carry):
+        p, state, i, history, _, previous = carry
+        value, grad = value_and_grad(p, state=state)
+        updates, state = optimizer.update(grad, state, p, value=value, grad=grad, value_fn=problem.loss)
+        p = optax.apply_updates(p, updates)
+        history = history.at[i].set(value)
+        # Converged when the loss has stopped changing over the last ten iterations.
+        previous = previous.at[i % 10].set(value)
+        spread = jnp.max(previous) - jnp.min(previous)
+        done = (i >= 10) & (spread <= tol * jnp.abs(value))
+        return p, state, i + 1, history, done, previous
+
+    history = jnp.full((steps,), jnp.nan, p0.dtype)
+    recent = jnp.full((10,), jnp.inf, p0.dtype)
+    init = (p0, optimizer.init(p0), jnp.asarray(0), history, jnp.asarray(False), recent)
+    p, _, i, history, done, _ = jax.lax.while_loop(cond, body, init)
+    return p, history, i, done
+
+
+@eqx.filter_jit
+def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float):
+    if method == "levenberg-marquardt":
+        p, history, n_steps, done = _levenberg_marquardt(problem, p0, steps, tol)
+    else:
+        p, history, n_steps, done = _optax_fit(problem, p0, optimizer, steps, tol)
+    J = jax.jacfwd(problem.residuals)(p)
+    r = problem.residuals(p)
+    n = problem.count()
+    dof = jnp.maximum(n - p.shape[0], 1.0)
+    variance = jnp.sum(r * r) / dof
+    covariance = variance * jnp.linalg.pinv(J.T @ J, hermitian=True)
+    raw = problem.raw_residuals(p)
+    counts = jnp.sum(problem.mask, axis=(0, 1)).astype(raw.dtype)
+    rms = jnp.sqrt(jnp.sum(raw * raw, axis=(0, 1)) / jnp.maximum(counts, 1.0))
+    return p, history, n_steps, done, covariance, problem.loss(p), rms
+
+
+# --- the data-driven starting point ----------------------------------------------------------
+
+
+def _local_derivatives(ts, omega, half_width: int):
+    """Value and time derivative of each component by a local quadratic least-squares fit over
+    ``2 half_width + 1`` neighbouring samples (NaN-aware; a Savitzky–Golay filter for uneven times)."""
+    T = ts.shape[0]
+    value = np.full_like(omega, np.nan)
+    slope = np.full_like(omega, np.nan)
+    for i in range(T):
+        lo, hi = max(0, i - half_width), min(T, i + half_width + 1)
+        dt = ts[lo:hi] - ts[i]
+        for c in range(3):
+            y = omega[lo:hi, c]
+            ok = np.isfinite(y)
+            if ok.sum() < 4:
+                continue
+            scale = np.max(np.abs(dt[ok])) or 1.0
+            x = dt[ok] / scale
+            V = np.stack([np.ones_like(x), x, x * x], axis=1)
+            coef, *_ = np.linalg.lstsq(V, y[ok], rcond=None)
+            value[i, c] = coef[0]
+            slope[i, c] = coef[1] / scale
+    return value, slope
+
+
+def _dominant_period(ts, omega):
+    """Period of the strongest oscillation in the record (via the FFT of the resampled data)."""
+    n = max(64, ts.shape[0])
+    grid = np.linspace(ts[0], ts[-1], n)
+    power = np.zeros(n // 2 + 1)
+    for c in range(3):
+        y = omega[:, c]
+        ok = np.isfinite(y)
+        if ok.sum() < 4:
+            continue
+        y = np.interp(grid, ts[ok], y[ok])
+        power += np.abs(np.fft.rfft(y - y.mean())) ** 2
+    power[0] = 0.0
+    k = int(np.argmax(power))
+    return (ts[-1] - ts[0]) / k if k > 0 else ts[-1] - ts[0]
+
+
+def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_width: int | None = None):
+    """Data-driven inertia estimate from Euler's torque-free equations, which are LINEAR in the inertia.
+
+    With ``omega`` and ``omega_dot`` from a local quadratic fit (smoothed finite differences), every
+    sample gives ``I omega_dot + omega x (I omega) = 0``: three linear equations in the three
+    principal moments (or six tensor entries). The right singular vector of the smallest singular
+    value is the estimate, normalised to trace 1 and made physical (second moments floored at a small
+    positive value). A starting point for :func:`fit_inertia`, biased by noise; not a final answer.
+
+    Returns ``(inertia, smoothed_omega)``: moments ``(3,)`` or tensor ``(3, 3)``, and the smoothed
+    record ``(T, 3)`` (NaN where too few neighbours were observed).
+    """
+    ts = np.asarray(ts, float)
+    omega = np.asarray(omega_observed, float)
+    if half_width is None:
+        period = _dominant_period(ts, omega)
+        samples_per_period = period / max(np.median(np.diff(ts)), 1e-300)
+        half_width = int(np.clip(samples_per_period / 16.0, 2, 50))
+    value, slope = _local_derivatives(ts, omega, half_width)
+    # One pass of outlier rejection: samples far from the local fit (5 robust sigma) are dropped.
+    deviation = np.abs(omega - value)
+    sigma = 1.4826 * np.nanmedian(deviation, axis=0)
+    outlier = deviation > 5.0 * np.maximum(sigma, 1e-300)
+    if np.any(outlier):
+        value, slope = _local_derivatives(ts, np.where(outlier, np.nan, omega), half_width)
+    ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
+    w, wd = value[ok], slope[ok]
+    scale = np.sqrt(np.mean(np.sum(w * w, axis=1))) if w.size else 1.0
+    w, wd = w / scale, wd / scale**2  # omega_dot scales as omega^2 in the torque-free equations
+    if not full_tensor:
+        w1, w2, w3 = w.T
+        rows = [
+            np.stack([wd[:, 0], -w2 * w3, w2 * w3], axis=1),
+            np.stack([w3 * w1, wd[:, 1], -w3 * w1], axis=1),
+            np.stack([-w1 * w2, w1 * w2, wd[:, 2]], axis=1),
+        ]
+        A = np.concatenate(rows, axis=0)
+        if A.shape[0] < 3:
+            return np.full(3, 1.0 / 3.0), value
+        v = np.linalg.svd(A, full_matrices=False)[2][-1]
+        v = v * np.sign(v.sum()) if v.sum() != 0 else np.ones(3)
+        moments = np.abs(v) / np.abs(v).sum()
+        J = np.maximum(0.5 - moments, 2e-3)
+        J = J / J.sum()
+        return 0.5 * (J.sum() - J), value
+    # Symmetric tensor entries (Ixx, Iyy, Izz, Ixy, Ixz, Iyz): I omega_dot + omega x (I omega) = 0.
+    basis = np.zeros((6, 3, 3))
+    for k, (i, j) in enumerate([(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]):
+        basis[k, i, j] = basis[k, j, i] = 1.0
+    cols = []
+    for B in basis:
+        Bw = w @ B.T
+        cols.append((wd @ B.T + np.cross(w, Bw)).reshape(-1))
+    A = np.stack(cols, axis=1)
+    if A.shape[0] < 6:
+        return np.eye(3) / 3.0, value
+    v = np.linalg.svd(A, full_matrices=False)[2][-1]
+    tensor = np.einsum("k,kij->ij", v, basis)
+    tensor = tensor * np.sign(np.trace(tensor)) if np.trace(tensor) != 0 else np.eye(3)
+    # Physical projection: second-moment matrix S = trace/2 - I must be positive definite.
+    tensor = tensor / np.trace(tensor)
+    S = 0.5 * np.eye(3) - tensor
+    evals, evecs = np.linalg.eigh(S)
+    evals = np.maximum(evals, 2e-3)
+    S = (evecs * (evals / evals.sum())) @ evecs.T  # trace 1, so I = (1 - S) / 2 has trace 1
+    return 0.5 * (np.eye(3) - S), value
+
+
+# --- the public entry point ----------------------------------------------------------------
+
+
+def _check_data(ts, omega_observed):
+    ts = np.asarray(ts, dtype=float)
+    omega = np.asarray(omega_observed, dtype=float)
+    if ts.ndim != 1:
+        raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}.")
+    if omega.shape != (ts.shape[0], 3):
+        raise ValueError(
+            f"omega_observed must have shape (T, 3) = ({ts.shape[0]}, 3) to match ts, got {omega.shape}."
+        )
+    if not np.all(np.isfinite(ts)):
+        raise ValueError("ts contains NaN or inf; every sample needs a finite time.")
+    if ts.shape[0] > 1 and not np.all(np.diff(ts) > 0):
+        bad = int(np.argmin(np.diff(ts) > 0))
+        raise ValueError(
+            f"ts must be strictly increasing; ts[{bad}] = {ts[bad]} is followed by "
+            f"ts[{bad + 1}] = {ts[bad + 1]}."
+        )
+    if np.any(np.isinf(omega)):
+        raise ValueError("omega_observed contains inf; mark missing samples with NaN instead.")
+    return ts, omega
+
+
+def fit_inertia(
+    ts,
+    omega_observed,
+    *,
+    inertia_init=None,
+    omega0_init=None,
+    segments: int | str = 1,
+    full_tensor: bool = False,
+    optimizer: optax.GradientTransformation | None = None,
+    steps: int | None = None,
+    method: str | None = None,
+    loss: str = "squared",
+    f_scale: float | None = None,
+    inertia_trace: float | None = None,
+    known_moment: tuple[int, float] | None = None,
+    tol: float = 1e-10,
+    dtype: Any = None,
+) -> InertiaFit:
+    """Fits the inertia of a torque-free body to body-frame angular-velocity samples (a gyroscope).
+
+    **Arguments:**
+
+    - `ts`: sample times (s), strictly increasing, shape ``(T,)``.
+    - `omega_observed`: ``(T, 3)`` body(sensor)-frame angular velocity (rad/s); NaN marks a missing
+      sample (per component).
+    - `inertia_init`: starting inertia (moments, or a tensor with ``full_tensor``); by default a
+      data-driven estimate (:func:`estimate_inertia`). Any positive scale; only ratios matter.
+    - `omega0_init`: starting ``omega0`` ``(3,)`` or ``(segments, 3)``; by default the smoothed
+      observation at each window start.
+    - `segments`: multiple shooting: the record is cut into this many windows of consecutive
+      samples, each with its own fitted initial angular velocity, all sharing one inertia. Long
+      records (many wobble cycles) and chaotic tennis-racket records need it: a single window's loss
+      is riddled with local minima at wrong wobble frequencies. Windows of about one wobble period
+      work best; ``"auto"`` picks that from the record's spectrum.
+    - `full_tensor`: fit a full tensor in sensor axes (principal moments and axes) instead of
+      principal moments about the sensor axes.
+    - `method`: ``"levenberg-marquardt"`` (Gauss–Newton with damping, the Jacobian by forward mode)
+      or ``"optax"``. Defaults to ``"optax"`` when an `optimizer` is given, else
+      Levenberg–Marquardt, which on these small least-squares problems converges in tens of
+      iterations where L-BFGS needs hundreds (see ``benchmarks/fit_methods.py``).
+    - `optimizer`: any optax ``GradientTransformation`` (default ``optax.lbfgs()``) for ``"optax"``.
+    - `steps`: iteration limit (default 200 for Levenberg–Marquardt, 2000 for optax).
+    - `loss`: ``"squared"``, or a robust loss against outliers: ``"huber"``, ``"soft_l1"``,
+      ``"cauchy"`` (as in ``scipy.optimize.least_squares``) with scale `f_scale` (rad/s; default
+      three times the noise level estimated from the data).
+    - `inertia_trace` / `known_moment`: fix the scale gauge: the trace of the inertia (kg m^2; e.g.
+      ``2 * sum(m r^2)`` from a mass and a shape), or ``(k, I_kk)``: one known diagonal entry in
+      sensor axes. Without either, the result has trace 1.
+    - `tol`: relative tolerance on the loss for convergence.
+
+    **Returns:** an :class:`InertiaFit`.
+    """
+    ts, omega = _check_data(ts, omega_observed)
+    if loss not in _LOSSES:
+        raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}.")
+    if method is None:
+        method = "optax" if optimizer is not None else "levenberg-marquardt"
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}.")
+    if segments == "auto":
+        # About one dominant oscillation per window: short enough that a poor start's frequency
+        # error cannot slip by a whole cycle within a window, long enough to see the cycle.
+        period = _dominant_period(ts, omega)
+        segments = int(np.clip(round((ts[-1] - ts[0]) / period), 1, max(1, ts.shape[0] // 8)))
+    if not (isinstance(segments, int | np.integer) and segments >= 1):
+        raise ValueError(f"segments must be a positive integer, got {segments!r}.")
+    if inertia_trace is not None and known_moment is not None:
+        raise ValueError("Give at most one scale: inertia_trace or known_moment, not both.")
+    dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    T = ts.shape[0]
+    n_params = (5 if full_tensor else 2) + 3 * segments
+    valid = np.isfinite(omega)
+    if valid.sum() < n_params + 1 or T < 4:
+        raise ValueError(
+            f"Too few samples: {int(valid.sum())} observed components in {T} samples for {n_params} "
+            f"parameters ({segments} window(s)); need more than the number of parameters."
+        )
+    bounds = np.linspace(0, T, segments + 1).round().astype(int)
+    sizes = np.diff(bounds)
+    windows = list(zip(bounds[:-1], bounds[1:], strict=True))
+    if np.any(sizes < 2) or any(valid[a:b].all(axis=1).sum() < 1 for a, b in windows):
+        raise ValueError(
+            f"Too few samples per window: {T} samples cut into {segments} windows leaves a window with "
+            "fewer than 2 samples or no complete observation; use fewer segments."
+        )
+
+    # Starting point.
+    estimate, smoothed = estimate_inertia(ts, omega, full_tensor=full_tensor)
+    if inertia_init is None:
+        inertia_start = estimate
+    else:
+        inertia_start = np.asarray(inertia_init, float)
+        expected = (3, 3) if full_tensor else (3,)
+        if inertia_start.shape != expected:
+            raise ValueError(f"inertia_init must have shape {expected}, got {inertia_start.shape}.")
+        inertia_start = inertia_start / np.trace(inertia_start if full_tensor else np.diag(inertia_start))
+    starts = bounds[:-1]
+    if omega0_init is None:
+        w0 = []
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            rows = [r for r in range(a, b) if np.all(np.isfinite(smoothed[r]))]
+            rows = rows or [r for r in range(a, b) if np.all(valid[r])]
+            w0.append(smoothed[rows[0]] if np.all(np.isfinite(smoothed[rows[0]])) else omega[rows[0]])
+        w0 = np.stack(w0)
+    else:
+        w0 = np.asarray(omega0_init, float).reshape(-1, 3)
+        if w0.shape[0] != segments:
+            raise ValueError(
+                f"omega0_init must have shape (3,) or ({segments}, 3), got {np.shape(omega0_init)}."
+            )
+
+    # Scaled units: omega / s and t * s (the torque-free motion is homogeneous), so residuals are O(1).
+    omega_scale = float(np.sqrt(np.nanmean(np.sum(np.nan_to_num(omega) ** 2, axis=1)))) or 1.0
+    M = int(sizes.max())
+    t_win = np.zeros((segments, M))
+    obs_win = np.zeros((segments, M, 3))
+    mask_win = np.zeros((segments, M, 3), bool)
+    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+        t_win[k, : b - a] = (ts[a:b] - ts[a]) * omega_scale
+        obs_win[k, : b - a] = np.nan_to_num(omega[a:b] / omega_scale)
+        mask_win[k, : b - a] = valid[a:b]
+    if f_scale is None:
+        noise = np.nanmedian(np.abs(omega - smoothed)) * 1.4826
+        f_scale_scaled = 3.0 * max(noise / omega_scale, 1e-12)
+    else:
+        f_scale_scaled = float(f_scale) / omega_scale
+
+    if full_tensor:
+        evals, evecs = np.linalg.eigh(inertia_start)
+        if np.linalg.det(evecs) < 0:
+            evecs[:, 0] = -evecs[:, 0]
+        p_inertia = np.concatenate([_z_from_moments(evals), _rotvec_from_matrix(evecs)])
+    else:
+        p_inertia = _z_from_moments(inertia_start)
+    p0 = jnp.asarray(np.concatenate([p_inertia, (w0 / omega_scale).reshape(-1)]), dtype)
+
+    problem = _Problem(
+        t=jnp.asarray(t_win, dtype),
+        observed=jnp.asarray(obs_win, dtype),
+        mask=jnp.asarray(mask_win),
+        f_scale=jnp.asarray(f_scale_scaled, dtype),
+        full_tensor=full_tensor,
+        loss_kind=loss,
+    )
+    if steps is None:
+        steps = 200 if method == "levenberg-marquardt" else 2000
+    if method == "optax" and optimizer is None:
+        optimizer = optax.lbfgs()
+    # optax's own internals (L-BFGS's memory indices) mix int32 and int64, which a user's strict
+    # dtype promotion would reject; rigidjax's arithmetic does not depend on the setting.
+    with jax.numpy_dtype_promotion("standard"):
+        p, history, n_steps, done, covariance, final_loss, rms = _run(
+            problem, p0, method, optimizer, int(steps), float(tol)
+        )
+
+    # The gauge and the mapping to user units, with the covariance propagated through it.
+    def user_values(p):
+        p_inertia, w0 = problem.split(p)
+        inertia = problem.inertia(p_inertia)
+        diag = jnp.diagonal(inertia) if full_tensor else inertia
+        if inertia_trace is not None:
+            inertia = inertia * inertia_trace
+        elif known_moment is not None:
+            axis, value = known_moment
+            inertia = inertia * (value / diag[axis])
+        return inertia, w0 * omega_scale
+
+    inertia, w0_fit = user_values(p)
+    jac_inertia, jac_w0 = jax.jacfwd(user_values)(p)
+
+    def stderr(jac):
+        flat = jac.reshape(-1, p.shape[0])
+        variance = jnp.einsum("ip,pq,iq->i", flat, covariance, flat)
+        return jnp.sqrt(jnp.maximum(variance, 0.0)).reshape(jac.shape[:-1])
+
+    # The covariance is that of the scaled parameters (dimensionless z, omega0 / omega_scale);
+    # user_values' Jacobian carries the units.
+    inertia_err = stderr(jac_inertia)
+    w0_err = stderr(jac_w0)
+    tensor = inertia if full_tensor else jnp.diag(inertia)
+    evals, evecs = jnp.linalg.eigh(tensor)
+    evecs = evecs * jnp.where(jnp.linalg.det(evecs) < 0, jnp.array([-1.0, 1.0, 1.0], dtype), 1.0)
+    n_steps = int(n_steps)
+    initial = jnp.asarray(inertia_start, dtype)
+    if inertia_trace is not None:
+        initial = initial * inertia_trace
+    elif known_moment is not None:
+        diag0 = np.diag(inertia_start) if full_tensor else inertia_start
+        initial = initial * (known_moment[1] / diag0[known_moment[0]])
+    return InertiaFit(
+        inertia=inertia,
+        omega0=w0_fit[0] if segments == 1 else w0_fit,
+        loss=final_loss * omega_scale**2,
+        history=history[:n_steps] * omega_scale**2,
+        converged=done,
+        num_steps=n_steps,
+        inertia_stderr=inertia_err,
+        omega0_stderr=w0_err[0] if segments == 1 else w0_err,
+        principal_moments=evals,
+        principal_axes=evecs,
+        residual_rms=rms * omega_scale,
+        segment_starts=jnp.asarray(ts[starts], dtype),
+        initial_inertia=initial,
+        covariance=covariance,
+        normalised=inertia_trace is None and known_moment is None,
+        method=method,
+    )
