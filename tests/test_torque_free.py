@@ -175,11 +175,259 @@ def test_simulate_exact_switches_to_the_closed_form():
             ts,
             accuracy="exact",
         )
-    with pytest.raises(NotImplementedError, match="orientation"):
-        rj.simulate(
-            rj.FreeBody(inertia[0]), rj.State(omega0[0], jnp.array([1.0, 0, 0, 0])), ts, accuracy="exact"
-        )
     with pytest.raises(Exception, match="triangle"):
         rj.simulate(
             rj.FreeBody(jnp.array([1.0, 2.0, 4.0])), rj.State(omega0[0]), ts, accuracy="exact"
         ).omega.block_until_ready()
+
+
+# --------------------------------------------------------------------------------------------------
+# Orientation: torque_free_motion / torque_free_orientation
+
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from rigidjax._torque_free import _phase_integrals, torque_free_motion, torque_free_orientation  # noqa: E402
+
+# Every value test below calls this with inertia/omega0 (8, 1, 3), q0 (8, 1, 4) and ts (8, 41): one compile.
+motion_at = jax.jit(torque_free_motion)
+N_CASES, N_TIMES = 8, 41
+
+
+def qmul(p, q):
+    """Hamilton product in numpy (scalar first), independent of rigidjax."""
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
+    return np.concatenate([w, pw * qv + qw * pv + np.cross(pv, qv)], axis=-1)
+
+
+def qaxis(axis, angle):
+    """Quaternion of a rotation by ``angle`` about ``axis`` (continuous in the angle, no wrapping)."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    angle = np.asarray(angle, float)[..., None]
+    return np.concatenate([np.cos(angle / 2), np.sin(angle / 2) * axis], axis=-1)
+
+
+def unit(q):
+    q = np.asarray(q, float)
+    return q / np.linalg.norm(q)
+
+
+Q0 = unit([0.8, 0.2, -0.4, 0.4])
+
+
+def run_cases(inertia, omega0, q0, ts):
+    inertia, omega0, q0, ts = (np.asarray(x, float) for x in (inertia, omega0, q0, ts))
+    assert inertia.shape == (N_CASES, 3) and ts.shape == (N_CASES, N_TIMES)
+    q0 = np.broadcast_to(q0, (N_CASES, 4))
+    omega, q = motion_at(
+        jnp.asarray(inertia[:, None]), jnp.asarray(omega0[:, None]), jnp.asarray(q0[:, None]), jnp.asarray(ts)
+    )
+    return np.asarray(omega), np.asarray(q)
+
+
+def dop853_motion(inertia, omega0, q0, ts):
+    """Euler's equations with dq/dt = q (0, omega) / 2 by DOP853 at rtol = atol = 1e-13, in units with
+    max(I) = 1 and |omega0| = 1 (the equations keep their form), so SI-scale bodies are fine too."""
+    I1, I2, I3 = np.asarray(inertia) / np.max(inertia)
+    scale = np.linalg.norm(omega0)
+
+    def f(t, y):
+        x, y_, z, qw, qx, qy, qz = y
+        return [
+            (I2 - I3) * y_ * z / I1,
+            (I3 - I1) * z * x / I2,
+            (I1 - I2) * x * y_ / I3,
+            0.5 * (-qx * x - qy * y_ - qz * z),
+            0.5 * (qw * x + qy * z - qz * y_),
+            0.5 * (qw * y_ - qx * z + qz * x),
+            0.5 * (qw * z + qx * y_ - qy * x),
+        ]
+
+    y0 = np.concatenate([np.asarray(omega0) / scale, q0])
+    sol = solve_ivp(f, (0.0, scale * ts[-1]), y0, t_eval=scale * ts, method="DOP853", rtol=1e-13, atol=1e-13)
+    return sol.y[:3].T * scale, sol.y[3:].T
+
+
+EARTH = np.array([8.0101e37, 8.0103e37, 8.0365e37])  # kg m^2, (C - A) / A = 3.3e-3
+EARTH_SPIN = 7.292115e-5 * np.array([3e-6, -2e-6, 1.0])  # rad/s, with a small polar wobble
+
+# Both sides of the separatrix, relabelled axes (odd and even), near it (s = 8e-5), symmetric tops,
+# the Earth in SI units, a flat plate (I3 = I1 + I2) on both sides.
+DOP_CASES = [
+    ([1.0, 2.0, 2.5], [3.0, 0.1, 0.2]),
+    ([1.0, 2.0, 2.5], [0.1, 0.2, 3.0]),
+    ([2.5, 1.0, 2.0], [0.2, 3.0, 0.1]),
+    ([2.0, 2.5, 1.0], [-0.7, 0.4, 0.9]),
+    ([1.0, 2.0, 3.0], [0.05, 4.0, -0.05]),
+    ([2.0, 2.0, 3.0], [0.3, -0.4, 5.0]),
+    (EARTH, EARTH_SPIN),
+    ([1.0, 2.0, 3.0], [0.6, 0.8, 1.5]),
+]
+
+
+def test_orientation_matches_dop853():
+    inertia = np.array([c[0] for c in DOP_CASES])
+    omega0 = np.array([c[1] for c in DOP_CASES])
+    # Three periods of omega or more; for the Earth 1.1 Euler periods (350 turns: DOP853 costs 10 s
+    # per thousand turns at this tolerance).
+    horizon = np.array([12.0, 12.0, 12.0, 40.0, 30.0, 10.0, 3.0e7, 15.0])
+    ts = np.linspace(0.0, 1.0, N_TIMES)[None, :] * horizon[:, None]
+    omega, q = run_cases(inertia, omega0, Q0, ts)
+    for i in range(N_CASES):
+        w_ref, q_ref = dop853_motion(inertia[i], omega0[i], Q0, ts[i])
+        np.testing.assert_allclose(omega[i], w_ref, atol=1e-10 * np.linalg.norm(omega0[i]), err_msg=str(i))
+        # Same sign as the integrated quaternion: q(t) is continuous with q(0) = q0.
+        np.testing.assert_allclose(q[i], q_ref, atol=1e-10, err_msg=str(i))
+    # the flat plate on the other side of the separatrix
+    w0 = np.array([2.0, 0.5, 0.3])
+    ts = np.linspace(0.0, 20.0, N_TIMES)
+    omega, q = run_cases(np.tile([1.0, 2.0, 3.0], (8, 1)), np.tile(w0, (8, 1)), Q0, np.tile(ts, (8, 1)))
+    w_ref, q_ref = dop853_motion([1.0, 2.0, 3.0], w0, Q0, ts)
+    np.testing.assert_allclose(q[0], q_ref, atol=1e-10)
+    np.testing.assert_allclose(omega[0], w_ref, atol=1e-10 * np.linalg.norm(w0))
+
+
+def space_momentum(inertia, omega, q):
+    """R(q) I omega with scipy's rotation (scalar-first input)."""
+    flat_q = q.reshape(-1, 4)
+    flat_l = (inertia * omega).reshape(-1, 3)
+    return Rotation.from_quat(flat_q, scalar_first=True).apply(flat_l).reshape(omega.shape)
+
+
+def test_symmetric_tops_and_steady_rotations_in_closed_form():
+    """Symmetric tops: R(t) = Rot(L_space, |L| t / I1) R0 Rot(e_sym, -Omega t), Omega = (I3 - I1) w3 / I1.
+    Steady rotations (any principal axis, the intermediate one included; a sphere; the degenerate plane
+    of a symmetric top; omega0 = 0): R(t) = R0 Rot(omega0, |omega0| t)."""
+    cases = [
+        ([2.0, 2.0, 3.0], [0.3, -0.4, 5.0], 2),  # oblate, symmetry axis z
+        ([2.0, 1.0, 2.0], [0.1, 3.0, 0.2], 1),  # prolate, symmetry axis y (the odd moment is smallest)
+        ([1.5, 1.5, 1.5], [1.0, 2.0, 3.0], None),  # sphere
+        ([1.0, 2.0, 3.0], [3.0, 0.0, 0.0], None),
+        ([1.0, 2.0, 3.0], [0.0, 4.0, 0.0], None),  # the unstable equilibrium
+        ([1.0, 2.0, 3.0], [0.0, 0.0, -3.0], None),
+        ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], None),
+        ([2.0, 2.0, 3.0], [0.6, 0.8, 0.0], None),  # in the degenerate plane
+    ]
+    inertia = np.array([c[0] for c in cases])
+    omega0 = np.array([c[1] for c in cases])
+    ts = np.tile(np.linspace(0.0, 20.0, N_TIMES), (N_CASES, 1))
+    omega, q = run_cases(inertia, omega0, Q0, ts)
+    assert np.all(np.isfinite(q)) and np.all(np.isfinite(omega))
+    for i, (I, w0, axis) in enumerate(cases):
+        I, w0 = np.array(I), np.array(w0)
+        if axis is None:
+            expected = qmul(Q0, qaxis(w0 if np.any(w0) else [1.0, 0, 0], np.linalg.norm(w0) * ts[i]))
+            np.testing.assert_allclose(omega[i], np.broadcast_to(w0, omega[i].shape), atol=1e-15)
+        else:
+            I_eq = I[(axis + 1) % 3]
+            L_space = Rotation.from_quat(Q0, scalar_first=True).apply(I * w0)
+            Omega = (I[axis] - I_eq) / I_eq * w0[axis]
+            e_sym = np.eye(3)[axis]
+            expected = qmul(
+                qmul(qaxis(L_space, np.linalg.norm(L_space) / I_eq * ts[i]), Q0), qaxis(e_sym, -Omega * ts[i])
+            )
+        np.testing.assert_allclose(q[i], expected, atol=2e-14, err_msg=str(i))
+
+
+def _landau_lifshitz_period(inertia, omega0, dps=30):
+    """The period P of omega and the angle by which the body turns about the space-frame L in one period.
+
+    Independent of rigidjax: Landau & Lifshitz's solution in mpmath, with the axes relabelled so that
+    omega circles axis 3 (w3 = A3 dn(lambda t | m)), and dphi/dt = |L| (2E - I3 w3^2) / (L^2 - I3^2 w3^2)
+    integrated over tau = lambda t in [0, 4K] by mpmath's quadrature (the phase does not matter over a
+    whole period). 30 digits: near the separatrix 1 - m loses as many digits as it is small.
+    """
+    with mp.workdps(dps):
+        I = [mp.mpf(float(x)) for x in inertia]
+        w = [mp.mpf(float(x)) for x in omega0]
+        L2 = sum(I[i] ** 2 * w[i] ** 2 for i in range(3))
+        E2 = sum(I[i] * w[i] ** 2 for i in range(3))
+        order = sorted(range(3), key=lambda i: I[i])
+        if L2 < E2 * I[order[1]]:
+            order = order[::-1]  # omega circles the axis of the smallest moment
+        I1, I2, I3 = (I[i] for i in order)
+        lam = mp.sqrt((I3 - I2) * (L2 - E2 * I1) / (I1 * I2 * I3))
+        m = (I2 - I1) * (E2 * I3 - L2) / ((I3 - I2) * (L2 - E2 * I1))
+        A3sq = (L2 - E2 * I1) / (I3 * (I3 - I1))
+        K = mp.ellipk(m)
+
+        def rate(tau):
+            w3sq = A3sq * mp.ellipfun("dn", tau, m) ** 2
+            return mp.sqrt(L2) * (E2 - I3 * w3sq) / (L2 - I3**2 * w3sq)
+
+        # dn^2 is even about 0 and about K: the period is four copies of [0, K].
+        turn = 4 * mp.quad(rate, [0, K]) / lam
+        return 4 * K / lam, turn
+
+
+def test_conservation_and_long_times():
+    """Over 1e4 periods: |q| = 1 and the space-frame L constant to roundoff, and the orientation equals
+    Rot(L_space, N dphi) q(t) after N whole periods, dphi the precession per period from mpmath."""
+    cases = [
+        ([1.0, 2.0, 2.5], [3.0, 0.1, 0.2]),
+        ([2.0, 2.5, 1.0], [-0.7, 0.4, 0.9]),
+        ([1.0, 2.0, 3.0], [1e-4, 2.0, 1e-4]),  # s = +1.5e-9
+        ([3.0, 2.0, 1.0], [-0.5e-4, 2.0, 1e-4]),  # s = -4e-10, odd relabelling
+        (EARTH, EARTH_SPIN),
+        ([1.0, 2.0, 3.0], [0.6, 0.8, 1.5]),  # flat plate
+        ([2.0, 3.0, 6.0], [0.75, 1.0, 0.25]),  # exactly on the separatrix: L^2 = 2 E I2 in floating point
+        ([1.0, 2.0, 2.0 + 1e-3], [0.1, 0.2, 3.0]),  # nearly symmetric about b-c: n = 2000
+    ]
+    inertia = np.array([c[0] for c in cases], float)
+    omega0 = np.array([c[1] for c in cases], float)
+    n_periods = 10_000
+    refs = {}
+    ts = np.zeros((N_CASES, N_TIMES))
+    for i in range(N_CASES):
+        if i == 6:  # infinite period: just a long time
+            ts[i] = np.linspace(0.0, 1e3, N_TIMES)
+            continue
+        period, turn = _landau_lifshitz_period(inertia[i], omega0[i])
+        start = np.linspace(0.0, float(period), 20)
+        ts[i] = np.concatenate([start, float(n_periods * period) + start, [float(n_periods * period * 1.5)]])
+        refs[i] = float(mp.fmod(n_periods * turn, 4 * mp.pi))
+    omega, q = run_cases(inertia, omega0, Q0, ts)
+    assert np.max(np.abs(np.linalg.norm(q, axis=-1) - 1)) < 1e-15 * 4
+    L_space = space_momentum(inertia[:, None], omega, q)
+    L0 = space_momentum(inertia, omega0, np.broadcast_to(Q0, (N_CASES, 4)))
+    size = np.linalg.norm(L0, axis=-1)[:, None, None]
+    assert np.max(np.abs(L_space - L0[:, None]) / size) < 2e-14 * 5
+    energy = np.sum(inertia[:, None] * omega**2, axis=-1)
+    assert np.max(np.abs(energy / energy[:, :1] - 1)) < 1e-13
+    for i, angle in refs.items():
+        n_hat = L0[i] / np.linalg.norm(L0[i])
+        later = qmul(qaxis(n_hat, angle), q[i, :20])
+        # q and -q are the same rotation. q's conditioning in t is eps |omega| t: 1e-11 for the unit
+        # bodies, 4e-9 for the Earth (1.9e7 rad of spin in 1e4 Euler periods).
+        err = np.minimum(np.abs(q[i, 20:40] - later).max(), np.abs(q[i, 20:40] + later).max())
+        assert err < 1e-11 + 10 * np.finfo(float).eps * np.linalg.norm(omega0[i]) * ts[i, 39], (i, err)
+
+
+def test_third_kind_integral_against_mpmath():
+    """G(tau) = Pi(-n; am tau | m) from the Carlson forms (direct and measured from K) vs mpmath, from
+    m = 0 to 1 - m = 1e-14 and n up to 3000; and the half-period continuation for cn < 0."""
+    grid = [
+        (phi, p, n)
+        for phi in [0.05, -0.6, 0.78, 0.79, 1.2, 1.5707, 2.0, -2.9]
+        for p in [1.0, 0.5, 1e-3, 1e-8, 1e-14]
+        for n in [0.0, 0.3, 30.0, 3000.0]
+    ]
+    phi, p, n = (np.array(x) for x in zip(*grid))
+    sn, cn = np.sin(phi), np.cos(phi)
+    dn = np.sqrt(cn**2 + p * sn**2)
+    rho, gamma, _, quarter_f, quarter_g = jax.jit(_phase_integrals)(
+        *(jnp.asarray(x)[None] for x in (sn, cn, dn)), jnp.asarray(p), jnp.asarray(n)
+    )
+    half_turns = np.where(cn < 0, np.sign(phi), 0.0)  # tau = rho + 2 j K with j = 0 or +-1
+    got_f = np.asarray(rho[0]) + 2 * half_turns * np.asarray(quarter_f)
+    got_g = np.asarray(gamma[0]) + 2 * half_turns * np.asarray(quarter_g)
+    with mp.workdps(30):
+        for k, (ph, pp, nn) in enumerate(grid):
+            m = 1 - mp.mpf(pp)
+            ref_f = mp.ellipf(ph, m)
+            ref_g = mp.ellippi(-nn, ph, m)
+            # Absolute errors of a few ulp of K (G = F - n s^3 R_J / 3 and G = G(K) - G_c cancel).
+            assert abs(got_f[k] - ref_f) < 1e-15 * mp.ellipk(m), (ph, pp, nn)
+            assert abs(got_g[k] - ref_g) < 1e-15 * mp.ellipk(m), (ph, pp, nn)
+            assert abs(float(quarter_g[k]) / mp.ellippi(-nn, m) - 1) < 1e-15, (pp, nn)
