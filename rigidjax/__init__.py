@@ -21,6 +21,7 @@ from ._elliptic import ellipj_m1 as ellipj_m1
 from ._elliptic import ellipk as ellipk
 from ._elliptic import ellipkinc as ellipkinc
 from ._elliptic import ellipkm1 as ellipkm1
+from ._elliptic import elliprj as elliprj
 from ._euler import PROPER_SEQUENCES as PROPER_SEQUENCES
 from ._euler import SEQUENCES as SEQUENCES
 from ._euler import TAIT_BRYAN_SEQUENCES as TAIT_BRYAN_SEQUENCES
@@ -48,6 +49,12 @@ from ._inertia import solid_ellipsoid as solid_ellipsoid
 from ._inertia import solid_sphere as solid_sphere
 from ._inertia import thin_disc as thin_disc
 from ._inertia import thin_rod as thin_rod
+from ._lie_group import RKMK as RKMK
+from ._lie_group import dexpinv as dexpinv
+from ._lie_group import quat_exp as quat_exp
+from ._lie_group import rigid_body_vector_field as rigid_body_vector_field
+from ._lie_group import rkmk_step as rkmk_step
+from ._lie_group import simulate_structure_preserving as simulate_structure_preserving
 from ._models import AbstractModel as AbstractModel
 from ._models import AbstractTorque as AbstractTorque
 from ._models import ConstantTorque as ConstantTorque
@@ -65,14 +72,21 @@ from ._quaternion import quat_normalize as quat_normalize
 from ._quaternion import quat_rotate as quat_rotate
 from ._simulate import PRESETS as PRESETS
 from ._simulate import simulate as simulate
+from ._splitting import HeavyTopSplitting as HeavyTopSplitting
 from ._splitting import LiePoissonSplitting as LiePoissonSplitting
+from ._splitting import free_body_vector_field as free_body_vector_field
+from ._splitting import heavy_top_splitting_step as heavy_top_splitting_step
+from ._splitting import heavy_top_vector_field as heavy_top_vector_field
 from ._splitting import split_free_body as split_free_body
+from ._splitting import split_heavy_top as split_heavy_top
 from ._splitting import splitting_step as splitting_step
 from ._stability import SleepingTop as SleepingTop
 from ._stability import SpinStability as SpinStability
 from ._stability import sleeping_top as sleeping_top
 from ._stability import spin_stability as spin_stability
+from ._torque_free import torque_free_motion as torque_free_motion
 from ._torque_free import torque_free_omega as torque_free_omega
+from ._torque_free import torque_free_orientation as torque_free_orientation
 from ._torque_free import torque_free_period as torque_free_period
 from ._trajectory import Trajectory as Trajectory
 

@@ -43,6 +43,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from . import _fit_cli
+
 SCENES = ("heavy-top", "free", "earth")
 ACCURACIES = ("fast", "balanced", "precise")
 DEFAULT_OUT = "rigidjax_simulate.npz"
@@ -766,6 +768,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"rigidjax {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _fit_cli.add_parser(sub)
     sim = sub.add_parser(
         "simulate",
         help="batch-simulate a scene of many bodies; write an .npz and a figure",

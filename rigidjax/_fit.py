@@ -18,6 +18,7 @@ only up to a common factor. The fit returns ``trace(I) = 1`` unless a scale is s
 """
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -195,7 +196,7 @@ class _Problem(eqx.Module):
 # --- optimisers --------------------------------------------------------------------------------
 
 
-def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float):
+def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback):
     """Levenberg–Marquardt with Marquardt's diagonal scaling; the Jacobian by forward mode (few
     parameters, many residuals)."""
     jacobian = jax.jacfwd(problem.residuals)
@@ -243,6 +244,8 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float):
         converged = converged | (stalled & (last_decrease <= jnp.sqrt(tol)))
         decrease = jnp.where(improved, (f - f_next) / jnp.maximum(f_next, 1e-300), last_decrease)
         history = history.at[i].set(f_next / n)
+        if callback is not None:
+            jax.debug.callback(callback, i + 1, f_next / n, ordered=True)
         return p_next, r_next, lam, i + 1, history, converged | stalled, converged, decrease
 
     r0 = problem.residuals(p0)
@@ -262,7 +265,7 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float):
     return p, history, i, converged
 
 
-def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float):
+def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callback):
     optimizer = optax.with_extra_args_support(optimizer)
     value_and_grad = optax.value_and_grad_from_state(problem.loss)
 
@@ -276,6 +279,8 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float):
         updates, state = optimizer.update(grad, state, p, value=value, grad=grad, value_fn=problem.loss)
         p = optax.apply_updates(p, updates)
         history = history.at[i].set(value)
+        if callback is not None:
+            jax.debug.callback(callback, i + 1, value, ordered=True)
         # Converged when the loss has stopped changing over the last ten iterations.
         previous = previous.at[i % 10].set(value)
         spread = jnp.max(previous) - jnp.min(previous)
@@ -290,11 +295,11 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float):
 
 
 @eqx.filter_jit
-def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float):
+def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, callback):
     if method == "levenberg-marquardt":
-        p, history, n_steps, done = _levenberg_marquardt(problem, p0, steps, tol)
+        p, history, n_steps, done = _levenberg_marquardt(problem, p0, steps, tol, callback)
     else:
-        p, history, n_steps, done = _optax_fit(problem, p0, optimizer, steps, tol)
+        p, history, n_steps, done = _optax_fit(problem, p0, optimizer, steps, tol, callback)
     J = jax.jacfwd(problem.residuals)(p)
     r = problem.residuals(p)
     n = problem.count()
@@ -460,6 +465,7 @@ def fit_inertia(
     known_moment: tuple[int, float] | None = None,
     tol: float = 1e-10,
     dtype: Any = None,
+    callback: Callable[[int, float], None] | None = None,
 ) -> InertiaFit:
     """Fits the inertia of a torque-free body to body-frame angular-velocity samples (a gyroscope).
 
@@ -492,6 +498,9 @@ def fit_inertia(
       ``2 * sum(m r^2)`` from a mass and a shape), or ``(k, I_kk)``: one known diagonal entry in
       sensor axes. Without either, the result has trace 1.
     - `tol`: relative tolerance on the loss for convergence.
+    - `dtype`: float dtype of the fit (default: JAX's default float; float64 with x64 enabled).
+    - `callback`: called on the host as ``callback(iteration, loss)`` after every iteration (a
+      progress display); the loss is in scaled units (divided by the mean square of the record).
 
     **Returns:** an :class:`InertiaFit`.
     """
@@ -595,7 +604,7 @@ def fit_inertia(
     # dtype promotion would reject; rigidjax's arithmetic does not depend on the setting.
     with jax.numpy_dtype_promotion("standard"):
         p, history, n_steps, done, covariance, final_loss, rms = _run(
-            problem, p0, method, optimizer, int(steps), float(tol)
+            problem, p0, method, optimizer, int(steps), float(tol), callback
         )
 
     # The gauge and the mapping to user units, with the covariance propagated through it.

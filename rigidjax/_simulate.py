@@ -25,8 +25,10 @@ from jax.sharding import PartitionSpec as P
 from ._dynamics import is_full_tensor
 from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_euler
 from ._inertia import check_inertia
+from ._lie_group import RKMK, simulate_structure_preserving
 from ._models import AbstractModel, FreeBody, State
 from ._quaternion import quat_multiply
+from ._splitting import HeavyTopSplitting, LiePoissonSplitting
 from ._torque_free import torque_free_motion, torque_free_omega
 from ._trajectory import Trajectory
 
@@ -431,6 +433,21 @@ def simulate(
         raise TypeError(f"state0 must be a rigidjax.State, got {type(state0).__name__}.")
     if accuracy == "exact":
         return _simulate_exact(model, state0, ts, throw=throw)
+    if isinstance(solver, HeavyTopSplitting | LiePoissonSplitting | RKMK):
+        # Structure-preserving solvers keep their own state layout (unscaled omega or L, unit
+        # quaternion) and run at a fixed step: they cannot go through the scaled, adaptive path.
+        if dt0 is None:
+            raise ValueError(
+                f"{type(solver).__name__} runs at a fixed step: pass dt0 (s), e.g. simulate(..., "
+                "solver=solver, dt0=1e-3). rtol, atol and stepsize_controller do not apply to it."
+            )
+        if rtol is not None or atol is not None or stepsize_controller is not None:
+            raise ValueError(
+                f"{type(solver).__name__} runs at the fixed step dt0; rtol, atol and stepsize_controller "
+                "do not apply to it (for an adaptive Lie-group solver call diffrax.diffeqsolve with "
+                "rigidjax.RKMK directly)."
+            )
+        return simulate_structure_preserving(model, state0, ts, solver, float(dt0), args=args)
     if accuracy not in PRESETS:
         raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
     if state0.orientation is None and model.needs_orientation:

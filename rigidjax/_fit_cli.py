@@ -1,0 +1,274 @@
+"""``rigidjax fit data.csv``: fit a body's inertia to a recorded wobble from the command line.
+
+The CSV has a header row naming its columns: ``t, wx, wy, wz`` (time in s, body-frame angular
+velocity in rad/s, as a gyroscope records it). Other columns are ignored; empty cells or ``nan``
+are missing samples. The fitted inertia is printed with its standard errors, and written to
+``<stem>_fit.json`` with a figure of observed and fitted omega, ``<stem>_fit.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+import warnings
+
+import numpy as np
+
+OMEGA_COLUMNS = ("t", "wx", "wy", "wz")
+QUATERNION_COLUMNS = ("t", "qw", "qx", "qy", "qz")
+
+
+class DataError(ValueError):
+    """A malformed input file; the message says what is wrong and how to fix it."""
+
+
+def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Reads ``t, wx, wy, wz`` from a CSV with a header row; returns ``(ts, omega)``."""
+    if not os.path.isfile(path):
+        raise DataError(f"{path}: no such file.")
+    with open(path, encoding="utf-8") as handle:
+        header = handle.readline()
+    names = [name.strip().lower() for name in header.strip().split(",")]
+    if all(c in names for c in QUATERNION_COLUMNS) and not all(c in names for c in OMEGA_COLUMNS):
+        raise DataError(
+            f"{path}: orientation records (t, qw, qx, qy, qz) cannot be fitted from the command line "
+            "yet; fit body-frame angular velocity (columns t, wx, wy, wz)."
+        )
+    missing = [c for c in OMEGA_COLUMNS if c not in names]
+    if missing:
+        raise DataError(
+            f"{path}: missing column(s) {', '.join(missing)}; the header must name t, wx, wy, wz "
+            f"(found: {', '.join(names) or 'nothing'})."
+        )
+    index = [names.index(c) for c in OMEGA_COLUMNS]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an empty body is reported below, by name
+            data = np.genfromtxt(path, delimiter=",", skip_header=1, usecols=index, dtype=float, ndmin=2)
+    except ValueError as error:
+        raise DataError(f"{path}: cannot read the numbers: {error}") from None
+    if data.size == 0:
+        raise DataError(f"{path}: no data rows after the header.")
+    ts, omega = data[:, 0], data[:, 1:4]
+    if not np.all(np.isfinite(ts)):
+        row = int(np.argmin(np.isfinite(ts)))
+        raise DataError(f"{path}: the time in data row {row + 1} is missing or not a number.")
+    if ts.shape[0] > 1 and not np.all(np.diff(ts) > 0):
+        row = int(np.argmin(np.diff(ts) > 0))
+        raise DataError(
+            f"{path}: time must increase strictly; data row {row + 2} (t = {ts[row + 1]}) does not come "
+            f"after row {row + 1} (t = {ts[row]}). Sort the rows and drop duplicates."
+        )
+    if np.isfinite(omega).all(axis=1).sum() < 10:
+        raise DataError(
+            f"{path}: too few samples: {int(np.isfinite(omega).all(axis=1).sum())} complete rows; "
+            "a fit needs at least 10 (and several wobble cycles to be well determined)."
+        )
+    return ts, omega
+
+
+class _Progress:
+    def __init__(self, steps: int, stream, enabled: bool):
+        self.steps, self.stream, self.enabled = steps, stream, enabled
+        self.start = time.perf_counter()
+
+    def __call__(self, iteration, loss) -> None:
+        if not self.enabled:
+            return
+        iteration = int(iteration)
+        width = 30
+        filled = int(width * min(iteration, self.steps) / self.steps)
+        bar = "#" * filled + "." * (width - filled)
+        elapsed = time.perf_counter() - self.start
+        self.stream.write(f"\r  iteration {iteration:4d} [{bar}] loss {float(loss):.3e}  {elapsed:5.1f} s")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _format(value: float, error: float) -> str:
+    return f"{value:.6g} ± {error:.2g}"
+
+
+def _plot(path: str, ts, omega, fit) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fine = np.linspace(ts[0], ts[-1], max(2000, 4 * ts.shape[0]))
+    predicted = np.asarray(fit.predict_omega(fine))
+    at_samples = np.asarray(fit.predict_omega(ts))
+    fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
+    for k, name in enumerate(("x", "y", "z")):
+        axes[k].plot(ts, omega[:, k], ".", ms=2.5, color="0.4", label="observed")
+        axes[k].plot(fine, predicted[:, k], "-", lw=1.0, color="C3", label="fitted")
+        axes[k].set_ylabel(f"ω_{name} (rad/s)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    for start in np.asarray(fit.segment_starts)[1:]:
+        for ax in axes:
+            ax.axvline(start, color="0.85", lw=0.6, zorder=0)
+    axes[3].plot(ts, omega - at_samples, ".", ms=2)
+    axes[3].set_ylabel("residual (rad/s)")
+    axes[3].set_xlabel("t (s)")
+    fig.suptitle("rigidjax fit: observed and fitted body-frame angular velocity")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fit",
+        help="fit the inertia of a torque-free body to a CSV record of body-frame omega",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("data", help="CSV file with a header row and columns t, wx, wy, wz")
+    p.add_argument(
+        "--segments",
+        default="1",
+        help="multiple shooting: number of windows, or 'auto' (about one wobble period each). Default 1.",
+    )
+    p.add_argument("--full-tensor", action="store_true", help="fit a full tensor (sensor axes not principal)")
+    p.add_argument("--loss", default="squared", choices=("squared", "huber", "soft_l1", "cauchy"))
+    p.add_argument("--method", default="levenberg-marquardt", choices=("levenberg-marquardt", "optax"))
+    p.add_argument("--steps", type=int, default=None, help="iteration limit")
+    p.add_argument("--trace", type=float, default=None, help="known trace of the inertia (kg m^2)")
+    p.add_argument(
+        "--known-moment",
+        nargs=2,
+        metavar=("AXIS", "VALUE"),
+        default=None,
+        help="known diagonal entry: sensor axis (x, y, z or 0, 1, 2) and its value (kg m^2)",
+    )
+    p.add_argument("--out", default=None, help="output stem (default: the data file's stem + '_fit')")
+    p.add_argument("--no-plot", action="store_true", help="do not write the PNG")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from ._fit import fit_inertia
+
+    try:
+        ts, omega = read_record(args.data)
+    except DataError as error:
+        print(f"rigidjax fit: error: {error}", file=sys.stderr)
+        return 2
+    segments: int | str = args.segments
+    if segments != "auto":
+        try:
+            segments = int(segments)
+        except ValueError:
+            print(f"rigidjax fit: error: --segments must be a positive integer or 'auto', got {segments!r}.")
+            return 2
+    known_moment = None
+    if args.known_moment is not None:
+        axis_text, value_text = args.known_moment
+        axis = {"x": 0, "y": 1, "z": 2}.get(axis_text.lower(), axis_text)
+        try:
+            known_moment = (int(axis), float(value_text))
+        except ValueError:
+            print(
+                "rigidjax fit: error: --known-moment needs an axis (x, y, z) and a number.", file=sys.stderr
+            )
+            return 2
+    stream = sys.stderr
+    if not args.quiet:
+        stream.write(
+            f"rigidjax fit: {args.data}: {ts.shape[0]} samples over {ts[-1] - ts[0]:.6g} s, "
+            f"{int(np.sum(~np.isfinite(omega)))} missing values\n"
+        )
+        stream.write("  compiling the fit (first iterations include the compile) ...\n")
+    steps = args.steps or (200 if args.method == "levenberg-marquardt" else 2000)
+    progress = _Progress(steps, stream, not args.quiet)
+    t0 = time.perf_counter()
+    try:
+        fit = fit_inertia(
+            ts,
+            omega,
+            segments=segments,
+            full_tensor=args.full_tensor,
+            loss=args.loss,
+            method=args.method,
+            steps=args.steps,
+            inertia_trace=args.trace,
+            known_moment=known_moment,
+            callback=None if args.quiet else progress,
+        )
+    except ValueError as error:
+        progress.close()
+        print(f"rigidjax fit: error: {error}", file=sys.stderr)
+        return 2
+    progress.close()
+    seconds = time.perf_counter() - t0
+
+    inertia = np.asarray(fit.inertia)
+    err = np.asarray(fit.inertia_stderr)
+    unit = "(trace 1: torque-free motion fixes only ratios)" if fit.normalised else "kg m^2"
+    lines = [f"fitted inertia {unit}:"]
+    if inertia.ndim == 1:
+        for k, name in enumerate("xyz"):
+            lines.append(f"  I_{name} = {_format(inertia[k], err[k])}")
+    else:
+        for i in range(3):
+            row = "  ".join(f"{_format(inertia[i, j], err[i, j]):>22}" for j in range(3))
+            lines.append(f"  [{row}]")
+        lines.append("principal moments: " + ", ".join(f"{m:.6g}" for m in np.asarray(fit.principal_moments)))
+    w0 = np.asarray(fit.omega0).reshape(-1, 3)
+    w0_err = np.asarray(fit.omega0_stderr).reshape(-1, 3)
+    lines.append(
+        "omega0 (rad/s): "
+        + ", ".join(_format(w0[0, k], w0_err[0, k]) for k in range(3))
+        + (f"  (first of {w0.shape[0]} windows)" if w0.shape[0] > 1 else "")
+    )
+    rms = np.asarray(fit.residual_rms)
+    lines.append("residual rms (rad/s): " + ", ".join(f"{r:.3g}" for r in rms))
+    lines.append(
+        f"{'converged' if bool(fit.converged) else 'NOT converged'} after {fit.num_steps} iterations "
+        f"({fit.method}, {seconds:.1f} s including compile)"
+    )
+    print("\n".join(lines))
+
+    stem = args.out or os.path.splitext(args.data)[0] + "_fit"
+    result = {
+        "data": args.data,
+        "inertia": inertia.tolist(),
+        "inertia_stderr": err.tolist(),
+        "normalised_to_trace_1": fit.normalised,
+        "principal_moments": np.asarray(fit.principal_moments).tolist(),
+        "principal_axes_columns": np.asarray(fit.principal_axes).tolist(),
+        "omega0": w0.tolist(),
+        "omega0_stderr": w0_err.tolist(),
+        "segment_starts": np.asarray(fit.segment_starts).tolist(),
+        "loss": float(fit.loss),
+        "residual_rms": rms.tolist(),
+        "converged": bool(fit.converged),
+        "iterations": fit.num_steps,
+        "method": fit.method,
+        "loss_function": args.loss,
+        "seconds": seconds,
+    }
+    result = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
+    with open(stem + ".json", "w", encoding="utf-8") as handle:
+        json.dump(result, handle, indent=2)
+    written = [stem + ".json"]
+    if not args.no_plot:
+        try:
+            _plot(stem + ".png", ts, omega, fit)
+            written.append(stem + ".png")
+        except ImportError:
+            print("(matplotlib is not installed: no figure; pip install 'rigidjax[plot]')", file=sys.stderr)
+    print("wrote " + ", ".join(written))
+    return 0 if bool(fit.converged) else 1

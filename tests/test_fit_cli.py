@@ -1,0 +1,79 @@
+"""``rigidjax fit data.csv``: a synthetic record in, the inertia with uncertainties, JSON and PNG out;
+clear errors for malformed files."""
+
+import json
+
+import numpy as np
+import pytest
+
+import rigidjax as rj
+from rigidjax._cli import main
+
+
+def run_fit(argv):
+    return main(["fit", *argv])
+
+
+def write_csv(path, ts, omega, header="t,wx,wy,wz"):
+    rows = [header] + [
+        ",".join([f"{t:.17g}"] + ["" if np.isnan(w) else f"{w:.17g}" for w in row])
+        for t, row in zip(ts, omega, strict=True)
+    ]
+    path.write_text("\n".join(rows) + "\n")
+
+
+def test_fit_command_recovers_inertia(tmp_path, capsys):
+    inertia = np.array([1.0, 2.0, 2.5])
+    omega0 = np.array([0.3, 0.05, 1.0])
+    ts = np.linspace(0.0, 40.0, 240)
+    rng = np.random.default_rng(0)
+    w = np.asarray(rj.torque_free_omega(inertia, omega0, ts))
+    obs = w + 0.01 * np.std(w, axis=0) * rng.standard_normal(w.shape)
+    obs[5, 1] = np.nan
+    data = tmp_path / "gyro.csv"
+    write_csv(data, ts, obs)
+    status = run_fit([str(data), "--quiet"])
+    out = capsys.readouterr().out
+    assert status == 0, out
+    assert "I_x = " in out and "±" in out and "converged" in out
+    result = json.loads((tmp_path / "gyro_fit.json").read_text())
+    fitted, err = np.array(result["inertia"]), np.array(result["inertia_stderr"])
+    assert result["normalised_to_trace_1"] is True
+    assert np.all(np.abs(fitted - inertia / inertia.sum()) < 4 * err)
+    png = (tmp_path / "gyro_fit.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    # A known moment gives absolute values.
+    status = run_fit(
+        [str(data), "--quiet", "--no-plot", "--known-moment", "z", "2.5", "--out", str(tmp_path / "abs")]
+    )
+    result = json.loads((tmp_path / "abs.json").read_text())
+    assert status == 0 and result["normalised_to_trace_1"] is False
+    assert np.all(
+        np.abs(np.array(result["inertia"])[:2] - inertia[:2]) < 4 * np.array(result["inertia_stderr"])[:2]
+    )
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("time,wx,wy,wz\n0,1,2,3\n", "missing column(s) t"),
+        ("t,wx,wy\n0,1,2\n", "missing column(s) wz"),
+        (
+            "t,wx,wy,wz\n" + "".join(f"{t},1,2,3\n" for t in [0, 1, 3, 2, 4, 5, 6, 7, 8, 9, 10]),
+            "increase strictly",
+        ),
+        ("t,wx,wy,wz\n" + "".join(f"{t},1,2,3\n" for t in range(5)), "too few samples"),
+        ("t,wx,wy,wz\n", "no data rows"),
+        ("t,qw,qx,qy,qz\n0,1,0,0,0\n", "orientation records"),
+    ],
+)
+def test_malformed_files_are_named(tmp_path, capsys, text, message):
+    data = tmp_path / "bad.csv"
+    data.write_text(text)
+    assert run_fit([str(data), "--quiet"]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_missing_file(tmp_path, capsys):
+    assert run_fit([str(tmp_path / "nope.csv")]) == 2
+    assert "no such file" in capsys.readouterr().err
