@@ -39,6 +39,14 @@ def python3_kernel(tmp_path, monkeypatch):
     return "python3"
 
 
+def test_kernel_is_this_interpreter(python3_kernel):
+    """The notebooks run with the interpreter (and so the environment) that runs pytest."""
+    nb = nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell("import sys; print(sys.prefix)")])
+    nbclient.NotebookClient(nb, kernel_name=python3_kernel, timeout=CELL_TIMEOUT_S).execute()
+    printed = nb.cells[0].outputs[0]["text"].strip()
+    assert printed == sys.prefix  # the same virtual environment (executables may be symlinks)
+
+
 def test_notebooks_exist():
     assert NOTEBOOKS, f"no notebooks found in {NOTEBOOK_DIR}"
 
