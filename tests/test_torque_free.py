@@ -6,9 +6,16 @@ import mpmath as mp
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
+from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
-from rigidjax._torque_free import torque_free_omega, torque_free_period
+from rigidjax._torque_free import (
+    _phase_integrals,
+    torque_free_motion,
+    torque_free_omega,
+    torque_free_orientation,
+    torque_free_period,
+)
 
 omega_at = jax.jit(torque_free_omega)
 
@@ -184,10 +191,6 @@ def test_simulate_exact_switches_to_the_closed_form():
 # --------------------------------------------------------------------------------------------------
 # Orientation: torque_free_motion / torque_free_orientation
 
-from scipy.spatial.transform import Rotation  # noqa: E402
-
-from rigidjax._torque_free import _phase_integrals, torque_free_motion, torque_free_orientation  # noqa: E402
-
 # Every value test below calls this with inertia/omega0 (8, 1, 3), q0 (8, 1, 4) and ts (8, 41): one compile.
 motion_at = jax.jit(torque_free_motion)
 N_CASES, N_TIMES = 8, 41
@@ -219,7 +222,7 @@ Q0 = unit([0.8, 0.2, -0.4, 0.4])
 def run_cases(inertia, omega0, q0, ts):
     inertia, omega0, q0, ts = (np.asarray(x, float) for x in (inertia, omega0, q0, ts))
     assert inertia.shape == (N_CASES, 3) and ts.shape == (N_CASES, N_TIMES)
-    q0 = np.broadcast_to(q0, (N_CASES, 4))
+    q0 = np.broadcast_to(q0.reshape(-1, 4), (N_CASES, 4))
     omega, q = motion_at(
         jnp.asarray(inertia[:, None]), jnp.asarray(omega0[:, None]), jnp.asarray(q0[:, None]), jnp.asarray(ts)
     )
@@ -413,7 +416,7 @@ def test_third_kind_integral_against_mpmath():
         for p in [1.0, 0.5, 1e-3, 1e-8, 1e-14]
         for n in [0.0, 0.3, 30.0, 3000.0]
     ]
-    phi, p, n = (np.array(x) for x in zip(*grid))
+    phi, p, n = (np.array(x) for x in zip(*grid, strict=True))
     sn, cn = np.sin(phi), np.cos(phi)
     dn = np.sqrt(cn**2 + p * sn**2)
     rho, gamma, _, quarter_f, quarter_g = jax.jit(_phase_integrals)(
@@ -431,3 +434,93 @@ def test_third_kind_integral_against_mpmath():
             assert abs(got_f[k] - ref_f) < 1e-15 * mp.ellipk(m), (ph, pp, nn)
             assert abs(got_g[k] - ref_g) < 1e-15 * mp.ellipk(m), (ph, pp, nn)
             assert abs(float(quarter_g[k]) / mp.ellippi(-nn, m) - 1) < 1e-15, (pp, nn)
+
+
+def _final_state(inertia, omega0):
+    omega, q = torque_free_motion(inertia, omega0, jnp.asarray(Q0), jnp.asarray(3.0))
+    return jnp.concatenate([omega, q])
+
+
+jacobians_at = jax.jit(jax.jacfwd(_final_state, argnums=(0, 1)))
+
+
+def test_gradients_match_finite_differences_and_stay_finite():
+    """jacfwd w.r.t. inertia and omega0 vs central differences (h = 1e-6); finite at singular points.
+    (Reverse mode goes through the same pieces; its compile costs 3x more, so it is not repeated here.)"""
+    h = 1e-6
+    steps = np.concatenate([np.eye(3), -np.eye(3)]) * h
+    for I, w in [
+        ([1.0, 2.0, 2.5], [0.3, -0.5, 1.0]),
+        ([2.5, 1.0, 2.0], [0.2, 3.0, 0.1]),  # relabelled axes, the other side of the separatrix
+        ([2.0, 2.0, 3.0], [0.3, 0.1, 5.0]),  # exactly symmetric: d/dI breaks the symmetry
+        ([1.0, 2.0, 3.0], [0.05, 4.0, -0.05]),  # near the separatrix
+    ]:
+        I, w = np.array(I), np.array(w)
+        jac_I, jac_w = (np.asarray(j) for j in jacobians_at(jnp.asarray(I), jnp.asarray(w)))
+        # The 12 shifted inputs in two calls of the shared (8, 41) shape, at t = 3.
+        inertias = np.concatenate([I + steps, np.tile(I, (10, 1))])
+        omegas = np.concatenate([np.tile(w, (6, 1)), w + steps, np.tile(w, (4, 1))])
+        ts = np.full((N_CASES, N_TIMES), 3.0)
+        values = np.concatenate(
+            [
+                np.concatenate([o[:, 0], q[:, 0]], axis=-1)
+                for o, q in (run_cases(inertias[k : k + 8], omegas[k : k + 8], Q0, ts) for k in (0, 8))
+            ]
+        )
+        fd_I = (values[0:3] - values[3:6]).T / (2 * h)
+        fd_w = (values[6:9] - values[9:12]).T / (2 * h)
+        np.testing.assert_allclose(jac_I, fd_I, rtol=1e-6, atol=1e-7, err_msg=str(I))
+        np.testing.assert_allclose(jac_w, fd_w, rtol=1e-6, atol=1e-7, err_msg=str(I))
+    # Singular points (steady rotations, the exact separatrix, a sphere): finite.
+    for I, w in [
+        ([1.0, 2.0, 3.0], [0.0, 4.0, 0.0]),
+        ([1.0, 2.0, 3.0], [0.0, 0.0, 2.0]),
+        ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0]),
+        ([1.5, 1.5, 1.5], [1.0, 2.0, 3.0]),
+        ([2.0, 2.0, 3.0], [0.6, 0.8, 0.0]),
+        ([2.0, 3.0, 6.0], [0.75, 1.0, 0.25]),
+    ]:
+        jac_I, jac_w = jacobians_at(jnp.array(I), jnp.array(w))
+        assert np.all(np.isfinite(np.asarray(jac_I))) and np.all(np.isfinite(np.asarray(jac_w))), (I, w)
+
+
+def test_orientation_batches_and_wrapper():
+    """Broadcasting like torque_free_omega, torque_free_orientation is the second output, omega equals
+    torque_free_omega."""
+    rng = np.random.default_rng(5)
+    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.1 * rng.uniform(-1, 1, (N_CASES, 3)))
+    omega0 = rng.normal(size=(N_CASES, 3))
+    q0 = rng.normal(size=(N_CASES, 4))
+    q0 /= np.linalg.norm(q0, axis=-1, keepdims=True)
+    ts = np.tile(np.linspace(0.0, 10.0, N_TIMES), (N_CASES, 1))
+    omega, q = run_cases(inertia, omega0, q0[:, None], ts)
+    np.testing.assert_allclose(omega, np.asarray(omega_at(inertia[:, None], omega0[:, None], ts)), atol=1e-15)
+    one = torque_free_orientation(*(jnp.asarray(x[2]) for x in (inertia, omega0, q0)), ts[2, 7])
+    assert one.shape == (4,)
+    np.testing.assert_allclose(np.asarray(one), q[2, 7], atol=1e-15)
+    # q(t) of a state reached at t1, continued for t2, is q(t1 + t2) (up to sign).
+    w1, q1 = omega[:, 10], q[:, 10]
+    _, q2 = run_cases(inertia, w1, q1[:, None], ts - ts[:, 10:11])
+    sign = np.sign(np.sum(q2[:, 10:] * q[:, 10:], axis=-1, keepdims=True))
+    np.testing.assert_allclose(q2[:, 10:] * sign, q[:, 10:], atol=1e-13)
+
+
+def test_simulate_exact_returns_the_closed_form_orientation():
+    rng = np.random.default_rng(2)
+    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (N_CASES, 3)))
+    omega0 = np.array([0.05, 4.0, 0.05]) + 0.3 * rng.normal(size=(N_CASES, 3))
+    q0 = rng.normal(size=(N_CASES, 4))
+    q0 /= np.linalg.norm(q0, axis=-1, keepdims=True)
+    ts = np.linspace(2.0, 22.0, N_TIMES)
+    model, state = rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega0), jnp.asarray(q0))
+    exact = rj.simulate(model, state, jnp.asarray(ts), accuracy="exact")
+    assert exact.orientation.shape == (N_CASES, N_TIMES, 4)
+    omega, q = run_cases(inertia, omega0, q0[:, None], np.tile(ts - ts[0], (N_CASES, 1)))
+    np.testing.assert_allclose(np.asarray(exact.orientation), q, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(exact.omega), omega, atol=1e-14)
+    invariants = exact.invariants()
+    assert float(jnp.max(invariants["space_angular_momentum"])) < 1e-13
+    assert float(jnp.max(exact.stats["quaternion_norm_error"])) < 1e-15
+    bad = rj.State(jnp.asarray(omega0), jnp.asarray(q0).at[3].multiply(1.1))
+    with pytest.raises(Exception, match="unit quaternion"):
+        rj.simulate(model, bad, jnp.asarray(ts), accuracy="exact").orientation.block_until_ready()
