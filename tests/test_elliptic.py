@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.special as sc
 
-from rigidjax._elliptic import ellipe, ellipeinc, ellipj, ellipj_m1, ellipk, ellipkinc, ellipkm1
+from rigidjax._elliptic import ellipe, ellipeinc, ellipj, ellipj_m1, ellipk, ellipkinc, ellipkm1, elliprj
 
 EPS64 = float(np.finfo(np.float64).eps)
 EPS32 = float(np.finfo(np.float32).eps)
@@ -512,3 +512,54 @@ def test_broadcasting():
     g = jax.grad(lambda a: jnp.sum(ellipj(a, jnp.asarray(m))[0]))(jnp.asarray(0.8))
     _, cn, dn, _ = call("ellipj", 0.8, m)
     np.testing.assert_allclose(g, np.sum(cn * dn), rtol=2 * EPS64)
+
+
+# --------------------------------------------------------------------------------------------------
+# Carlson's R_J
+
+elliprj_at = jax.jit(elliprj)
+
+
+def test_elliprj_matches_mpmath_and_scipy():
+    rng = np.random.default_rng(7)
+    x, y, z = rng.uniform(0, 2, (3, 256))
+    x[:32] *= 1e-12  # one tiny argument
+    x[32:64], y[32:64] = x[32:64] * 1e-9, y[32:64] * 1e-9  # two tiny arguments
+    x[64:72] = 0.0
+    # p above all of x, y, z (the torque-free orientation's case) and anywhere in (0, 2)
+    p = np.where(
+        np.arange(256) % 2 == 0,
+        np.maximum(np.maximum(x, y), z) * rng.uniform(1, 10, 256),
+        rng.uniform(0, 2, 256),
+    )
+    got = np.asarray(elliprj_at(x, y, z, p))
+    with mpmath.workdps(30):
+        ref = np.array([float(mpmath.elliprj(*v)) for v in zip(x, y, z, p, strict=True)])
+    err = np.abs(got / ref - 1) / EPS64
+    above = p >= np.maximum(np.maximum(x, y), z)
+    assert np.max(err[above]) < 8
+    # p much smaller than x, y, z: R_C(1, 1 + e) with e near -1 loses a few digits.
+    assert np.max(err) < 200
+    np.testing.assert_allclose(got, sc.elliprj(x, y, z, p), rtol=200 * EPS64)
+    # R_J(x, y, z, z) = R_D(x, y, z); R_J(x, x, x, x) = x^(-3/2).
+    np.testing.assert_allclose(np.asarray(elliprj_at(x, y, z, z)), sc.elliprd(x, y, z), rtol=8 * EPS64)
+    np.testing.assert_allclose(np.asarray(elliprj_at(y, y, y, y)), y**-1.5, rtol=4 * EPS64)
+
+
+def test_elliprj_domain_float32_and_gradient():
+    nan_cases = np.array(
+        [[1.0, 1.0, 1.0, 0.0], [1.0, 1.0, 1.0, -1.0], [-1.0, 1.0, 1.0, 1.0], [0.0, 0.0, 1.0, 1.0]]
+    )
+    assert np.all(np.isnan(np.asarray(elliprj_at(*nan_cases.T))))
+    rng = np.random.default_rng(8)
+    args = rng.uniform(0.1, 2, (4, 64)).astype(np.float32)
+    out = elliprj_at(*args)
+    assert out.dtype == jnp.float32
+    ref = sc.elliprj(*args.astype(np.float64))
+    assert np.max(np.abs(np.asarray(out, np.float64) / ref - 1)) < 16 * EPS32
+    # Gradient (automatic differentiation through the duplication) vs central differences.
+    point = np.array([0.3, 1.1, 0.7, 1.9])
+    grad = np.asarray(jax.jit(jax.jacfwd(lambda v: elliprj(*v)))(jnp.asarray(point)))
+    h = 1e-6
+    fd = [(sc.elliprj(*(point + h * e)) - sc.elliprj(*(point - h * e))) / (2 * h) for e in np.eye(4)]
+    np.testing.assert_allclose(grad, fd, rtol=1e-8)
