@@ -5,18 +5,17 @@ in a separate process with the interpreter that runs pytest: a kernelspec named 
 points at ``sys.executable`` is written to a temporary ``JUPYTER_PATH`` directory, which takes
 precedence over any ``python3`` kernel installed elsewhere on the machine. A cell that raises (the
 notebooks ``assert`` the numbers they show) fails the test. The committed notebooks must carry no
-outputs, and notebooks/README.md must have a line for each.
+outputs, and notebooks/README.md must have a line for each. nbclient, nbformat and ipykernel are
+in the ``test`` extra: a missing one is an error here, not a skip.
 """
 
 import json
 import sys
 from pathlib import Path
 
+import nbclient
+import nbformat
 import pytest
-
-nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
-pytest.importorskip("ipykernel")
 
 NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
