@@ -524,3 +524,30 @@ def test_simulate_exact_returns_the_closed_form_orientation():
     bad = rj.State(jnp.asarray(omega0), jnp.asarray(q0).at[3].multiply(1.1))
     with pytest.raises(Exception, match="unit quaternion"):
         rj.simulate(model, bad, jnp.asarray(ts), accuracy="exact").orientation.block_until_ready()
+
+
+def test_orientation_near_separatrix_against_taylor_integration():
+    """s = (L^2 - 2 E I2) / L^2 = -4e-10, axes relabelled (odd), in the middle of the first flip:
+    the closed form agrees with mpmath's 20-digit Taylor integration of omega and q to roundoff."""
+    inertia, omega0 = [3.0, 2.0, 1.0], [-0.5e-4, 2.0, 1e-4]
+    with mp.workdps(20):
+        I = [mp.mpf(x) for x in inertia]
+
+        def f(t, y):
+            x, y_, z, qw, qx, qy, qz = y
+            return [
+                (I[1] - I[2]) * y_ * z / I[0],
+                (I[2] - I[0]) * z * x / I[1],
+                (I[0] - I[1]) * x * y_ / I[2],
+                (-qx * x - qy * y_ - qz * z) / 2,
+                (qw * x + qy * z - qz * y_) / 2,
+                (qw * y_ - qx * z + qz * x) / 2,
+                (qw * z + qx * y_ - qy * x) / 2,
+            ]
+
+        solution = mp.odefun(f, 0, [mp.mpf(float(v)) for v in list(omega0) + list(Q0)])
+        reference = np.array([float(v) for v in solution(11.0)])
+    omega, q = run_cases(np.tile(inertia, (8, 1)), np.tile(omega0, (8, 1)), Q0, np.full((8, N_TIMES), 11.0))
+    assert abs(reference[1]) < 1.9  # really mid-flip: omega has left the intermediate axis
+    np.testing.assert_allclose(omega[0, 0], reference[:3], atol=1e-14)
+    np.testing.assert_allclose(q[0, 0], reference[3:], atol=1e-14)
