@@ -1,4 +1,5 @@
-"""The ``rigidjax`` command line: ``rigidjax simulate`` batch-simulates a scene of many bodies.
+"""The ``rigidjax`` command line: ``rigidjax simulate`` batch-simulates a scene of many bodies
+(``rigidjax fit``: see ``_fit_cli``; ``rigidjax bench``, a small work-precision benchmark: ``_bench``).
 
 ``rigidjax simulate`` with no options integrates 10,000 heavy tops (random but reproducible
 inertia, spin and tilt; ``--seed``) for 5 s, prints a summary, and writes the trajectories to
@@ -43,7 +44,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from . import _fit_cli
+from . import _bench, _fit_cli
 
 SCENES = ("heavy-top", "free", "earth")
 ACCURACIES = ("fast", "balanced", "precise")
@@ -769,6 +770,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"rigidjax {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _fit_cli.add_parser(sub)
+    _bench.add_parser(sub)
     sim = sub.add_parser(
         "simulate",
         help="batch-simulate a scene of many bodies; write an .npz and a figure",

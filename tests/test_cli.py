@@ -248,3 +248,72 @@ def test_numpy_quaternion_matches_rigidjax():
     np.testing.assert_allclose(
         _quat_from_zxz(angles), np.asarray(rigidjax.quat_from_euler(angles)), atol=1e-12
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# rigidjax bench
+
+
+def test_bench_small_run(tmp_path):
+    """Closed form and hand RK4 on 8 bodies: the table, the JSON, and the physics in them."""
+    path = tmp_path / "bench.json"
+    argv = [
+        "bench",
+        "-n",
+        "8",
+        "--methods",
+        "exact,rk4",
+        "--repeats",
+        "1",
+        "--taylor",
+        "8",
+        "--json",
+        str(path),
+    ]
+    code, out, err = _run(argv)
+    assert code == 0, err
+    assert "bench [" in err and "8/8 calls" in err  # progress: 4 methods x (first call + 1 repeat)
+    data = json.loads(path.read_text())
+    ref = data["reference"]
+    assert ref["checked_bodies"] == 8  # every body's reference redone in extended precision
+    # The float64 closed form agrees with the 80-bit Taylor integration to near roundoff.
+    assert ref["closed_form_vs_taylor_max_rel_omega"] < 1e-11
+    assert ref["closed_form_vs_taylor_max_angle"] < 1e-11
+    rows = {(r["family"], r["setting"]): r for r in data["rows"]}
+    exact = rows[("simulate 'exact' (closed form)", "-")]
+    assert exact["errors_on"] == "8 checked bodies" and exact["max_rel_omega"] < 1e-11
+    rk4 = [rows[("hand RK4 (7,N)", f"dt={dt}")] for dt in ("0.02", "0.01", "0.005")]
+    # Fourth order: halving the step divides the error by ~16 (omega and orientation).
+    for coarse, fine in zip(rk4, rk4[1:], strict=False):
+        assert 8 < coarse["max_rel_omega"] / fine["max_rel_omega"] < 32
+        assert 8 < coarse["max_angle"] / fine["max_angle"] < 32
+        assert 8 < coarse["max_energy"] / fine["max_energy"] < 32
+    assert rk4[0]["new_compile"] and not rk4[1]["new_compile"]  # one program for every step
+    assert all(r["run_s"] > 0 and len(r["run_s_all"]) == 1 for r in data["rows"])
+    # The printed table carries the numbers of the JSON.
+    line = next(x for x in out.splitlines() if x.startswith("| hand RK4 (7,N) | dt=0.01 |"))
+    assert float(line.split("|")[6]) == pytest.approx(rk4[1]["max_rel_omega"], rel=0.06)
+    # The closed-form target is evaluated (met or not) against the fastest integrator.
+    target = next(t for t in data["targets"] if t["target"].startswith("exact"))
+    fastest = min(r["run_s"] for r in rk4)
+    assert target["value"] == pytest.approx(fastest / exact["run_s"])
+    assert "Targets of issue 6" in out and target["target"] in out
+
+
+def test_bench_rejects_unknown_method():
+    code, out, err = _run(["bench", "--methods", "rk4,euler"])
+    assert code == 2 and "unknown --methods ['euler']" in err
+
+
+def test_time_at_error_interpolates_on_the_pareto_front():
+    from rigidjax._bench import time_at_error
+
+    # A fourth-order method: time ~ error^(-1/4). A dominated point (slower and less accurate) is ignored.
+    errs = [1e-4, 1e-6, 1e-8]
+    rows = [{"max_rel_omega": e, "run_s": e**-0.25} for e in errs] + [{"max_rel_omega": 1e-5, "run_s": 1e3}]
+    t, extrapolated = time_at_error(rows, 1e-7)
+    assert t == pytest.approx(1e-7**-0.25) and not extrapolated
+    assert time_at_error(rows, 1e-2) == (rows[0]["run_s"], False)  # no extrapolation to cheaper
+    assert time_at_error(rows, 1e-10) == (None, False)
+    t, extrapolated = time_at_error(rows, 1e-10, extrapolate=True)
+    assert t == pytest.approx(1e-10**-0.25) and extrapolated

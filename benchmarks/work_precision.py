@@ -1,0 +1,276 @@
+"""Work-precision benchmark: wall time against error for every way of integrating the issue-6 scene.
+
+Scene (issue 6): N torque-free bodies, principal moments I_k = (1, 2, 2.5) (1 + 0.05 u_k),
+u_k ~ U(-1, 1)^3, then omega0_k = (0.05, 4, 0.05) + 0.01 n_k, n_k ~ N(0, 1)^3, both from
+numpy default_rng(0); identity orientation; T = 20 s (several tennis-racket flips).
+
+Reference: the float64 closed form (``simulate(accuracy="exact")``) for every body; the bodies
+closest to the separatrix and a random sample are re-integrated in extended precision (Taylor
+series, 80-bit long double) and those values replace the closed form there; scipy ``solve_ivp``
+DOP853 at rtol = atol = 1e-13 on a subset of those is compared with both.
+
+Methods, side by side in one run (float64 unless stated): the accuracy presets; diffrax Tsit5,
+Dopri5, Dopri8 through ``simulate`` over a tolerance sweep; hand-written fixed-step RK4 over the
+whole batch, state (7, N); the Lie-Poisson splitting (orders 2 and 4) over a step sweep; RKMK at
+fixed steps; the closed form; the user-written ``jax.vmap`` of ``diffeqsolve(Tsit5(),
+PIDController)``; scipy ``solve_ivp`` per body (on a subset; time scaled to N); MuJoCo if installed;
+float32 presets, closed form and RK4.
+
+Errors at t = T (relative omega, orientation angle, relative energy drift; max and median over
+bodies), run time = median of ``--repeats`` calls after a first call (compile reported apart),
+``block_until_ready`` on each. Calls are interleaved round-robin over methods.
+
+Usage:
+    python benchmarks/work_precision.py                 # N = 1e4, every method (~15-25 min, 2 cores)
+    python benchmarks/work_precision.py --quick --n 1000
+Writes benchmarks/results/work_precision.{json,md,png} (``--out-prefix`` to change).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+from rigidjax import _bench as B  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_PREFIX = os.path.join(HERE, "results", "work_precision")
+
+
+def _euler_rhs(inertia):
+    i1, i2, i3 = inertia
+    c1, c2, c3 = (i2 - i3) / i1, (i3 - i1) / i2, (i1 - i2) / i3
+
+    def rhs(t, y):
+        w1, w2, w3, q0, q1, q2, q3 = y
+        return np.array(
+            [
+                c1 * w2 * w3,
+                c2 * w3 * w1,
+                c3 * w1 * w2,
+                0.5 * (-q1 * w1 - q2 * w2 - q3 * w3),
+                0.5 * (q0 * w1 + q2 * w3 - q3 * w2),
+                0.5 * (q0 * w2 - q1 * w3 + q3 * w1),
+                0.5 * (q0 * w3 + q1 * w2 - q2 * w1),
+            ]
+        )
+
+    return rhs
+
+
+def scipy_solve(scene, index, method, rtol, atol):
+    """scipy solve_ivp per body (what a NumPy user writes); omega(T) (k, 3), q(T) (k, 4)."""
+    from scipy.integrate import solve_ivp
+
+    inertia, omega0, q0 = scene
+    out = np.empty((len(index), 7))
+    for k, i in enumerate(index):
+        y0 = np.concatenate([omega0[i], q0[i]])
+        sol = solve_ivp(_euler_rhs(inertia[i]), (0.0, B.T_END), y0, method=method, rtol=rtol, atol=atol)
+        out[k] = sol.y[:, -1]
+    return out[:, :3], out[:, 3:]
+
+
+def scipy_methods(scene, index, quick):
+    settings = [("RK45", 1e-6), ("DOP853", 1e-8)] + ([] if quick else [("DOP853", 1e-10)])
+    return [
+        B.Method(
+            f"scipy solve_ivp {meth} per body",
+            f"rtol={r:g}",
+            lambda meth=meth, r=r: scipy_solve(scene, index, meth, r, r),
+            f"scipy-{meth}-{r}",
+            kind="peer",
+            subset=index,
+        )
+        for meth, r in settings
+    ]
+
+
+def mujoco_methods(scene, quick):
+    """MuJoCo free bodies (gravity off), RK4 and Euler; [] with a note when it is not installed."""
+    try:
+        import mujoco  # noqa: F401
+    except ImportError:
+        return [], "mujoco is not installed (optional: pip install mujoco); skipped"
+    return [], "mujoco is installed but this script has no MuJoCo scene yet; skipped"
+
+
+def check_reference(scene, checked, omega_ref, q_ref, omega_cf, q_cf, n_scipy):
+    """scipy DOP853 rtol = atol = 1e-13 on ``n_scipy`` of the Taylor-checked bodies (half the most
+    sensitive, half random) against the Taylor solution and the float64 closed form."""
+    s = np.abs(B.separatrix_distance(scene[0], scene[1]))[checked]
+    by_s = checked[np.argsort(s)]
+    rng = np.random.default_rng(2)
+    half = n_scipy // 2
+    idx = np.unique(np.concatenate([by_s[:half], rng.choice(by_s[half:], n_scipy - half, replace=False)]))
+    t0 = time.perf_counter()
+    w, q = scipy_solve(scene, idx, "DOP853", 1e-13, 1e-13)
+    elapsed = time.perf_counter() - t0
+    e_t = B.body_errors(scene[0][idx], scene[1][idx], w, q, omega_ref[idx], q_ref[idx])
+    e_c = B.body_errors(scene[0][idx], scene[1][idx], w, q, omega_cf[idx], q_cf[idx])
+    return {
+        "n_bodies": int(idx.size),
+        "run_s": elapsed,
+        "dop853_vs_taylor_max_rel_omega": float(e_t["rel_omega"].max()),
+        "dop853_vs_taylor_median_rel_omega": float(np.median(e_t["rel_omega"])),
+        "dop853_vs_taylor_max_angle": float(e_t["angle"].max()),
+        "dop853_vs_closed_form_max_rel_omega": float(e_c["rel_omega"].max()),
+        "dop853_vs_closed_form_median_rel_omega": float(np.median(e_c["rel_omega"])),
+        "dop853_vs_closed_form_max_angle": float(e_c["angle"].max()),
+    }
+
+
+def plot(rows, path, title):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(14, 6), sharey=True)
+    families = {}
+    for r in rows:
+        families.setdefault((r["family"], r["dtype"]), []).append(r)
+    cmap = plt.get_cmap("tab20")
+    for k, ((family, dtype), rs) in enumerate(families.items()):
+        rs = sorted(rs, key=lambda r: r["run_s"])
+        style = dict(
+            color=cmap(k % 20),
+            marker="o" if dtype == "float64" else "x",
+            ls="-" if dtype == "float64" else ":",
+            label=f"{family}" + ("" if dtype == "float64" else " (float32)"),
+        )
+        for ax, key in zip(axes, ("max_rel_omega", "median_rel_omega"), strict=True):
+            errs = [max(r[key], 1e-17) for r in rs]
+            ax.plot(errs, [r["run_s"] for r in rs], **style)
+    for ax, what in zip(axes, ("max", "median"), strict=True):
+        ax.set(xscale="log", yscale="log", xlabel=f"{what} relative omega error at t = T over bodies")
+        ax.grid(True, which="both", lw=0.3)
+    axes[0].set_ylabel("run time, s (median, compile excluded)")
+    axes[1].legend(fontsize=7, loc="upper right")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--n", type=int, default=10_000, help="number of bodies")
+    p.add_argument("--quick", action="store_true", help="fewer sweep points (development)")
+    p.add_argument("--repeats", type=int, default=3, help="timed calls per method after the first")
+    p.add_argument("--only", default=None, help=f"comma-separated subset of {','.join(B.METHOD_KEYS)},scipy")
+    p.add_argument("--taylor-sensitive", type=int, default=200, help="bodies nearest the separatrix redone")
+    p.add_argument("--taylor-random", type=int, default=200, help="random other bodies redone")
+    p.add_argument("--scipy-ref-bodies", type=int, default=20, help="DOP853 1e-13 cross-check bodies")
+    p.add_argument("--scipy-bodies", type=int, default=20, help="bodies for the scipy per-body peers")
+    p.add_argument("--out-prefix", default=DEFAULT_PREFIX, help="writes PREFIX.json, PREFIX.md, PREFIX.png")
+    p.add_argument("--no-plot", action="store_true")
+    a = p.parse_args(argv)
+
+    t_start = time.perf_counter()
+    meta = dict(
+        n=a.n,
+        quick=a.quick,
+        repeats=a.repeats,
+        T=B.T_END,
+        jax=jax.__version__,
+        backend=jax.default_backend(),
+        devices=[str(d) for d in jax.devices()],
+        cpu_count=os.cpu_count(),
+        platform=platform.platform(),
+        python=sys.version.split()[0],
+        loadavg_start=os.getloadavg(),
+        command=" ".join(
+            ["python", "benchmarks/work_precision.py"] + list(sys.argv[1:] if argv is None else argv)
+        ),
+    )
+    print(f"N={a.n} on {meta['devices']}, {os.cpu_count()} CPUs, load {meta['loadavg_start']}", flush=True)
+    scene = B.reference_scene(a.n)
+
+    omega_ref, q_ref, checked, ref_info = B.refined_reference(scene, a.taylor_sensitive, a.taylor_random)
+    omega_cf, q_cf, _ = B.closed_form_reference(scene)
+    print(
+        f"reference: closed form vs extended-precision Taylor on {ref_info['checked_bodies']} bodies "
+        f"({ref_info['checked_most_sensitive']} nearest the separatrix, min |s| {ref_info['min_abs_s']:.1e}; "
+        f"{ref_info['taylor_s']:.0f} s): max rel omega "
+        f"{ref_info['closed_form_vs_taylor_max_rel_omega']:.1e}, "
+        f"median {ref_info['closed_form_vs_taylor_median_rel_omega']:.1e}, max angle "
+        f"{ref_info['closed_form_vs_taylor_max_angle']:.1e} rad",
+        flush=True,
+    )
+    if a.scipy_ref_bodies:
+        ref_info["scipy_DOP853_1e-13"] = sc = check_reference(
+            scene, checked, omega_ref, q_ref, omega_cf, q_cf, min(a.scipy_ref_bodies, checked.size)
+        )
+        print(
+            f"reference: scipy DOP853 rtol=atol=1e-13 on {sc['n_bodies']} of them ({sc['run_s']:.0f} s): "
+            f"vs Taylor max rel omega {sc['dop853_vs_taylor_max_rel_omega']:.1e} (median "
+            f"{sc['dop853_vs_taylor_median_rel_omega']:.1e}); vs closed form max "
+            f"{sc['dop853_vs_closed_form_max_rel_omega']:.1e}",
+            flush=True,
+        )
+    meta["reference"] = ref_info
+
+    only = None if a.only is None else [k.strip() for k in a.only.split(",") if k.strip()]
+    keys = None if only is None else [k for k in only if k != "scipy"]
+    methods = B.standard_methods(scene, "quick" if a.quick else "full", include=keys)
+    if (only is None or "scipy" in only) and a.scipy_bodies:
+        index = np.sort(np.random.default_rng(3).choice(a.n, min(a.scipy_bodies, a.n), replace=False))
+        methods += scipy_methods(scene, index, a.quick)
+    mj, meta["mujoco"] = mujoco_methods(scene, a.quick)
+    methods += mj
+    print(f"mujoco: {meta['mujoco']}", flush=True)
+
+    def progress(what, done, total):
+        print(f"  [{done:3d}/{total}] {time.perf_counter() - t_start:6.0f} s  {what}", flush=True)
+
+    rows = B.run_methods(
+        methods,
+        scene,
+        (omega_ref, q_ref),
+        repeats=a.repeats,
+        progress=progress,
+        checked=checked,
+        first_calls={"exact": ref_info["closed_form_first_call_s"]},
+    )
+    targets = B.evaluate_targets(rows)
+    meta["loadavg_end"] = os.getloadavg()
+    meta["total_s"] = time.perf_counter() - t_start
+    table = B.format_table(rows)
+    target_text = B.format_targets(targets)
+    print("\n" + table + "\n\nTargets (issue 6; float64):\n" + target_text, flush=True)
+
+    os.makedirs(os.path.dirname(os.path.abspath(a.out_prefix)), exist_ok=True)
+    with open(a.out_prefix + ".json", "w") as fh:
+        json.dump(dict(meta=meta, rows=rows, targets=targets), fh, indent=1)
+    with open(a.out_prefix + ".md", "w") as fh:
+        fh.write(
+            f"Work-precision, issue-6 scene, N = {a.n}, T = {B.T_END:g} s "
+            f"(`{meta['command']}`; load {meta['loadavg_start'][0]:.1f} -> {meta['loadavg_end'][0]:.1f} "
+            f"on {os.cpu_count()} CPUs)\n\n" + table + "\n\nTargets:\n\n"
+        )
+        fh.write("\n".join(f"- {line}" for line in target_text.splitlines()) + "\n")
+    if not a.no_plot:
+        try:
+            plot(
+                rows,
+                a.out_prefix + ".png",
+                f"Work-precision, issue-6 scene, N = {a.n}, T = 20 s, {meta['devices'][0]}",
+            )
+        except ImportError:
+            print("matplotlib is not installed: no plot", file=sys.stderr)
+    print(f"total {meta['total_s']:.0f} s; wrote {a.out_prefix}.json/.md/.png", flush=True)
+
+
+if __name__ == "__main__":
+    main()
