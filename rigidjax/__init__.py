@@ -36,6 +36,8 @@ from ._euler import space_angular_velocity as space_angular_velocity
 from ._fit import InertiaFit as InertiaFit
 from ._fit import estimate_inertia as estimate_inertia
 from ._fit import fit_inertia as fit_inertia
+from ._fit import fit_inertia_to_orientation as fit_inertia_to_orientation
+from ._fit import omega_from_orientations as omega_from_orientations
 from ._inertia import check_inertia as check_inertia
 from ._inertia import composite_inertia as composite_inertia
 from ._inertia import hollow_cylinder as hollow_cylinder

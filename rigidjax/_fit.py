@@ -19,7 +19,7 @@ only up to a common factor. The fit returns ``trace(I) = 1`` unless a scale is s
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -28,7 +28,9 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
-from ._torque_free import torque_free_omega
+from ._lie_group import quat_exp
+from ._quaternion import quat_conjugate, quat_from_matrix, quat_multiply
+from ._torque_free import torque_free_motion, torque_free_omega
 
 _LOSSES = ("squared", "huber", "soft_l1", "cauchy")
 _METHODS = ("levenberg-marquardt", "optax")
@@ -47,7 +49,10 @@ class InertiaFit(eqx.Module):
       covariance at the optimum, scaled by the residual variance), same shapes as the values.
     - ``principal_moments`` (ascending) and ``principal_axes`` (columns, sensor-frame components,
       ``det = +1``) of the fitted inertia.
-    - ``residual_rms``: root-mean-square residual per component (rad/s).
+    - ``residual_rms``: root-mean-square residual per component (rad/s; rad for orientation fits).
+    - ``orientation0`` / ``orientation0_stderr``: for :func:`fit_inertia_to_orientation`, the fitted
+      initial orientation(s) (unit quaternions) and their standard errors (rad, a rotation vector
+      about the body axes); None for angular-velocity fits.
     - ``initial_inertia``: the data-driven starting estimate (same gauge as ``inertia``).
     """
 
@@ -62,6 +67,8 @@ class InertiaFit(eqx.Module):
     principal_moments: Float[Array, "3"]
     principal_axes: Float[Array, "3 3"]
     residual_rms: Float[Array, "3"]
+    orientation0: Float[Array, "4"] | Float[Array, "segments 4"] | None
+    orientation0_stderr: Float[Array, "3"] | Float[Array, "segments 3"] | None
     segment_starts: Float[Array, " segments"]
     initial_inertia: Float[Array, "3"] | Float[Array, "3 3"]
     covariance: Float[Array, "p p"]
@@ -79,6 +86,25 @@ class InertiaFit(eqx.Module):
             w = torque_free_omega(self.principal_moments, omega0[window] @ axes, ts - starts[window])
             return w @ axes.T
         return torque_free_omega(self.inertia, omega0[window], ts - starts[window])
+
+    def predict_orientation(self, ts) -> Float[Array, "T 4"]:
+        """The fitted orientation (unit quaternions) at times ``ts`` (s); orientation fits only."""
+        if self.orientation0 is None:
+            raise ValueError("This fit has no orientation: it was fitted to angular velocity only.")
+        ts = jnp.asarray(ts, self.inertia.dtype)
+        starts = self.segment_starts
+        omega0 = self.omega0.reshape(-1, 3)
+        q0 = self.orientation0.reshape(-1, 4)
+        window = jnp.clip(jnp.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
+        axes = self.principal_axes
+        q_axes = quat_from_matrix(axes)
+        q = torque_free_motion(
+            self.principal_moments,
+            omega0[window] @ axes,
+            quat_multiply(q0[window], q_axes),
+            ts - starts[window],
+        )[1]
+        return quat_multiply(q, quat_conjugate(q_axes))
 
 
 # --- parametrisation -------------------------------------------------------------------------
@@ -130,9 +156,11 @@ class _Problem(eqx.Module):
     """Residuals of the fit as a function of one flat parameter vector (all in scaled units)."""
 
     t: Float[Array, "segments samples"]  # time since the window start, times omega_scale
-    observed: Float[Array, "segments samples 3"]  # omega / omega_scale, 0 where missing
+    # omega / omega_scale (0 where missing), or unit quaternions (identity where missing)
+    observed: Float[Array, "segments samples 3"] | Float[Array, "segments samples 4"]
     mask: Bool[Array, "segments samples 3"]
     f_scale: Float[Array, ""]
+    q_reference: Float[Array, "segments 4"] | None  # orientation fits: observed q at window starts
     full_tensor: bool = eqx.field(static=True)
     loss_kind: str = eqx.field(static=True)
 
@@ -141,8 +169,16 @@ class _Problem(eqx.Module):
         return 5 if self.full_tensor else 2
 
     def split(self, p):
+        """(inertia parameters, omega0 per window, orientation corrections per window or None)."""
         k = self.n_inertia_params
-        return p[:k], p[k:].reshape(-1, 3)
+        K = self.t.shape[0]
+        w0 = p[k : k + 3 * K].reshape(K, 3)
+        if self.q_reference is None:
+            return p[:k], w0, jnp.zeros((K, 0), p.dtype)
+        return p[:k], w0, p[k + 3 * K :].reshape(K, 3)
+
+    def initial_orientations(self, dq):
+        return quat_multiply(self.q_reference, quat_exp(dq))
 
     def tensor_parts(self, p_inertia):
         moments = _moments_from_z(p_inertia[:2])
@@ -157,7 +193,7 @@ class _Problem(eqx.Module):
         return (axes * moments) @ axes.T
 
     def predict(self, p):
-        p_inertia, w0 = self.split(p)
+        p_inertia, w0, _ = self.split(p)
         moments, axes = self.tensor_parts(p_inertia)
         if axes is not None:
             w0 = w0 @ axes  # sensor -> principal components: axes^T w0
@@ -166,8 +202,26 @@ class _Problem(eqx.Module):
             omega = omega @ axes.T
         return omega
 
+    def predict_orientation(self, p):
+        p_inertia, w0, dq = self.split(p)
+        moments, axes = self.tensor_parts(p_inertia)
+        q0 = self.initial_orientations(dq)
+        if axes is None:
+            return torque_free_motion(moments, w0[:, None, :], q0[:, None, :], self.t)[1]
+        # The principal frame is the sensor frame turned by the rotation vector p_inertia[2:].
+        q_axes = quat_exp(p_inertia[2:])
+        q_principal = torque_free_motion(
+            moments, (w0 @ axes)[:, None, :], quat_multiply(q0, q_axes)[:, None, :], self.t
+        )[1]
+        return quat_multiply(q_principal, quat_conjugate(q_axes))
+
     def raw_residuals(self, p):
-        return jnp.where(self.mask, self.predict(p) - self.observed, 0.0)
+        if self.q_reference is None:
+            return jnp.where(self.mask, self.predict(p) - self.observed, 0.0)
+        # Rotation vector from predicted to observed (small-angle form), the same for q and -q.
+        relative = quat_multiply(quat_conjugate(self.predict_orientation(p)), self.observed)
+        sign = jnp.where(relative[..., :1] < 0, -1.0, 1.0)
+        return jnp.where(self.mask, 2.0 * sign * relative[..., 1:], 0.0)
 
     def residuals(self, p):
         """Residuals whose sum of squares is the robust loss (``f^2 rho((r/f)^2)``), flattened."""
@@ -198,27 +252,32 @@ class _Problem(eqx.Module):
 
 def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback):
     """Levenberg–Marquardt with Marquardt's diagonal scaling; the Jacobian by forward mode (few
-    parameters, many residuals)."""
+    parameters, many residuals).
+
+    Returns ``(p, history, iterations, converged, J)`` with the Jacobian at the final ``p``. The
+    Jacobian appears once in the program (at the top of the loop body; the loop runs one extra,
+    step-free pass to evaluate it at the final point), which halves the compile time against
+    evaluating it again after the loop.
+    """
     jacobian = jax.jacfwd(problem.residuals)
     n = problem.count()
 
     def cond(carry):
-        _, _, _, i, _, done, _, _ = carry
-        return (i < steps) & ~done
+        return ~carry["exit"]
 
     def body(carry):
-        p, r, lam, i, history, _, _, last_decrease = carry
+        p, r, lam, i = carry["p"], carry["r"], carry["lam"], carry["i"]
         J = jacobian(p)
+        finished = carry["finished"]
         g = J.T @ r
         A = J.T @ J
         d = jnp.maximum(jnp.diag(A), 1e-12 * jnp.max(jnp.diag(A)) + 1e-300)
         f = jnp.sum(r * r)
 
-        # Try the step, raising the damping until it lowers the loss (at most 12 tries); the loop
-        # runs at least once, and tracing the residuals once keeps the compile small.
+        # Try the step, raising the damping until it lowers the loss (at most 12 tries).
         def retry_cond(c):
             _, _, f_new, tries, _ = c
-            return (tries == 0) | (~(f_new < f) & (tries < 12))
+            return ~finished & ((tries == 0) | (~(f_new < f) & (tries < 12)))
 
         def retry_body(c):
             lam, _, _, tries, _ = c
@@ -229,7 +288,7 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
 
         init = (lam, jnp.zeros_like(p), jnp.asarray(jnp.inf, f.dtype), 0, r)
         lam, step, f_new, _, r_new = jax.lax.while_loop(retry_cond, retry_body, init)
-        improved = jnp.isfinite(f_new) & (f_new < f)
+        improved = ~finished & jnp.isfinite(f_new) & (f_new < f)
         p_next = jnp.where(improved, p + step, p)
         r_next = jnp.where(improved, r_new, r)
         f_next = jnp.where(improved, f_new, f)
@@ -240,29 +299,43 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
         converged = (improved & (small_change | small_step)) | tiny_gradient
         # No damping makes the step lower the loss: a minimum to roundoff if the last accepted step
         # barely changed the loss, a failure otherwise.
-        stalled = ~improved
-        converged = converged | (stalled & (last_decrease <= jnp.sqrt(tol)))
-        decrease = jnp.where(improved, (f - f_next) / jnp.maximum(f_next, 1e-300), last_decrease)
-        history = history.at[i].set(f_next / n)
+        stalled = ~finished & ~improved
+        converged = converged | (stalled & (carry["last_decrease"] <= jnp.sqrt(tol)))
+        decrease = jnp.where(improved, (f - f_next) / jnp.maximum(f_next, 1e-300), carry["last_decrease"])
+        history = jnp.where(finished, carry["history"], carry["history"].at[i].set(f_next / n))
         if callback is not None:
             jax.debug.callback(callback, i + 1, f_next / n, ordered=True)
-        return p_next, r_next, lam, i + 1, history, converged | stalled, converged, decrease
+        i_next = jnp.where(finished, i, i + 1)
+        return {
+            "p": p_next,
+            "r": r_next,
+            "lam": lam,
+            "i": i_next,
+            "history": history,
+            # The pass after the last step only evaluates J at the final point.
+            "exit": finished,
+            "finished": finished | converged | stalled | (i_next >= steps),
+            "converged": carry["converged"] | (~finished & converged),
+            "last_decrease": decrease,
+            "J": J,
+        }
 
     r0 = problem.residuals(p0)
-    history = jnp.full((steps,), jnp.nan, p0.dtype)
     false = jnp.asarray(False)
-    init = (
-        p0,
-        r0,
-        jnp.asarray(1.0, p0.dtype),
-        jnp.asarray(0),
-        history,
-        false,
-        false,
-        jnp.asarray(jnp.inf, p0.dtype),
-    )
-    p, _, _, i, history, _, converged, _ = jax.lax.while_loop(cond, body, init)
-    return p, history, i, converged
+    init = {
+        "p": p0,
+        "r": r0,
+        "lam": jnp.asarray(1.0, p0.dtype),
+        "i": jnp.asarray(0),
+        "history": jnp.full((steps,), jnp.nan, p0.dtype),
+        "exit": false,
+        "finished": jnp.asarray(steps <= 0),
+        "converged": false,
+        "last_decrease": jnp.asarray(jnp.inf, p0.dtype),
+        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
+    }
+    out = jax.lax.while_loop(cond, body, init)
+    return out["p"], out["history"], out["i"], out["converged"], out["J"]
 
 
 def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callback):
@@ -297,10 +370,10 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
 @eqx.filter_jit
 def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, callback):
     if method == "levenberg-marquardt":
-        p, history, n_steps, done = _levenberg_marquardt(problem, p0, steps, tol, callback)
+        p, history, n_steps, done, J = _levenberg_marquardt(problem, p0, steps, tol, callback)
     else:
         p, history, n_steps, done = _optax_fit(problem, p0, optimizer, steps, tol, callback)
-    J = jax.jacfwd(problem.residuals)(p)
+        J = jax.jacfwd(problem.residuals)(p)
     r = problem.residuals(p)
     n = problem.count()
     dof = jnp.maximum(n - p.shape[0], 1.0)
@@ -426,15 +499,10 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
 # --- the public entry point ----------------------------------------------------------------
 
 
-def _check_data(ts, omega_observed):
+def _check_times(ts):
     ts = np.asarray(ts, dtype=float)
-    omega = np.asarray(omega_observed, dtype=float)
     if ts.ndim != 1:
         raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}.")
-    if omega.shape != (ts.shape[0], 3):
-        raise ValueError(
-            f"omega_observed must have shape (T, 3) = ({ts.shape[0]}, 3) to match ts, got {omega.shape}."
-        )
     if not np.all(np.isfinite(ts)):
         raise ValueError("ts contains NaN or inf; every sample needs a finite time.")
     if ts.shape[0] > 1 and not np.all(np.diff(ts) > 0):
@@ -443,9 +511,369 @@ def _check_data(ts, omega_observed):
             f"ts must be strictly increasing; ts[{bad}] = {ts[bad]} is followed by "
             f"ts[{bad + 1}] = {ts[bad + 1]}."
         )
+    return ts
+
+
+def _check_data(ts, omega_observed):
+    ts = _check_times(ts)
+    omega = np.asarray(omega_observed, dtype=float)
+    if omega.shape != (ts.shape[0], 3):
+        raise ValueError(
+            f"omega_observed must have shape (T, 3) = ({ts.shape[0]}, 3) to match ts, got {omega.shape}."
+        )
     if np.any(np.isinf(omega)):
         raise ValueError("omega_observed contains inf; mark missing samples with NaN instead.")
     return ts, omega
+
+
+def _check_quaternions(ts, q_observed):
+    ts = _check_times(ts)
+    q = np.asarray(q_observed, dtype=float)
+    if q.shape != (ts.shape[0], 4):
+        raise ValueError(
+            f"orientation_observed must have shape (T, 4) = ({ts.shape[0]}, 4) (unit quaternions, scalar "
+            f"first) to match ts, got {q.shape}."
+        )
+    if np.any(np.isinf(q)):
+        raise ValueError("orientation_observed contains inf; mark missing samples with NaN instead.")
+    q = np.where(np.isnan(q).any(axis=1, keepdims=True), np.nan, q)  # a quaternion is all or nothing
+    norm_error = np.abs(np.linalg.norm(q, axis=1) - 1.0)
+    if np.nanmax(norm_error, initial=0.0) > 1e-5:
+        row = int(np.nanargmax(norm_error))
+        raise ValueError(
+            f"orientation_observed must hold unit quaternions; row {row} has norm "
+            f"{np.linalg.norm(q[row]):.8g}. Normalise them (rigidjax.quat_normalize) first."
+        )
+    return ts, q
+
+
+def _align_signs(q):
+    """Flips quaternion signs so that neighbouring valid samples have a positive dot product."""
+    q = q.copy()
+    previous = None
+    for i in range(q.shape[0]):
+        if np.isnan(q[i, 0]):
+            continue
+        if previous is not None and np.dot(q[i], previous) < 0:
+            q[i] = -q[i]
+        previous = q[i]
+    return q
+
+
+def _np_quat_multiply(p, q):
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def omega_from_orientations(ts, q_observed):
+    """Body-frame angular velocity (rad/s) from orientation samples by central differences:
+    ``omega_i = log(q_{i-1}^* q_{i+1}) / (t_{i+1} - t_{i-1})`` (one-sided at the ends; NaN where a
+    neighbour is missing). ``q`` and ``-q`` are the same orientation. A starting point for fits."""
+    ts, q = _check_quaternions(ts, q_observed)
+    q = _align_signs(q)
+    T = ts.shape[0]
+    lo = np.clip(np.arange(T) - 1, 0, T - 1)
+    hi = np.clip(np.arange(T) + 1, 0, T - 1)
+    conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])
+    rel = _np_quat_multiply(conj, q[hi])
+    rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)
+    vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
+    angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axis = np.where(vec_norm[:, None] > 0, rel[:, 1:] / vec_norm[:, None], 0.0)
+        omega = axis * (angle / (ts[hi] - ts[lo]))[:, None]
+    return omega
+
+
+class _Data(NamedTuple):
+    problem: _Problem
+    p0: np.ndarray
+    starts: np.ndarray
+    inertia_start: np.ndarray
+    residual_unit: float  # residuals are in units of this (omega_scale for omega, 1 rad for q)
+    omega_scale: float
+
+
+def _windows(ts, valid_rows, segments, n_params):
+    T = ts.shape[0]
+    if T < 4 or valid_rows.sum() * 3 < n_params + 1:
+        raise ValueError(
+            f"Too few samples: {int(valid_rows.sum())} complete samples of {T} for {n_params} "
+            f"parameters ({segments} window(s)); need more observations than parameters."
+        )
+    bounds = np.linspace(0, T, segments + 1).round().astype(int)
+    windows = list(zip(bounds[:-1], bounds[1:], strict=True))
+    if np.any(np.diff(bounds) < 2) or any(valid_rows[a:b].sum() < 1 for a, b in windows):
+        raise ValueError(
+            f"Too few samples per window: {T} samples cut into {segments} windows leaves a window with "
+            "fewer than 2 samples or no complete observation; use fewer segments."
+        )
+    return bounds, windows
+
+
+def _resolve_segments(segments, ts, omega):
+    if segments == "auto":
+        # About one dominant oscillation per window: short enough that a poor start's frequency
+        # error cannot slip by a whole cycle within a window, long enough to see the cycle.
+        period = _dominant_period(ts, omega)
+        segments = int(np.clip(round((ts[-1] - ts[0]) / period), 1, max(1, ts.shape[0] // 8)))
+    if not (isinstance(segments, int | np.integer) and not isinstance(segments, bool) and segments >= 1):
+        raise ValueError(f"segments must be a positive integer or 'auto', got {segments!r}.")
+    return int(segments)
+
+
+def _inertia_start(inertia_init, estimate, full_tensor):
+    if inertia_init is None:
+        return estimate
+    start = np.asarray(inertia_init, float)
+    expected = (3, 3) if full_tensor else (3,)
+    if start.shape != expected:
+        raise ValueError(f"inertia_init must have shape {expected}, got {start.shape}.")
+    return start / (np.trace(start) if full_tensor else start.sum())
+
+
+def _inertia_params(inertia_start, full_tensor):
+    if not full_tensor:
+        return _z_from_moments(inertia_start)
+    evals, evecs = np.linalg.eigh(inertia_start)
+    if np.linalg.det(evecs) < 0:
+        evecs[:, 0] = -evecs[:, 0]
+    return np.concatenate([_z_from_moments(evals), _rotvec_from_matrix(evecs)])
+
+
+def _window_start_values(windows, smoothed, fallback, init, segments, name):
+    if init is not None:
+        values = np.asarray(init, float).reshape(-1, 3)
+        if values.shape[0] != segments:
+            raise ValueError(f"{name} must have shape (3,) or ({segments}, 3), got {np.shape(init)}.")
+        return values
+    values = []
+    for a, b in windows:
+        rows = [r for r in range(a, b) if np.all(np.isfinite(smoothed[r]))]
+        rows = rows or [r for r in range(a, b) if np.all(np.isfinite(fallback[r]))]
+        values.append(smoothed[rows[0]] if np.all(np.isfinite(smoothed[rows[0]])) else fallback[rows[0]])
+    return np.stack(values)
+
+
+def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, dtype):
+    segments = _resolve_segments(segments, ts, omega)
+    valid = np.isfinite(omega)
+    n_params = (5 if full_tensor else 2) + 3 * segments
+    if valid.sum() < n_params + 1:
+        raise ValueError(
+            f"Too few samples: {int(valid.sum())} observed components in {ts.shape[0]} samples for "
+            f"{n_params} parameters ({segments} window(s)); need more than the number of parameters."
+        )
+    bounds, windows = _windows(ts, valid.all(axis=1) | valid.any(axis=1), segments, n_params)
+    estimate, smoothed = estimate_inertia(ts, omega, full_tensor=full_tensor)
+    inertia_start = _inertia_start(inertia_init, estimate, full_tensor)
+    w0 = _window_start_values(windows, smoothed, omega, omega0_init, segments, "omega0_init")
+    # Scaled units: omega / s and t * s (the torque-free motion is homogeneous), so residuals are O(1).
+    omega_scale = float(np.sqrt(np.nanmean(np.sum(np.nan_to_num(omega) ** 2, axis=1)))) or 1.0
+    M = int(np.diff(bounds).max())
+    t_win = np.zeros((segments, M))
+    obs_win = np.zeros((segments, M, 3))
+    mask_win = np.zeros((segments, M, 3), bool)
+    for k, (a, b) in enumerate(windows):
+        t_win[k, : b - a] = (ts[a:b] - ts[a]) * omega_scale
+        obs_win[k, : b - a] = np.nan_to_num(omega[a:b] / omega_scale)
+        mask_win[k, : b - a] = valid[a:b]
+    if f_scale is None:
+        noise = np.nanmedian(np.abs(omega - smoothed)) * 1.4826
+        f_scale_scaled = 3.0 * max(noise / omega_scale, 1e-12)
+    else:
+        f_scale_scaled = float(f_scale) / omega_scale
+    p0 = np.concatenate([_inertia_params(inertia_start, full_tensor), (w0 / omega_scale).reshape(-1)])
+    problem = _Problem(
+        t=jnp.asarray(t_win, dtype),
+        observed=jnp.asarray(obs_win, dtype),
+        mask=jnp.asarray(mask_win),
+        f_scale=jnp.asarray(f_scale_scaled, dtype),
+        q_reference=None,
+        full_tensor=full_tensor,
+        loss_kind=loss,
+    )
+    return _Data(problem, p0, bounds[:-1], inertia_start, omega_scale, omega_scale)
+
+
+def _prepare_orientation(
+    ts, q, segments, full_tensor, inertia_init, omega0_init, orientation0_init, loss, f_scale, dtype
+):
+    omega_fd = omega_from_orientations(ts, q)
+    segments = _resolve_segments(segments, ts, omega_fd)
+    valid_rows = np.isfinite(q[:, 0])
+    n_params = (5 if full_tensor else 2) + 6 * segments
+    bounds, windows = _windows(ts, valid_rows, segments, n_params)
+    estimate, smoothed = estimate_inertia(ts, omega_fd, full_tensor=full_tensor)
+    inertia_start = _inertia_start(inertia_init, estimate, full_tensor)
+    w0 = _window_start_values(windows, smoothed, omega_fd, omega0_init, segments, "omega0_init")
+    q_aligned = _align_signs(q)
+    if orientation0_init is not None:
+        q_ref = np.asarray(orientation0_init, float).reshape(-1, 4)
+        if q_ref.shape[0] != segments:
+            raise ValueError(
+                f"orientation0_init must have shape (4,) or ({segments}, 4), "
+                f"got {np.shape(orientation0_init)}."
+            )
+        q_ref = q_ref / np.linalg.norm(q_ref, axis=1, keepdims=True)
+    else:
+        q_ref = np.stack([q_aligned[a + int(np.argmax(valid_rows[a:b]))] for a, b in windows])
+    omega_scale = float(np.sqrt(np.nanmean(np.sum(omega_fd**2, axis=1)))) or 1.0
+    M = int(np.diff(bounds).max())
+    t_win = np.zeros((segments, M))
+    obs_win = np.zeros((segments, M, 4))
+    obs_win[..., 0] = 1.0
+    mask_win = np.zeros((segments, M, 3), bool)
+    for k, (a, b) in enumerate(windows):
+        t_win[k, : b - a] = (ts[a:b] - ts[a]) * omega_scale
+        obs_win[k, : b - a] = np.where(valid_rows[a:b, None], np.nan_to_num(q_aligned[a:b]), [1.0, 0, 0, 0])
+        mask_win[k, : b - a] = valid_rows[a:b, None]
+    if f_scale is None:
+        # Noise of the orientation samples from the roughness of the finite-difference omega.
+        rough = np.nanmedian(np.abs(omega_fd - smoothed)) * 1.4826
+        dt = float(np.median(np.diff(ts)))
+        f_scale = 3.0 * max(rough * dt / np.sqrt(2.0), 1e-12)
+    p0 = np.concatenate(
+        [_inertia_params(inertia_start, full_tensor), (w0 / omega_scale).reshape(-1), np.zeros(3 * segments)]
+    )
+    problem = _Problem(
+        t=jnp.asarray(t_win, dtype),
+        observed=jnp.asarray(obs_win, dtype),
+        mask=jnp.asarray(mask_win),
+        f_scale=jnp.asarray(float(f_scale), dtype),
+        q_reference=jnp.asarray(q_ref, dtype),
+        full_tensor=full_tensor,
+        loss_kind=loss,
+    )
+    return _Data(problem, p0, bounds[:-1], inertia_start, 1.0, omega_scale)
+
+
+def _check_options(loss, method, optimizer, inertia_trace, known_moment):
+    if loss not in _LOSSES:
+        raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}.")
+    if method is None:
+        method = "optax" if optimizer is not None else "levenberg-marquardt"
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}.")
+    if inertia_trace is not None and known_moment is not None:
+        raise ValueError("Give at most one scale: inertia_trace or known_moment, not both.")
+    return method
+
+
+def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, callback, scale):
+    problem = data.problem
+    if steps is None:
+        steps = 200 if method == "levenberg-marquardt" else 2000
+    if method == "optax" and optimizer is None:
+        optimizer = optax.lbfgs()
+    p0 = jnp.asarray(data.p0, dtype)
+    # optax's own internals (L-BFGS's memory indices) mix int32 and int64, which a user's strict
+    # dtype promotion would reject; rigidjax's arithmetic does not depend on the setting.
+    with jax.numpy_dtype_promotion("standard"):
+        p, history, n_steps, converged, covariance, final_loss, rms = _run(
+            problem, p0, method, optimizer, int(steps), float(tol), callback
+        )
+    inertia_trace, known_moment = scale
+    omega_scale = data.omega_scale
+    segments = data.starts.shape[0]
+
+    def user_values(p):
+        p_inertia, w0, dq = problem.split(p)
+        inertia = problem.inertia(p_inertia)
+        diag = jnp.diagonal(inertia) if full_tensor else inertia
+        if inertia_trace is not None:
+            inertia = inertia * inertia_trace
+        elif known_moment is not None:
+            axis, value = known_moment
+            inertia = inertia * (value / diag[axis])
+        return inertia, w0 * omega_scale, dq
+
+    # The covariance is that of the scaled parameters (dimensionless z, omega0 / omega_scale, the
+    # orientation corrections in rad); user_values' Jacobian carries the units.
+    inertia, w0_fit, _ = user_values(p)
+    jac_inertia, jac_w0, jac_dq = jax.jacfwd(user_values)(p)
+
+    def stderr(jac):
+        flat = jac.reshape(-1, p.shape[0])
+        variance = jnp.einsum("ip,pq,iq->i", flat, covariance, flat)
+        return jnp.sqrt(jnp.maximum(variance, 0.0)).reshape(jac.shape[:-1])
+
+    tensor = inertia if full_tensor else jnp.diag(inertia)
+    evals, evecs = jnp.linalg.eigh(tensor)
+    evecs = evecs * jnp.where(jnp.linalg.det(evecs) < 0, jnp.array([-1.0, 1.0, 1.0], dtype), 1.0)
+    initial = jnp.asarray(data.inertia_start, dtype)
+    if inertia_trace is not None:
+        initial = initial * inertia_trace
+    elif known_moment is not None:
+        diag0 = np.diag(data.inertia_start) if full_tensor else data.inertia_start
+        initial = initial * (known_moment[1] / diag0[known_moment[0]])
+    one = (lambda x: x[0]) if segments == 1 else (lambda x: x)
+    if problem.q_reference is not None:
+        q0 = problem.initial_orientations(problem.split(p)[2])
+        orientation0, orientation0_stderr = one(q0), one(stderr(jac_dq))
+    else:
+        orientation0 = orientation0_stderr = None
+    unit2 = data.residual_unit**2
+    return InertiaFit(
+        inertia=inertia,
+        omega0=one(w0_fit),
+        loss=final_loss * unit2,
+        history=history[: int(n_steps)] * unit2,
+        converged=converged,
+        num_steps=int(n_steps),
+        inertia_stderr=stderr(jac_inertia),
+        omega0_stderr=one(stderr(jac_w0)),
+        orientation0=orientation0,
+        orientation0_stderr=orientation0_stderr,
+        principal_moments=evals,
+        principal_axes=evecs,
+        residual_rms=rms * data.residual_unit,
+        segment_starts=jnp.asarray(data.starts, dtype),
+        initial_inertia=initial,
+        covariance=covariance,
+        normalised=inertia_trace is None and known_moment is None,
+        method=method,
+    )
+
+
+_COMMON_ARGS_DOC = """\
+    - `inertia_init`: starting inertia (moments, or a tensor with ``full_tensor``); by default a
+      data-driven estimate (:func:`estimate_inertia`). Any positive scale; only ratios matter.
+    - `omega0_init`: starting ``omega0`` ``(3,)`` or ``(segments, 3)``; by default the smoothed
+      (estimated) angular velocity at each window start.
+    - `segments`: multiple shooting: the record is cut into this many windows of consecutive
+      samples, each with its own fitted initial state, all sharing one inertia. Long records (many
+      wobble cycles) and chaotic tennis-racket records need it: a single window's loss is riddled
+      with local minima at wrong wobble frequencies. Windows of about one wobble period work best;
+      ``"auto"`` picks that from the record's spectrum.
+    - `full_tensor`: fit a full tensor in sensor axes (principal moments and axes) instead of
+      principal moments about the sensor axes.
+    - `method`: ``"levenberg-marquardt"`` (Gauss–Newton with damping, the Jacobian by forward mode:
+      few parameters, many residuals) or ``"optax"``. Defaults to ``"optax"`` when an `optimizer`
+      is given, else Levenberg–Marquardt, which on these small least-squares problems converges in
+      a handful of iterations where L-BFGS needs tens to hundreds (``benchmarks/fit_methods.py``).
+    - `optimizer`: any optax ``GradientTransformation`` (default ``optax.lbfgs()``) for ``"optax"``.
+    - `steps`: iteration limit (default 200 for Levenberg–Marquardt, 2000 for optax).
+    - `loss`: ``"squared"``, or a robust loss against outliers: ``"huber"``, ``"soft_l1"``,
+      ``"cauchy"`` (as in ``scipy.optimize.least_squares``) with scale `f_scale` (in the units of the
+      residual; default three times the noise level estimated from the data).
+    - `inertia_trace` / `known_moment`: fix the scale gauge: the trace of the inertia (kg m^2; e.g.
+      ``2 * sum(m r^2)`` from a mass and a shape), or ``(k, I_kk)``: one known diagonal entry in
+      sensor axes. Without either, the result has trace 1.
+    - `tol`: relative tolerance on the loss for convergence.
+    - `dtype`: float dtype of the fit (default: JAX's default float; float64 with x64 enabled).
+    - `callback`: called on the host as ``callback(iteration, loss)`` after every iteration (a
+      progress display); the loss is in the optimiser's scaled units.
+"""
 
 
 def fit_inertia(
@@ -474,188 +902,84 @@ def fit_inertia(
     - `ts`: sample times (s), strictly increasing, shape ``(T,)``.
     - `omega_observed`: ``(T, 3)`` body(sensor)-frame angular velocity (rad/s); NaN marks a missing
       sample (per component).
-    - `inertia_init`: starting inertia (moments, or a tensor with ``full_tensor``); by default a
-      data-driven estimate (:func:`estimate_inertia`). Any positive scale; only ratios matter.
-    - `omega0_init`: starting ``omega0`` ``(3,)`` or ``(segments, 3)``; by default the smoothed
-      observation at each window start.
-    - `segments`: multiple shooting: the record is cut into this many windows of consecutive
-      samples, each with its own fitted initial angular velocity, all sharing one inertia. Long
-      records (many wobble cycles) and chaotic tennis-racket records need it: a single window's loss
-      is riddled with local minima at wrong wobble frequencies. Windows of about one wobble period
-      work best; ``"auto"`` picks that from the record's spectrum.
-    - `full_tensor`: fit a full tensor in sensor axes (principal moments and axes) instead of
-      principal moments about the sensor axes.
-    - `method`: ``"levenberg-marquardt"`` (Gauss–Newton with damping, the Jacobian by forward mode)
-      or ``"optax"``. Defaults to ``"optax"`` when an `optimizer` is given, else
-      Levenberg–Marquardt, which on these small least-squares problems converges in tens of
-      iterations where L-BFGS needs hundreds (see ``benchmarks/fit_methods.py``).
-    - `optimizer`: any optax ``GradientTransformation`` (default ``optax.lbfgs()``) for ``"optax"``.
-    - `steps`: iteration limit (default 200 for Levenberg–Marquardt, 2000 for optax).
-    - `loss`: ``"squared"``, or a robust loss against outliers: ``"huber"``, ``"soft_l1"``,
-      ``"cauchy"`` (as in ``scipy.optimize.least_squares``) with scale `f_scale` (rad/s; default
-      three times the noise level estimated from the data).
-    - `inertia_trace` / `known_moment`: fix the scale gauge: the trace of the inertia (kg m^2; e.g.
-      ``2 * sum(m r^2)`` from a mass and a shape), or ``(k, I_kk)``: one known diagonal entry in
-      sensor axes. Without either, the result has trace 1.
-    - `tol`: relative tolerance on the loss for convergence.
-    - `dtype`: float dtype of the fit (default: JAX's default float; float64 with x64 enabled).
-    - `callback`: called on the host as ``callback(iteration, loss)`` after every iteration (a
-      progress display); the loss is in scaled units (divided by the mean square of the record).
-
-    **Returns:** an :class:`InertiaFit`.
+    {common}
+    **Returns:** an :class:`InertiaFit` (``orientation0`` is None).
     """
     ts, omega = _check_data(ts, omega_observed)
-    if loss not in _LOSSES:
-        raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}.")
-    if method is None:
-        method = "optax" if optimizer is not None else "levenberg-marquardt"
-    if method not in _METHODS:
-        raise ValueError(f"method must be one of {_METHODS}, got {method!r}.")
-    if segments == "auto":
-        # About one dominant oscillation per window: short enough that a poor start's frequency
-        # error cannot slip by a whole cycle within a window, long enough to see the cycle.
-        period = _dominant_period(ts, omega)
-        segments = int(np.clip(round((ts[-1] - ts[0]) / period), 1, max(1, ts.shape[0] // 8)))
-    if not (isinstance(segments, int | np.integer) and segments >= 1):
-        raise ValueError(f"segments must be a positive integer, got {segments!r}.")
-    if inertia_trace is not None and known_moment is not None:
-        raise ValueError("Give at most one scale: inertia_trace or known_moment, not both.")
+    method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
     dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    T = ts.shape[0]
-    n_params = (5 if full_tensor else 2) + 3 * segments
-    valid = np.isfinite(omega)
-    if valid.sum() < n_params + 1 or T < 4:
-        raise ValueError(
-            f"Too few samples: {int(valid.sum())} observed components in {T} samples for {n_params} "
-            f"parameters ({segments} window(s)); need more than the number of parameters."
-        )
-    bounds = np.linspace(0, T, segments + 1).round().astype(int)
-    sizes = np.diff(bounds)
-    windows = list(zip(bounds[:-1], bounds[1:], strict=True))
-    if np.any(sizes < 2) or any(valid[a:b].all(axis=1).sum() < 1 for a, b in windows):
-        raise ValueError(
-            f"Too few samples per window: {T} samples cut into {segments} windows leaves a window with "
-            "fewer than 2 samples or no complete observation; use fewer segments."
-        )
-
-    # Starting point.
-    estimate, smoothed = estimate_inertia(ts, omega, full_tensor=full_tensor)
-    if inertia_init is None:
-        inertia_start = estimate
-    else:
-        inertia_start = np.asarray(inertia_init, float)
-        expected = (3, 3) if full_tensor else (3,)
-        if inertia_start.shape != expected:
-            raise ValueError(f"inertia_init must have shape {expected}, got {inertia_start.shape}.")
-        inertia_start = inertia_start / np.trace(inertia_start if full_tensor else np.diag(inertia_start))
-    starts = bounds[:-1]
-    if omega0_init is None:
-        w0 = []
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-            rows = [r for r in range(a, b) if np.all(np.isfinite(smoothed[r]))]
-            rows = rows or [r for r in range(a, b) if np.all(valid[r])]
-            w0.append(smoothed[rows[0]] if np.all(np.isfinite(smoothed[rows[0]])) else omega[rows[0]])
-        w0 = np.stack(w0)
-    else:
-        w0 = np.asarray(omega0_init, float).reshape(-1, 3)
-        if w0.shape[0] != segments:
-            raise ValueError(
-                f"omega0_init must have shape (3,) or ({segments}, 3), got {np.shape(omega0_init)}."
-            )
-
-    # Scaled units: omega / s and t * s (the torque-free motion is homogeneous), so residuals are O(1).
-    omega_scale = float(np.sqrt(np.nanmean(np.sum(np.nan_to_num(omega) ** 2, axis=1)))) or 1.0
-    M = int(sizes.max())
-    t_win = np.zeros((segments, M))
-    obs_win = np.zeros((segments, M, 3))
-    mask_win = np.zeros((segments, M, 3), bool)
-    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
-        t_win[k, : b - a] = (ts[a:b] - ts[a]) * omega_scale
-        obs_win[k, : b - a] = np.nan_to_num(omega[a:b] / omega_scale)
-        mask_win[k, : b - a] = valid[a:b]
-    if f_scale is None:
-        noise = np.nanmedian(np.abs(omega - smoothed)) * 1.4826
-        f_scale_scaled = 3.0 * max(noise / omega_scale, 1e-12)
-    else:
-        f_scale_scaled = float(f_scale) / omega_scale
-
-    if full_tensor:
-        evals, evecs = np.linalg.eigh(inertia_start)
-        if np.linalg.det(evecs) < 0:
-            evecs[:, 0] = -evecs[:, 0]
-        p_inertia = np.concatenate([_z_from_moments(evals), _rotvec_from_matrix(evecs)])
-    else:
-        p_inertia = _z_from_moments(inertia_start)
-    p0 = jnp.asarray(np.concatenate([p_inertia, (w0 / omega_scale).reshape(-1)]), dtype)
-
-    problem = _Problem(
-        t=jnp.asarray(t_win, dtype),
-        observed=jnp.asarray(obs_win, dtype),
-        mask=jnp.asarray(mask_win),
-        f_scale=jnp.asarray(f_scale_scaled, dtype),
+    data = _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, dtype)
+    return _solve(
+        data,
         full_tensor=full_tensor,
-        loss_kind=loss,
-    )
-    if steps is None:
-        steps = 200 if method == "levenberg-marquardt" else 2000
-    if method == "optax" and optimizer is None:
-        optimizer = optax.lbfgs()
-    # optax's own internals (L-BFGS's memory indices) mix int32 and int64, which a user's strict
-    # dtype promotion would reject; rigidjax's arithmetic does not depend on the setting.
-    with jax.numpy_dtype_promotion("standard"):
-        p, history, n_steps, done, covariance, final_loss, rms = _run(
-            problem, p0, method, optimizer, int(steps), float(tol), callback
-        )
-
-    # The gauge and the mapping to user units, with the covariance propagated through it.
-    def user_values(p):
-        p_inertia, w0 = problem.split(p)
-        inertia = problem.inertia(p_inertia)
-        diag = jnp.diagonal(inertia) if full_tensor else inertia
-        if inertia_trace is not None:
-            inertia = inertia * inertia_trace
-        elif known_moment is not None:
-            axis, value = known_moment
-            inertia = inertia * (value / diag[axis])
-        return inertia, w0 * omega_scale
-
-    inertia, w0_fit = user_values(p)
-    jac_inertia, jac_w0 = jax.jacfwd(user_values)(p)
-
-    def stderr(jac):
-        flat = jac.reshape(-1, p.shape[0])
-        variance = jnp.einsum("ip,pq,iq->i", flat, covariance, flat)
-        return jnp.sqrt(jnp.maximum(variance, 0.0)).reshape(jac.shape[:-1])
-
-    # The covariance is that of the scaled parameters (dimensionless z, omega0 / omega_scale);
-    # user_values' Jacobian carries the units.
-    inertia_err = stderr(jac_inertia)
-    w0_err = stderr(jac_w0)
-    tensor = inertia if full_tensor else jnp.diag(inertia)
-    evals, evecs = jnp.linalg.eigh(tensor)
-    evecs = evecs * jnp.where(jnp.linalg.det(evecs) < 0, jnp.array([-1.0, 1.0, 1.0], dtype), 1.0)
-    n_steps = int(n_steps)
-    initial = jnp.asarray(inertia_start, dtype)
-    if inertia_trace is not None:
-        initial = initial * inertia_trace
-    elif known_moment is not None:
-        diag0 = np.diag(inertia_start) if full_tensor else inertia_start
-        initial = initial * (known_moment[1] / diag0[known_moment[0]])
-    return InertiaFit(
-        inertia=inertia,
-        omega0=w0_fit[0] if segments == 1 else w0_fit,
-        loss=final_loss * omega_scale**2,
-        history=history[:n_steps] * omega_scale**2,
-        converged=done,
-        num_steps=n_steps,
-        inertia_stderr=inertia_err,
-        omega0_stderr=w0_err[0] if segments == 1 else w0_err,
-        principal_moments=evals,
-        principal_axes=evecs,
-        residual_rms=rms * omega_scale,
-        segment_starts=jnp.asarray(ts[starts], dtype),
-        initial_inertia=initial,
-        covariance=covariance,
-        normalised=inertia_trace is None and known_moment is None,
         method=method,
+        optimizer=optimizer,
+        steps=steps,
+        tol=tol,
+        dtype=dtype,
+        callback=callback,
+        scale=(inertia_trace, known_moment),
     )
+
+
+def fit_inertia_to_orientation(
+    ts,
+    orientation_observed,
+    *,
+    inertia_init=None,
+    omega0_init=None,
+    orientation0_init=None,
+    segments: int | str = 1,
+    full_tensor: bool = False,
+    optimizer: optax.GradientTransformation | None = None,
+    steps: int | None = None,
+    method: str | None = None,
+    loss: str = "squared",
+    f_scale: float | None = None,
+    inertia_trace: float | None = None,
+    known_moment: tuple[int, float] | None = None,
+    tol: float = 1e-10,
+    dtype: Any = None,
+    callback: Callable[[int, float], None] | None = None,
+) -> InertiaFit:
+    """Fits the inertia of a torque-free body to orientation samples (motion capture).
+
+    The residual of a sample is the rotation vector (rad) from the predicted to the observed
+    orientation, ``2 sign(w) vec(q_pred^* q_obs)``, so ``q`` and ``-q`` are the same observation.
+    Each window fits its initial angular velocity and its initial orientation (a rotation-vector
+    correction of the observed one).
+
+    **Arguments:**
+
+    - `ts`: sample times (s), strictly increasing, shape ``(T,)``.
+    - `orientation_observed`: ``(T, 4)`` unit quaternions (scalar first, body -> space); a row with
+      a NaN is a missing sample.
+    - `orientation0_init`: starting orientation per window ``(4,)`` or ``(segments, 4)``; by
+      default the observed one at each window start.
+    {common}
+    **Returns:** an :class:`InertiaFit` with ``orientation0`` and ``orientation0_stderr`` (rad, about
+    the body axes).
+    """
+    ts, q = _check_quaternions(ts, orientation_observed)
+    method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
+    dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    data = _prepare_orientation(
+        ts, q, segments, full_tensor, inertia_init, omega0_init, orientation0_init, loss, f_scale, dtype
+    )
+    return _solve(
+        data,
+        full_tensor=full_tensor,
+        method=method,
+        optimizer=optimizer,
+        steps=steps,
+        tol=tol,
+        dtype=dtype,
+        callback=callback,
+        scale=(inertia_trace, known_moment),
+    )
+
+
+fit_inertia.__doc__ = fit_inertia.__doc__.replace("    {common}\n", _COMMON_ARGS_DOC)
+fit_inertia_to_orientation.__doc__ = fit_inertia_to_orientation.__doc__.replace(
+    "    {common}\n", _COMMON_ARGS_DOC
+)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import rigidjax as rj
-from rigidjax import estimate_inertia, fit_inertia
+from rigidjax import estimate_inertia, fit_inertia, fit_inertia_to_orientation
 
 I_TRUE = np.array([1.0, 2.0, 2.5])
 W0_TRUE = np.array([0.3, 0.05, 1.0])  # wobble about the largest axis
@@ -179,6 +179,62 @@ def test_estimate_is_a_good_start():
     assert np.all(rj.is_physical_inertia(jnp.asarray(moments)))
     exact = np.asarray(rj.torque_free_omega(I_TRUE, W0_TRUE, ts))
     assert np.nanmax(np.abs(smoothed - exact)) < 0.05
+
+
+def orientation_record(rng, noise, rotation=None):
+    """Motion-capture-like samples: the closed-form orientation turned by small random rotations,
+    with random signs (q and -q are the same orientation) and a few missing rows."""
+    ts = short_times()
+    q0 = np.asarray(rj.quat_from_euler(np.array([0.3, 1.0, -0.5])))
+    q = rj.torque_free_motion(I_TRUE, W0_TRUE, q0, ts)[1]
+    q = rj.quat_multiply(q, rj.quat_exp(noise * rng.standard_normal((ts.size, 3))))
+    if rotation is not None:  # sensor axes turned away from the principal axes
+        q = rj.quat_multiply(q, rj.quat_conjugate(rj.quat_from_matrix(rotation)))
+    q = np.array(q) * rng.choice([-1.0, 1.0], size=(ts.size, 1))
+    q[rng.choice(ts.size, 12, replace=False)] = np.nan
+    return ts, q, q0
+
+
+def test_orientation_fit_principal():
+    rng = np.random.default_rng(8)
+    ts, q, q0 = orientation_record(rng, 2e-3)
+    fit = fit_inertia_to_orientation(ts, q)
+    assert bool(fit.converged)
+    z = (np.asarray(fit.inertia) - TRUTH) / np.asarray(fit.inertia_stderr)
+    assert np.all(np.abs(z) < 4.0), z
+    z0 = (np.asarray(fit.omega0) - W0_TRUE) / np.asarray(fit.omega0_stderr)
+    assert np.all(np.abs(z0) < 4.0), z0
+    # The fitted start equals the true one up to sign, within its stated error.
+    angle = 2 * np.arccos(min(1.0, abs(float(np.dot(np.asarray(fit.orientation0), q0)))))
+    assert angle < 4 * float(np.linalg.norm(fit.orientation0_stderr))
+    np.testing.assert_allclose(fit.residual_rms, 2e-3, rtol=0.15)  # the noise per axis, in rad
+    predicted = np.asarray(fit.predict_orientation(ts))
+    valid = ~np.isnan(q[:, 0])
+    overlap = np.abs(np.sum(predicted[valid] * q[valid], axis=1))
+    assert np.all(2 * np.arccos(np.minimum(overlap, 1.0)) < 5 * 2e-3 * np.sqrt(3))
+
+
+def test_orientation_fit_full_tensor():
+    rng = np.random.default_rng(9)
+    R = np.asarray(rj.matrix_from_euler(np.array([0.4, 0.7, -0.3])))
+    ts, q, _ = orientation_record(rng, 2e-3, rotation=R)
+    fit = fit_inertia_to_orientation(ts, q, full_tensor=True)
+    tensor = R @ np.diag(I_TRUE) @ R.T
+    z = (np.asarray(fit.inertia) - tensor / np.trace(tensor)) / np.asarray(fit.inertia_stderr)
+    assert np.all(np.abs(z) < 4.0), z
+    cosines = np.abs(np.sum(np.asarray(fit.principal_axes) * R, axis=0))
+    assert np.all(cosines > 1 - 1e-4), cosines
+
+
+def test_orientation_input_errors():
+    ts = np.arange(20.0)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (20, 1))
+    with pytest.raises(ValueError, match="unit quaternions; row 3"):
+        fit_inertia_to_orientation(ts, np.where(np.arange(20)[:, None] == 3, 2 * q, q))
+    with pytest.raises(ValueError, match=r"shape \(T, 4\)"):
+        fit_inertia_to_orientation(ts, q[:, :3])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        fit_inertia_to_orientation(ts[::-1], q)
 
 
 @pytest.mark.parametrize(
