@@ -81,7 +81,7 @@ def scipy_solve(scene, index, method, rtol, atol):
     return out[:, :3], out[:, 3:]
 
 
-def scipy_methods(scene, index, quick):
+def scipy_methods(scene, index, quick, note):
     settings = [("RK45", 1e-6), ("DOP853", 1e-8)] + ([] if quick else [("DOP853", 1e-10)])
     return [
         B.Method(
@@ -91,6 +91,7 @@ def scipy_methods(scene, index, quick):
             f"scipy-{meth}-{r}",
             kind="peer",
             subset=index,
+            subset_note=note,
         )
         for meth, r in settings
     ]
@@ -136,16 +137,17 @@ def plot(rows, path, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(14, 6), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(16, 6.5), sharey=True)
     families = {}
-    for r in rows:
-        families.setdefault((r["family"], r["dtype"]), []).append(r)
-    cmap = plt.get_cmap("tab20")
+    for r in rows:  # one curve per family; single-point variants of a preset get their own marker
+        name = r["family"] + (f", {r['setting']}" if r["setting"] in ("chunk_size=N", "omega only") else "")
+        families.setdefault((name, r["dtype"]), []).append(r)
+    colors = [plt.get_cmap("tab20")(i) for i in range(20)] + [plt.get_cmap("Dark2")(i) for i in range(8)]
     for k, ((family, dtype), rs) in enumerate(families.items()):
         rs = sorted(rs, key=lambda r: r["run_s"])
         style = dict(
-            color=cmap(k % 20),
-            marker="o" if dtype == "float64" else "x",
+            color=colors[k % len(colors)],
+            marker="x" if dtype != "float64" else ("s" if rs[0]["kind"] == "peer" else "o"),
             ls="-" if dtype == "float64" else ":",
             label=f"{family}" + ("" if dtype == "float64" else " (float32)"),
         )
@@ -156,11 +158,29 @@ def plot(rows, path, title):
         ax.set(xscale="log", yscale="log", xlabel=f"{what} relative omega error at t = T over bodies")
         ax.grid(True, which="both", lw=0.3)
     axes[0].set_ylabel("run time, s (median, compile excluded)")
-    axes[1].legend(fontsize=7, loc="upper right")
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 0.8, 1))
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, loc="center right")
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def write_reports(meta, rows, targets, prefix, no_plot=False):
+    """PREFIX.md (table and targets) and PREFIX.png (work-precision plot) from the results."""
+    load = f"load {meta['loadavg_start'][0]:.1f} -> {meta['loadavg_end'][0]:.1f} on {meta['cpu_count']} CPUs"
+    with open(prefix + ".md", "w") as fh:
+        fh.write(
+            f"Work-precision, issue-6 scene, N = {meta['n']}, T = {meta['T']:g} s, {meta['devices'][0]}, "
+            f"jax {meta['jax']} (`{meta['command']}`; {load})\n\n" + B.format_table(rows) + "\n\nTargets:\n\n"
+        )
+        fh.write("\n".join(f"- {line}" for line in B.format_targets(targets).splitlines()) + "\n")
+    if not no_plot:
+        try:
+            title = f"Work-precision, issue-6 scene, N = {meta['n']}, T = 20 s, {meta['devices'][0]} ({load})"
+            plot(rows, prefix + ".png", title)
+        except ImportError:
+            print("matplotlib is not installed: no plot", file=sys.stderr)
 
 
 def main(argv=None):
@@ -175,7 +195,15 @@ def main(argv=None):
     p.add_argument("--scipy-bodies", type=int, default=20, help="bodies for the scipy per-body peers")
     p.add_argument("--out-prefix", default=DEFAULT_PREFIX, help="writes PREFIX.json, PREFIX.md, PREFIX.png")
     p.add_argument("--no-plot", action="store_true")
+    p.add_argument(
+        "--replot", action="store_true", help="only redo PREFIX.md and PREFIX.png from PREFIX.json"
+    )
     a = p.parse_args(argv)
+    if a.replot:
+        with open(a.out_prefix + ".json") as fh:
+            saved = json.load(fh)
+        write_reports(saved["meta"], saved["rows"], saved["targets"], a.out_prefix, a.no_plot)
+        return
 
     t_start = time.perf_counter()
     meta = dict(
@@ -225,8 +253,10 @@ def main(argv=None):
     keys = None if only is None else [k for k in only if k != "scipy"]
     methods = B.standard_methods(scene, "quick" if a.quick else "full", include=keys)
     if (only is None or "scipy" in only) and a.scipy_bodies:
-        index = np.sort(np.random.default_rng(3).choice(a.n, min(a.scipy_bodies, a.n), replace=False))
-        methods += scipy_methods(scene, index, a.quick)
+        # A quarter of them the bodies nearest the separatrix, so that the max is comparable.
+        k = max(1, a.scipy_bodies // 4)
+        index = B.sensitive_subset(scene, min(a.scipy_bodies, a.n), n_sensitive=k, seed=3)
+        methods += scipy_methods(scene, index, a.quick, f"incl. the {k} nearest the separatrix")
     mj, meta["mujoco"] = mujoco_methods(scene, a.quick)
     methods += mj
     print(f"mujoco: {meta['mujoco']}", flush=True)
@@ -253,22 +283,7 @@ def main(argv=None):
     os.makedirs(os.path.dirname(os.path.abspath(a.out_prefix)), exist_ok=True)
     with open(a.out_prefix + ".json", "w") as fh:
         json.dump(dict(meta=meta, rows=rows, targets=targets), fh, indent=1)
-    with open(a.out_prefix + ".md", "w") as fh:
-        fh.write(
-            f"Work-precision, issue-6 scene, N = {a.n}, T = {B.T_END:g} s "
-            f"(`{meta['command']}`; load {meta['loadavg_start'][0]:.1f} -> {meta['loadavg_end'][0]:.1f} "
-            f"on {os.cpu_count()} CPUs)\n\n" + table + "\n\nTargets:\n\n"
-        )
-        fh.write("\n".join(f"- {line}" for line in target_text.splitlines()) + "\n")
-    if not a.no_plot:
-        try:
-            plot(
-                rows,
-                a.out_prefix + ".png",
-                f"Work-precision, issue-6 scene, N = {a.n}, T = 20 s, {meta['devices'][0]}",
-            )
-        except ImportError:
-            print("matplotlib is not installed: no plot", file=sys.stderr)
+    write_reports(meta, rows, targets, a.out_prefix, a.no_plot)
     print(f"total {meta['total_s']:.0f} s; wrote {a.out_prefix}.json/.md/.png", flush=True)
 
 
