@@ -202,6 +202,9 @@ def main(argv=None):
     if a.replot:
         with open(a.out_prefix + ".json") as fh:
             saved = json.load(fh)
+        saved["targets"] = B.evaluate_targets(saved["rows"])  # the current reading of the targets
+        with open(a.out_prefix + ".json", "w") as fh:
+            json.dump(saved, fh, indent=1)
         write_reports(saved["meta"], saved["rows"], saved["targets"], a.out_prefix, a.no_plot)
         return
 
