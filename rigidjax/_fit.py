@@ -17,6 +17,7 @@ only up to a common factor. The fit returns ``trace(I) = 1`` unless a scale is s
 (``inertia_trace=`` or ``known_moment=``), in which case the result is in kg m^2.
 """
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -338,9 +339,27 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
     return out["p"], out["history"], out["i"], out["converged"], out["J"]
 
 
+@functools.cache
+def _default_optimizer():
+    # One object for every call: the optimiser is static in the compiled fit, so a new object
+    # would recompile it.
+    return optax.lbfgs()
+
+
 def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callback):
     optimizer = optax.with_extra_args_support(optimizer)
-    value_and_grad = optax.value_and_grad_from_state(problem.loss)
+    state0 = optimizer.init(p0)
+    try:  # line-search optimisers (L-BFGS) keep the last value and gradient in their state
+        reuses_value = optax.tree_utils.tree_get(state0, "value", None) is not None
+    except (KeyError, ValueError):
+        reuses_value = False
+    if reuses_value:
+        value_and_grad = optax.value_and_grad_from_state(problem.loss)
+    else:
+
+        def value_and_grad(p, state):
+            del state
+            return jax.value_and_grad(problem.loss)(p)
 
     def cond(carry):
         _, _, i, _, done, _ = carry
@@ -362,7 +381,7 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
 
     history = jnp.full((steps,), jnp.nan, p0.dtype)
     recent = jnp.full((10,), jnp.inf, p0.dtype)
-    init = (p0, optimizer.init(p0), jnp.asarray(0), history, jnp.asarray(False), recent)
+    init = (p0, state0, jnp.asarray(0), history, jnp.asarray(False), recent)
     p, _, i, history, done, _ = jax.lax.while_loop(cond, body, init)
     return p, history, i, done
 
@@ -774,7 +793,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
     if steps is None:
         steps = 200 if method == "levenberg-marquardt" else 2000
     if method == "optax" and optimizer is None:
-        optimizer = optax.lbfgs()
+        optimizer = _default_optimizer()
     p0 = jnp.asarray(data.p0, dtype)
     # optax's own internals (L-BFGS's memory indices) mix int32 and int64, which a user's strict
     # dtype promotion would reject; rigidjax's arithmetic does not depend on the setting.
@@ -862,6 +881,7 @@ _COMMON_ARGS_DOC = """\
       is given, else Levenberg–Marquardt, which on these small least-squares problems converges in
       a handful of iterations where L-BFGS needs tens to hundreds (``benchmarks/fit_methods.py``).
     - `optimizer`: any optax ``GradientTransformation`` (default ``optax.lbfgs()``) for ``"optax"``.
+      It is part of the compiled fit: pass the same object again to avoid a recompile.
     - `steps`: iteration limit (default 200 for Levenberg–Marquardt, 2000 for optax).
     - `loss`: ``"squared"``, or a robust loss against outliers: ``"huber"``, ``"soft_l1"``,
       ``"cauchy"`` (as in ``scipy.optimize.least_squares``) with scale `f_scale` (in the units of the
