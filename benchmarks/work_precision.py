@@ -21,7 +21,7 @@ bodies), run time = median of ``--repeats`` calls after a first call (compile re
 ``block_until_ready`` on each. Calls are interleaved round-robin over methods.
 
 Usage:
-    python benchmarks/work_precision.py                 # N = 1e4, every method (~15-25 min, 2 cores)
+    python benchmarks/work_precision.py                 # N = 1e4, every method (~7-8 min, loaded 2 cores)
     python benchmarks/work_precision.py --quick --n 1000
 Writes benchmarks/results/work_precision.{json,md,png} (``--out-prefix`` to change).
 """
