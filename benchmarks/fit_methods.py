@@ -117,7 +117,7 @@ def derivatives_section(repeats):
     rec = records()
     for record, segments in (("short", 1), ("long", 45)):
         ts, obs, _, _ = rec[record]
-        data = _fit._prepare_omega(ts, obs, segments, False, None, None, "squared", None, jnp.float64)
+        data = _fit._prepare_omega(ts, obs, segments, False, None, None, "squared", None, None, jnp.float64)
         problem, p = data.problem, jnp.asarray(data.p0)
         jf = jax.jit(jax.jacfwd(problem.residuals))
         jr = jax.jit(jax.jacrev(problem.residuals))

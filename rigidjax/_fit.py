@@ -45,7 +45,10 @@ class InertiaFit(eqx.Module):
     - ``omega0``: fitted initial angular velocity (rad/s), ``(3,)``, or ``(segments, 3)``: one per
       window, at ``segment_starts``.
     - ``loss``: final mean (robust) squared residual, (rad/s)^2; ``history``: loss per iteration.
-    - ``converged``: the optimiser met its tolerance before its step limit.
+    - ``converged``: the optimiser met its tolerance before its step limit. That is a minimum, not
+      necessarily the right one: compare ``residual_rms`` with ``noise_estimate`` (the noise per
+      component estimated from the record's scatter about local fits). A ratio well above 1 means
+      a wrong wobble frequency (a local minimum): use ``segments="auto"``.
     - ``inertia_stderr`` / ``omega0_stderr``: standard errors (Gauss–Newton approximation of the
       covariance at the optimum, scaled by the residual variance), same shapes as the values.
     - ``principal_moments`` (ascending) and ``principal_axes`` (columns, sensor-frame components,
@@ -68,6 +71,7 @@ class InertiaFit(eqx.Module):
     principal_moments: Float[Array, "3"]
     principal_axes: Float[Array, "3 3"]
     residual_rms: Float[Array, "3"]
+    noise_estimate: Float[Array, "3"]
     orientation0: Float[Array, "4"] | Float[Array, "segments 4"] | None
     orientation0_stderr: Float[Array, "3"] | Float[Array, "segments 3"] | None
     segment_starts: Float[Array, " segments"]
@@ -162,6 +166,7 @@ class _Problem(eqx.Module):
     mask: Bool[Array, "segments samples 3"]
     f_scale: Float[Array, ""]
     q_reference: Float[Array, "segments 4"] | None  # orientation fits: observed q at window starts
+    weights: Float[Array, "3"]  # per-component residual weights (inverse noise, mean square 1)
     full_tensor: bool = eqx.field(static=True)
     loss_kind: str = eqx.field(static=True)
 
@@ -225,8 +230,9 @@ class _Problem(eqx.Module):
         return jnp.where(self.mask, 2.0 * sign * relative[..., 1:], 0.0)
 
     def residuals(self, p):
-        """Residuals whose sum of squares is the robust loss (``f^2 rho((r/f)^2)``), flattened."""
-        r = self.raw_residuals(p)
+        """Weighted residuals whose sum of squares is the robust loss (``f^2 rho((r/f)^2)``),
+        flattened."""
+        r = self.raw_residuals(p) * self.weights
         if self.loss_kind == "squared":
             return r.reshape(-1)
         z = (r / self.f_scale) ** 2
@@ -413,6 +419,7 @@ def _local_derivatives(ts, omega, half_width: int):
     T = ts.shape[0]
     value = np.full_like(omega, np.nan)
     slope = np.full_like(omega, np.nan)
+    leverage = np.full_like(omega, np.nan)  # the hat-matrix diagonal of each sample in its own fit
     for i in range(T):
         lo, hi = max(0, i - half_width), min(T, i + half_width + 1)
         dt = ts[lo:hi] - ts[i]
@@ -427,7 +434,10 @@ def _local_derivatives(ts, omega, half_width: int):
             coef, *_ = np.linalg.lstsq(V, y[ok], rcond=None)
             value[i, c] = coef[0]
             slope[i, c] = coef[1] / scale
-    return value, slope
+            gram = V.T @ V
+            if np.linalg.cond(gram) < 1e12:
+                leverage[i, c] = np.linalg.inv(gram)[0, 0]  # the sample sits at x = 0
+    return value, slope, leverage
 
 
 def _dominant_period(ts, omega):
@@ -459,19 +469,29 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     Returns ``(inertia, smoothed_omega)``: moments ``(3,)`` or tensor ``(3, 3)``, and the smoothed
     record ``(T, 3)`` (NaN where too few neighbours were observed).
     """
+    return _estimate(ts, omega_observed, full_tensor=full_tensor, half_width=half_width)[:2]
+
+
+def _estimate(ts, omega_observed, *, full_tensor: bool = False, half_width: int | None = None):
+    """:func:`estimate_inertia` plus the noise per component (from the same local fits)."""
     ts = np.asarray(ts, float)
     omega = np.asarray(omega_observed, float)
     if half_width is None:
         period = _dominant_period(ts, omega)
         samples_per_period = period / max(np.median(np.diff(ts)), 1e-300)
         half_width = int(np.clip(samples_per_period / 16.0, 2, 50))
-    value, slope = _local_derivatives(ts, omega, half_width)
+    value, slope, leverage = _local_derivatives(ts, omega, half_width)
     # One pass of outlier rejection: samples far from the local fit (5 robust sigma) are dropped.
     deviation = np.abs(omega - value)
     sigma = 1.4826 * np.nanmedian(deviation, axis=0)
     outlier = deviation > 5.0 * np.maximum(sigma, 1e-300)
     if np.any(outlier):
-        value, slope = _local_derivatives(ts, np.where(outlier, np.nan, omega), half_width)
+        omega = np.where(outlier, np.nan, omega)
+        value, slope, leverage = _local_derivatives(ts, omega, half_width)
+    # Noise per component: a residual about the local fit that includes the sample has variance
+    # sigma^2 (1 - h), h the sample's leverage (0.49 for 5 equally spaced samples): undo that.
+    scaled = np.abs(omega - value) / np.sqrt(np.clip(1.0 - leverage, 0.05, 1.0))
+    noise = 1.4826 * np.nanmedian(scaled, axis=0) if np.isfinite(scaled).any() else np.full(3, np.nan)
     ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
     w, wd = value[ok], slope[ok]
     scale = np.sqrt(np.mean(np.sum(w * w, axis=1))) if w.size else 1.0
@@ -485,13 +505,13 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
         ]
         A = np.concatenate(rows, axis=0)
         if A.shape[0] < 3:
-            return np.full(3, 1.0 / 3.0), value
+            return np.full(3, 1.0 / 3.0), value, noise
         v = np.linalg.svd(A, full_matrices=False)[2][-1]
         v = v * np.sign(v.sum()) if v.sum() != 0 else np.ones(3)
         moments = np.abs(v) / np.abs(v).sum()
         J = np.maximum(0.5 - moments, 2e-3)
         J = J / J.sum()
-        return 0.5 * (J.sum() - J), value
+        return 0.5 * (J.sum() - J), value, noise
     # Symmetric tensor entries (Ixx, Iyy, Izz, Ixy, Ixz, Iyz): I omega_dot + omega x (I omega) = 0.
     basis = np.zeros((6, 3, 3))
     for k, (i, j) in enumerate([(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]):
@@ -502,7 +522,7 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
         cols.append((wd @ B.T + np.cross(w, Bw)).reshape(-1))
     A = np.stack(cols, axis=1)
     if A.shape[0] < 6:
-        return np.eye(3) / 3.0, value
+        return np.eye(3) / 3.0, value, noise
     v = np.linalg.svd(A, full_matrices=False)[2][-1]
     tensor = np.einsum("k,kij->ij", v, basis)
     tensor = tensor * np.sign(np.trace(tensor)) if np.trace(tensor) != 0 else np.eye(3)
@@ -512,7 +532,7 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     evals, evecs = np.linalg.eigh(S)
     evals = np.maximum(evals, 2e-3)
     S = (evecs * (evals / evals.sum())) @ evecs.T  # trace 1, so I = (1 - S) / 2 has trace 1
-    return 0.5 * (np.eye(3) - S), value
+    return 0.5 * (np.eye(3) - S), value, noise
 
 
 # --- the public entry point ----------------------------------------------------------------
@@ -616,10 +636,11 @@ def omega_from_orientations(ts, q_observed):
 class _Data(NamedTuple):
     problem: _Problem
     p0: np.ndarray
-    starts: np.ndarray
+    starts: np.ndarray  # window start times (s)
     inertia_start: np.ndarray
     residual_unit: float  # residuals are in units of this (omega_scale for omega, 1 rad for q)
     omega_scale: float
+    noise: np.ndarray  # per-component noise estimate, in the residual's units (rad/s or rad)
 
 
 def _windows(ts, valid_rows, segments, n_params):
@@ -683,7 +704,7 @@ def _window_start_values(windows, smoothed, fallback, init, segments, name):
     return np.stack(values)
 
 
-def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, dtype):
+def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, noise, dtype):
     segments = _resolve_segments(segments, ts, omega)
     valid = np.isfinite(omega)
     n_params = (5 if full_tensor else 2) + 3 * segments
@@ -693,7 +714,7 @@ def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, 
             f"{n_params} parameters ({segments} window(s)); need more than the number of parameters."
         )
     bounds, windows = _windows(ts, valid.all(axis=1) | valid.any(axis=1), segments, n_params)
-    estimate, smoothed = estimate_inertia(ts, omega, full_tensor=full_tensor)
+    estimate, smoothed, estimated = _estimate(ts, omega, full_tensor=full_tensor)
     inertia_start = _inertia_start(inertia_init, estimate, full_tensor)
     w0 = _window_start_values(windows, smoothed, omega, omega0_init, segments, "omega0_init")
     # Scaled units: omega / s and t * s (the torque-free motion is homogeneous), so residuals are O(1).
@@ -706,9 +727,24 @@ def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, 
         t_win[k, : b - a] = (ts[a:b] - ts[a]) * omega_scale
         obs_win[k, : b - a] = np.nan_to_num(omega[a:b] / omega_scale)
         mask_win[k, : b - a] = valid[a:b]
+    # Noise per component, from the scatter about the local fits (robust: a scaled MAD). Weighting
+    # the residuals by its inverse is generalised least squares: a gyro axis that is quieter (or
+    # sees a smaller signal) is not drowned by a noisier one, and the standard errors stay honest.
+    if noise is None:
+        sigma = np.where(np.isfinite(estimated) & (estimated > 0), estimated, np.nanmax(estimated))
+    elif isinstance(noise, str) and noise == "equal":
+        sigma = np.ones(3)
+    else:
+        sigma = np.broadcast_to(np.asarray(noise, float), (3,))
+        if not np.all(np.isfinite(sigma) & (sigma > 0)):
+            raise ValueError(f"noise must be positive finite standard deviations (rad/s), got {noise!r}.")
+    if not np.all(np.isfinite(sigma) & (sigma > 0)):
+        sigma = np.ones(3)
+    sigma = np.maximum(sigma, 1e-3 * sigma.max())  # at most 1000x weight contrast
+    reference = float(np.sqrt(np.mean(sigma**2)))
+    weights = reference / sigma
     if f_scale is None:
-        noise = np.nanmedian(np.abs(omega - smoothed)) * 1.4826
-        f_scale_scaled = 3.0 * max(noise / omega_scale, 1e-12)
+        f_scale_scaled = 3.0 * max(reference / omega_scale, 1e-12)
     else:
         f_scale_scaled = float(f_scale) / omega_scale
     p0 = np.concatenate([_inertia_params(inertia_start, full_tensor), (w0 / omega_scale).reshape(-1)])
@@ -718,10 +754,11 @@ def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, 
         mask=jnp.asarray(mask_win),
         f_scale=jnp.asarray(f_scale_scaled, dtype),
         q_reference=None,
+        weights=jnp.asarray(weights, dtype),
         full_tensor=full_tensor,
         loss_kind=loss,
     )
-    return _Data(problem, p0, bounds[:-1], inertia_start, omega_scale, omega_scale)
+    return _Data(problem, p0, ts[bounds[:-1]], inertia_start, omega_scale, omega_scale, estimated)
 
 
 def _prepare_orientation(
@@ -732,7 +769,7 @@ def _prepare_orientation(
     valid_rows = np.isfinite(q[:, 0])
     n_params = (5 if full_tensor else 2) + 6 * segments
     bounds, windows = _windows(ts, valid_rows, segments, n_params)
-    estimate, smoothed = estimate_inertia(ts, omega_fd, full_tensor=full_tensor)
+    estimate, smoothed, fd_noise = _estimate(ts, omega_fd, full_tensor=full_tensor)
     inertia_start = _inertia_start(inertia_init, estimate, full_tensor)
     w0 = _window_start_values(windows, smoothed, omega_fd, omega0_init, segments, "omega0_init")
     q_aligned = _align_signs(q)
@@ -756,11 +793,12 @@ def _prepare_orientation(
         t_win[k, : b - a] = (ts[a:b] - ts[a]) * omega_scale
         obs_win[k, : b - a] = np.where(valid_rows[a:b, None], np.nan_to_num(q_aligned[a:b]), [1.0, 0, 0, 0])
         mask_win[k, : b - a] = valid_rows[a:b, None]
+    # Noise of the orientation samples (rad) from the roughness of the finite-difference omega:
+    # central differences of independent angle errors e have scatter sqrt(2) e / (2 dt).
+    rough = float(np.sqrt(np.nanmean(fd_noise**2)))
+    noise_rad = float(rough * 2.0 * np.median(np.diff(ts)) / np.sqrt(2.0))
     if f_scale is None:
-        # Noise of the orientation samples from the roughness of the finite-difference omega.
-        rough = np.nanmedian(np.abs(omega_fd - smoothed)) * 1.4826
-        dt = float(np.median(np.diff(ts)))
-        f_scale = 3.0 * max(rough * dt / np.sqrt(2.0), 1e-12)
+        f_scale = 3.0 * max(noise_rad, 1e-12)
     p0 = np.concatenate(
         [_inertia_params(inertia_start, full_tensor), (w0 / omega_scale).reshape(-1), np.zeros(3 * segments)]
     )
@@ -770,10 +808,11 @@ def _prepare_orientation(
         mask=jnp.asarray(mask_win),
         f_scale=jnp.asarray(float(f_scale), dtype),
         q_reference=jnp.asarray(q_ref, dtype),
+        weights=jnp.ones(3, dtype),
         full_tensor=full_tensor,
         loss_kind=loss,
     )
-    return _Data(problem, p0, bounds[:-1], inertia_start, 1.0, omega_scale)
+    return _Data(problem, p0, ts[bounds[:-1]], inertia_start, 1.0, omega_scale, np.full(3, noise_rad))
 
 
 def _check_options(loss, method, optimizer, inertia_trace, known_moment):
@@ -856,6 +895,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         principal_moments=evals,
         principal_axes=evecs,
         residual_rms=rms * data.residual_unit,
+        noise_estimate=jnp.asarray(data.noise, dtype),
         segment_starts=jnp.asarray(data.starts, dtype),
         initial_inertia=initial,
         covariance=covariance,
@@ -909,6 +949,7 @@ def fit_inertia(
     method: str | None = None,
     loss: str = "squared",
     f_scale: float | None = None,
+    noise: Any = None,
     inertia_trace: float | None = None,
     known_moment: tuple[int, float] | None = None,
     tol: float = 1e-10,
@@ -922,13 +963,18 @@ def fit_inertia(
     - `ts`: sample times (s), strictly increasing, shape ``(T,)``.
     - `omega_observed`: ``(T, 3)`` body(sensor)-frame angular velocity (rad/s); NaN marks a missing
       sample (per component).
+    - `noise`: the gyro noise per axis (rad/s, a scalar or ``(3,)``): residuals are weighted by its
+      inverse (generalised least squares). Default: estimated from the record (scatter about local
+      quadratic fits); ``"equal"`` weights the axes equally.
     {common}
     **Returns:** an :class:`InertiaFit` (``orientation0`` is None).
     """
     ts, omega = _check_data(ts, omega_observed)
     method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
     dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    data = _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, dtype)
+    data = _prepare_omega(
+        ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, noise, dtype
+    )
     return _solve(
         data,
         full_tensor=full_tensor,

@@ -132,6 +132,7 @@ def _motion_parts(inertia, omega0, t):
     )
 
 
+@jax.jit  # one compiled program per shape: eager calls would dispatch op by op
 def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     """Body-frame angular velocity of a torque-free body at time ``t`` (s) after ``omega0`` (rad/s).
 
@@ -143,6 +144,7 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     return _motion_parts(inertia, omega0, t)[0]
 
 
+@jax.jit
 def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     """Period of the body-frame angular velocity of a torque-free body, ``4 K(m) / lambda`` (s).
 
@@ -257,6 +259,7 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
     )
 
 
+@jax.jit
 def torque_free_motion(
     inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar
 ) -> tuple[VectorOut, QuaternionOut]:
@@ -365,6 +368,7 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     return jnp.concatenate([q[..., :1], vector], axis=-1)
 
 
+@jax.jit
 def torque_free_orientation(inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar) -> QuaternionOut:
     """Orientation (unit quaternion, scalar first, body -> space) of a torque-free body at time ``t``.
 

@@ -112,6 +112,14 @@ def test_multiple_shooting_succeeds_where_single_shooting_fails():
     z = (np.asarray(multiple.inertia) - TRUTH) / np.asarray(multiple.inertia_stderr)
     assert np.all(np.abs(z) < 4.0), z
     assert float(multiple.loss) < 0.01 * float(single.loss)
+    # Both "converge"; the residual against the estimated noise tells the local minimum apart.
+    assert np.max(np.asarray(single.residual_rms / single.noise_estimate)) > 2.0
+    assert np.max(np.asarray(multiple.residual_rms / multiple.noise_estimate)) < 1.25
+    # Each window starts at one of the sample times, and the windows' predictions fit the record.
+    assert np.all(np.isin(np.asarray(multiple.segment_starts), ts)) and multiple.segment_starts[0] == ts[0]
+    exact = np.asarray(rj.torque_free_omega(I_TRUE, W0_TRUE, ts))
+    residual = np.asarray(multiple.predict_omega(ts)) - obs
+    assert np.all(np.sqrt(np.mean(residual**2, axis=0)) < 1.3 * 0.02 * np.std(exact, axis=0))
 
 
 def test_missing_samples_and_outliers_need_a_robust_loss():
@@ -208,6 +216,7 @@ def test_orientation_fit_principal():
     angle = 2 * np.arccos(min(1.0, abs(float(np.dot(np.asarray(fit.orientation0), q0)))))
     assert angle < 4 * float(np.linalg.norm(fit.orientation0_stderr))
     np.testing.assert_allclose(fit.residual_rms, 2e-3, rtol=0.15)  # the noise per axis, in rad
+    np.testing.assert_allclose(fit.noise_estimate, 2e-3, rtol=0.5)
     predicted = np.asarray(fit.predict_orientation(ts))
     valid = ~np.isnan(q[:, 0])
     overlap = np.abs(np.sum(predicted[valid] * q[valid], axis=1))
