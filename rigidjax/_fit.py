@@ -22,6 +22,7 @@ import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,7 +30,9 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
+from ._dynamics import euler_equations
 from ._lie_group import quat_exp
+from ._models import State, _as_torque_tuple, _total_torque
 from ._quaternion import quat_conjugate, quat_from_matrix, quat_multiply
 from ._torque_free import torque_free_motion, torque_free_omega
 
@@ -169,10 +172,15 @@ class _Problem(eqx.Module):
     weights: Float[Array, "3"]  # per-component residual weights (inverse noise, mean square 1)
     full_tensor: bool = eqx.field(static=True)
     loss_kind: str = eqx.field(static=True)
+    # A known torque (tuple of AbstractTorque) fixes the scale: the motion is integrated (Dopri8,
+    # forward-mode adjoint) and a log-scale parameter is fitted. omega_scale converts the scaled
+    # units (omega / s, t * s) back for the torque.
+    torque: Any = None
+    omega_scale: float = eqx.field(static=True, default=1.0)
 
     @property
     def n_inertia_params(self) -> int:
-        return 5 if self.full_tensor else 2
+        return (5 if self.full_tensor else 2) + (1 if self.torque is not None else 0)
 
     def split(self, p):
         """(inertia parameters, omega0 per window, orientation corrections per window or None)."""
@@ -188,8 +196,10 @@ class _Problem(eqx.Module):
 
     def tensor_parts(self, p_inertia):
         moments = _moments_from_z(p_inertia[:2])
+        if self.torque is not None:
+            moments = moments * jnp.exp(p_inertia[-1])  # absolute scale, kg m^2
         if self.full_tensor:
-            return moments, _rotation_matrix(p_inertia[2:])
+            return moments, _rotation_matrix(p_inertia[2:5])
         return moments, None
 
     def inertia(self, p_inertia):
@@ -200,6 +210,8 @@ class _Problem(eqx.Module):
 
     def predict(self, p):
         p_inertia, w0, _ = self.split(p)
+        if self.torque is not None:
+            return self.integrate(self.inertia(p_inertia), w0)
         moments, axes = self.tensor_parts(p_inertia)
         if axes is not None:
             w0 = w0 @ axes  # sensor -> principal components: axes^T w0
@@ -208,6 +220,31 @@ class _Problem(eqx.Module):
             omega = omega @ axes.T
         return omega
 
+    def integrate(self, inertia, w0):
+        """omega of every window with the known torque, by Dopri8 at rtol 1e-10 (scaled units)."""
+        torques, s = self.torque, self.omega_scale
+
+        def vector_field(t, w, args):
+            tau = _total_torque(torques, t / s, State(w * s), None) / s**2
+            return euler_equations(inertia, w, tau)
+
+        def window(w0, t):
+            solution = diffrax.diffeqsolve(
+                diffrax.ODETerm(vector_field),
+                diffrax.Dopri8(),
+                0.0,
+                t[-1],
+                None,
+                w0,
+                saveat=diffrax.SaveAt(ts=t),
+                stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+                adjoint=diffrax.ForwardMode(),
+                max_steps=200_000,
+            )
+            return solution.ys
+
+        return jax.vmap(window)(w0, self.t)
+
     def predict_orientation(self, p):
         p_inertia, w0, dq = self.split(p)
         moments, axes = self.tensor_parts(p_inertia)
@@ -215,7 +252,7 @@ class _Problem(eqx.Module):
         if axes is None:
             return torque_free_motion(moments, w0[:, None, :], q0[:, None, :], self.t)[1]
         # The principal frame is the sensor frame turned by the rotation vector p_inertia[2:].
-        q_axes = quat_exp(p_inertia[2:])
+        q_axes = quat_exp(p_inertia[2:5])
         q_principal = torque_free_motion(
             moments, (w0 @ axes)[:, None, :], quat_multiply(q0, q_axes)[:, None, :], self.t
         )[1]
@@ -704,10 +741,55 @@ def _window_start_values(windows, smoothed, fallback, init, segments, name):
     return np.stack(values)
 
 
-def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, noise, dtype):
+def _torque_estimate(ts, omega, torques, full_tensor, inertia_free):
+    """Inertia from the LINEAR equations I omega_dot + omega x (I omega) = tau(t, omega) (least
+    squares with omega, omega_dot from local quadratic fits) as (trace-1 shape, trace); falls back
+    to the torque-free shape with its scale by least squares if the unconstrained solve is not
+    physical."""
+    period = _dominant_period(ts, omega)
+    half_width = int(np.clip(period / max(np.median(np.diff(ts)), 1e-300) / 16.0, 2, 50))
+    value, slope, _ = _local_derivatives(ts, omega, half_width)
+    ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
+    w, wd, t = value[ok], slope[ok], ts[ok]
+    tau = np.asarray(
+        jax.vmap(lambda t, w: _total_torque(torques, t, State(w), None))(jnp.asarray(t), jnp.asarray(w))
+    )
+    if full_tensor:
+        pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+    else:
+        pairs = [(0, 0), (1, 1), (2, 2)]
+    basis = np.zeros((len(pairs), 3, 3))
+    for k, (i, j) in enumerate(pairs):
+        basis[k, i, j] = basis[k, j, i] = 1.0
+    A = np.stack([(wd @ B.T + np.cross(w, w @ B.T)).reshape(-1) for B in basis], axis=1)
+    b = tau.reshape(-1)
+    tensor_free = inertia_free if full_tensor else np.diag(inertia_free)
+    shape_column = (wd @ tensor_free.T + np.cross(w, w @ tensor_free.T)).reshape(-1)
+    denominator = float(shape_column @ shape_column)
+    scale = float(shape_column @ b) / denominator if denominator > 0 else 0.0
+    coef = np.linalg.lstsq(A, b, rcond=None)[0]
+    tensor = np.einsum("k,kij->ij", coef, basis)
+    trace = float(np.trace(tensor))
+    if trace > 0:
+        candidate = tensor / trace
+        S = 0.5 * np.eye(3) - candidate
+        evals, evecs = np.linalg.eigh(S)
+        if np.all(evals > 0):
+            return (candidate if full_tensor else np.diag(candidate)), trace
+    if scale > 0:
+        return inertia_free, scale
+    raise ValueError(
+        "The torque does not fix the scale of this record (the least-squares inertia is not "
+        "positive); check the torque's units and sign, or give inertia_init."
+    )
+
+
+def _prepare_omega(
+    ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, noise, dtype, torques=None
+):
     segments = _resolve_segments(segments, ts, omega)
     valid = np.isfinite(omega)
-    n_params = (5 if full_tensor else 2) + 3 * segments
+    n_params = (5 if full_tensor else 2) + 3 * segments + (1 if torques is not None else 0)
     if valid.sum() < n_params + 1:
         raise ValueError(
             f"Too few samples: {int(valid.sum())} observed components in {ts.shape[0]} samples for "
@@ -715,6 +797,13 @@ def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, 
         )
     bounds, windows = _windows(ts, valid.all(axis=1) | valid.any(axis=1), segments, n_params)
     estimate, smoothed, estimated = _estimate(ts, omega, full_tensor=full_tensor)
+    scale_start = None
+    if torques is not None:
+        if inertia_init is None:
+            estimate, scale_start = _torque_estimate(ts, omega, torques, full_tensor, estimate)
+        else:
+            init = np.asarray(inertia_init, float)
+            scale_start = float(np.trace(init) if init.ndim == 2 else init.sum())
     inertia_start = _inertia_start(inertia_init, estimate, full_tensor)
     w0 = _window_start_values(windows, smoothed, omega, omega0_init, segments, "omega0_init")
     # Scaled units: omega / s and t * s (the torque-free motion is homogeneous), so residuals are O(1).
@@ -725,6 +814,7 @@ def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, 
     mask_win = np.zeros((segments, M, 3), bool)
     for k, (a, b) in enumerate(windows):
         t_win[k, : b - a] = (ts[a:b] - ts[a]) * omega_scale
+        t_win[k, b - a :] = t_win[k, b - a - 1]  # padding repeats the last time: non-decreasing
         obs_win[k, : b - a] = np.nan_to_num(omega[a:b] / omega_scale)
         mask_win[k, : b - a] = valid[a:b]
     # Noise per component, from the scatter about the local fits (robust: a scaled MAD). Weighting
@@ -747,7 +837,11 @@ def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, 
         f_scale_scaled = 3.0 * max(reference / omega_scale, 1e-12)
     else:
         f_scale_scaled = float(f_scale) / omega_scale
-    p0 = np.concatenate([_inertia_params(inertia_start, full_tensor), (w0 / omega_scale).reshape(-1)])
+    p_inertia = _inertia_params(inertia_start, full_tensor)
+    if torques is not None:
+        p_inertia = np.concatenate([p_inertia, [math.log(scale_start)]])
+        inertia_start = inertia_start * scale_start
+    p0 = np.concatenate([p_inertia, (w0 / omega_scale).reshape(-1)])
     problem = _Problem(
         t=jnp.asarray(t_win, dtype),
         observed=jnp.asarray(obs_win, dtype),
@@ -757,6 +851,8 @@ def _prepare_omega(ts, omega, segments, full_tensor, inertia_init, omega0_init, 
         weights=jnp.asarray(weights, dtype),
         full_tensor=full_tensor,
         loss_kind=loss,
+        torque=torques,
+        omega_scale=omega_scale,
     )
     return _Data(problem, p0, ts[bounds[:-1]], inertia_start, omega_scale, omega_scale, estimated)
 
@@ -899,7 +995,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         segment_starts=jnp.asarray(data.starts, dtype),
         initial_inertia=initial,
         covariance=covariance,
-        normalised=inertia_trace is None and known_moment is None,
+        normalised=inertia_trace is None and known_moment is None and problem.torque is None,
         method=method,
     )
 
@@ -952,11 +1048,12 @@ def fit_inertia(
     noise: Any = None,
     inertia_trace: float | None = None,
     known_moment: tuple[int, float] | None = None,
+    torque: Any = None,
     tol: float = 1e-10,
     dtype: Any = None,
     callback: Callable[[int, float], None] | None = None,
 ) -> InertiaFit:
-    """Fits the inertia of a torque-free body to body-frame angular-velocity samples (a gyroscope).
+    """Fits the inertia of a body to body-frame angular-velocity samples (a gyroscope).
 
     **Arguments:**
 
@@ -966,14 +1063,28 @@ def fit_inertia(
     - `noise`: the gyro noise per axis (rad/s, a scalar or ``(3,)``): residuals are weighted by its
       inverse (generalised least squares). Default: estimated from the record (scatter about local
       quadratic fits); ``"equal"`` weights the axes equally.
+    - `torque`: a KNOWN body-frame torque acting during the record (a rigidjax torque such as
+      ``ConstantTorque(tau)``, ``ViscousDamping(c)`` or ``Torque(fn)``, or a tuple; not one that
+      needs the orientation). It fixes the scale, so the inertia comes out in kg m^2; the motion
+      is then integrated (Dopri8, rtol 1e-10, forward-mode derivatives) instead of the closed form.
     {common}
     **Returns:** an :class:`InertiaFit` (``orientation0`` is None).
     """
     ts, omega = _check_data(ts, omega_observed)
     method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
     dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    torques = None
+    if torque is not None:
+        torques = _as_torque_tuple(torque)
+        if any(t.needs_orientation for t in torques):
+            raise ValueError(
+                "torque: a torque that needs the orientation cannot be fitted from angular velocity "
+                "alone; only torques of (t, omega) are supported here."
+            )
+        if inertia_trace is not None or known_moment is not None:
+            raise ValueError("A known torque already fixes the scale; drop inertia_trace / known_moment.")
     data = _prepare_omega(
-        ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, noise, dtype
+        ts, omega, segments, full_tensor, inertia_init, omega0_init, loss, f_scale, noise, dtype, torques
     )
     return _solve(
         data,
