@@ -42,8 +42,8 @@ def test_principal_fit_recovers_truth_and_methods_agree():
     rng = np.random.default_rng(0)
     ts = short_times()
     obs = record(I_TRUE, W0_TRUE, ts, 0.01, rng)
-    lm = fit_inertia(ts, obs)
-    lbfgs = fit_inertia(ts, obs, method="optax")  # L-BFGS by default
+    lm = fit_inertia(ts, obs)  # Levenberg–Marquardt by default
+    lbfgs = fit_inertia(ts, obs, method="optax")  # optax L-BFGS by default
     for fit in (lm, lbfgs):
         assert bool(fit.converged)
         assert fit.inertia.shape == (3,) and fit.omega0.shape == (3,)
@@ -55,7 +55,7 @@ def test_principal_fit_recovers_truth_and_methods_agree():
         assert np.all(np.isfinite(fit.history)) and fit.history.shape == (fit.num_steps,)
         assert float(fit.history[-1]) <= float(fit.history[0])
     np.testing.assert_allclose(lm.inertia, lbfgs.inertia, rtol=1e-6)
-    # Levenberg–Marquardt needs far fewer iterations (the reason it is the default).
+    # Levenberg–Marquardt needs far fewer iterations.
     assert lm.num_steps < lbfgs.num_steps
     # The fitted model reproduces the record to the noise level.
     pred = np.asarray(lm.predict_omega(ts))
