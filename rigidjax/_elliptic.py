@@ -85,6 +85,28 @@ def _safe_sqrt(x):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
 
 
+def _rf_series(dev_x, dev_y, a_f, scale):
+    """``R_F`` from the end of its duplication: the mean ``a_f``, the initial deviations
+    ``a_f - x``, ``a_f - y`` shrunk by ``scale = 4^-n``, and the truncated series DLMF 19.36.1."""
+    X = dev_x * (scale / a_f)
+    Y = dev_y * (scale / a_f)
+    Z = -(X + Y)
+    e2 = X * Y - Z * Z
+    e3 = X * Y * Z
+    series_f = (
+        1
+        - e2 / 10
+        + e3 / 14
+        + e2 * e2 / 24
+        - 3 * e2 * e3 / 44
+        - 5 * e2**3 / 208
+        + 3 * e3 * e3 / 104
+        + e2 * e2 * e3 / 16
+    )
+    rf = series_f / jnp.sqrt(a_f)
+    return rf
+
+
 def _carlson_rf_rd(x, y, z):
     """Carlson's ``R_F(x, y, z)`` and ``R_D(x, y, z)`` (DLMF 19.16.5, 19.16.6) by duplication.
 
@@ -108,22 +130,7 @@ def _carlson_rf_rd(x, y, z):
         a_f = (a_f + lam) / 4
         a_d = (a_d + lam) / 4
 
-    X = fx * (scale / a_f)
-    Y = fy * (scale / a_f)
-    Z = -(X + Y)
-    e2 = X * Y - Z * Z
-    e3 = X * Y * Z
-    series_f = (
-        1
-        - e2 / 10
-        + e3 / 14
-        + e2 * e2 / 24
-        - 3 * e2 * e3 / 44
-        - 5 * e2**3 / 208
-        + 3 * e3 * e3 / 104
-        + e2 * e2 * e3 / 16
-    )
-    rf = series_f / jnp.sqrt(a_f)
+    rf = _rf_series(fx, fy, a_f, scale)
 
     X = dx * (scale / a_d)
     Y = dy * (scale / a_d)
@@ -546,21 +553,7 @@ def _carlson_rf_rj(x, y, z, p):
     carry = (x, y, z, p, a_f, a_j, jnp.zeros_like(x), jnp.ones_like(x))
     *_, a_f, a_j, total, scale = jax.lax.fori_loop(0, _steps(_CARLSON_STEPS, x.dtype), step, carry)
 
-    X, Y = dev_f[0] * (scale / a_f), dev_f[1] * (scale / a_f)
-    Z = -(X + Y)
-    e2 = X * Y - Z * Z
-    e3 = X * Y * Z
-    series_f = (
-        1
-        - e2 / 10
-        + e3 / 14
-        + e2 * e2 / 24
-        - 3 * e2 * e3 / 44
-        - 5 * e2**3 / 208
-        + 3 * e3 * e3 / 104
-        + e2 * e2 * e3 / 16
-    )
-    rf = series_f / jnp.sqrt(a_f)
+    rf = _rf_series(dev_f[0], dev_f[1], a_f, scale)
 
     X, Y, Z = (dev * (scale / a_j) for dev in dev_j)
     P = -(X + Y + Z) / 2

@@ -638,20 +638,6 @@ def _align_signs(q):
     return q
 
 
-def _np_quat_multiply(p, q):
-    pw, px, py, pz = np.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
-
-
 def omega_from_orientations(ts, q_observed):
     """Body-frame angular velocity (rad/s) from orientation samples by central differences:
     ``omega_i = log(q_{i-1}^* q_{i+1}) / (t_{i+1} - t_{i-1})`` (one-sided at the ends; NaN where a
@@ -662,7 +648,7 @@ def omega_from_orientations(ts, q_observed):
     lo = np.clip(np.arange(T) - 1, 0, T - 1)
     hi = np.clip(np.arange(T) + 1, 0, T - 1)
     conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])
-    rel = _np_quat_multiply(conj, q[hi])
+    rel = np.asarray(quat_multiply(conj, q[hi]))
     rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)
     vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
     angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])
