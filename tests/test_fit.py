@@ -288,3 +288,19 @@ def test_orientation_input_errors():
 def test_bad_input_is_named(ts, omega, kwargs, match):
     with pytest.raises(ValueError, match=match):
         fit_inertia(ts, omega, **kwargs)
+
+
+def test_omega_from_orientations_converges_at_second_order():
+    """Central differences of closed-form orientations against the closed-form omega: the error falls
+    4x per halving of the sample spacing, and flipping quaternion signs changes nothing."""
+    q0 = np.asarray(rj.quat_from_euler(np.array([0.3, 1.0, -0.5])))
+    errors = []
+    for n in (201, 401):
+        ts = np.linspace(0.0, 8.0, n)
+        q = np.array(rj.torque_free_motion(I_TRUE, W0_TRUE, q0, ts)[1])
+        exact = np.asarray(rj.torque_free_omega(I_TRUE, W0_TRUE, ts))
+        estimate = rj.omega_from_orientations(ts, q)
+        errors.append(np.max(np.abs(estimate[1:-1] - exact[1:-1])))
+        q[::3] *= -1.0
+        np.testing.assert_allclose(rj.omega_from_orientations(ts, q), estimate, rtol=0, atol=1e-12)
+    assert 3.5 < errors[0] / errors[1] < 4.5, errors
