@@ -21,3 +21,44 @@ def without_runtime_typecheck():
         yield
     finally:
         jaxtyping.config.update("jaxtyping_disable", old)
+
+
+# --- the published table of extremes (issue 8) ---------------------------------------------------
+# Tests in tests/test_extremes_*.py call `extreme(...)` with what they measured. The assertion in
+# the test is the check; the record is what `python benchmarks/extremes_table.py` turns into the
+# README table (it runs those tests with RIGIDJAX_EXTREMES_REPORT set to a JSON path).
+_EXTREME_ROWS: list[dict] = []
+
+
+@pytest.fixture
+def extreme(request):
+    """Record one row of the extremes table: ``extreme(area, case, behaviour, measured, bound, advice)``.
+
+    ``measured`` and ``bound`` are floats (or None for a pure behaviour row such as "raises");
+    the test itself must assert ``measured <= bound``; the row only documents the number.
+    """
+
+    def record(area, case, behaviour, measured=None, bound=None, advice=""):
+        _EXTREME_ROWS.append(
+            {
+                "test": request.node.nodeid,
+                "area": area,
+                "case": case,
+                "behaviour": behaviour,
+                "measured": None if measured is None else float(measured),
+                "bound": None if bound is None else float(bound),
+                "advice": advice,
+            }
+        )
+
+    return record
+
+
+def pytest_sessionfinish(session, exitstatus):
+    import json
+    import os
+
+    path = os.environ.get("RIGIDJAX_EXTREMES_REPORT")
+    if path and _EXTREME_ROWS:
+        with open(path, "w") as f:
+            json.dump(_EXTREME_ROWS, f, indent=1)
