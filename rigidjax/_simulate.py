@@ -26,6 +26,7 @@ from ._dynamics import is_full_tensor
 from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_euler
 from ._inertia import check_inertia
 from ._lie_group import RKMK, simulate_structure_preserving
+from ._misc import safe_norm
 from ._models import AbstractModel, FreeBody, State
 from ._quaternion import quat_multiply
 from ._splitting import HeavyTopSplitting, LiePoissonSplitting
@@ -50,7 +51,7 @@ def _quat_derivative(q, omega):
     """``dq/dt = q ⊗ (0, omega) / 2`` plus ``|omega| (1 - |q|^2) q``, which leaves the rotation
     unchanged but makes unit norm attracting, so the norm does not drift."""
     pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
-    speed = jnp.linalg.norm(omega, axis=-1, keepdims=True)
+    speed = safe_norm(omega, keepdims=True)  # the gradient of |omega| at rest is 0, not NaN
     return 0.5 * quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
 
 

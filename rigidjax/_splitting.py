@@ -97,6 +97,14 @@ def _check_principal(inertia, who: str):
         )
 
 
+def _require_parameters(solver, name: str, constructor: str):
+    if solver.inertia is None:
+        raise ValueError(
+            f"{name}() without the scene's parameters works only through rigidjax.simulate, which takes "
+            f"them from the model; as a diffrax solver construct {constructor}."
+        )
+
+
 def _as_state(inertia, L0, q0, dt):
     _check_principal(inertia, "the splitting")
     dtype = jnp.result_type(jnp.asarray(L0).dtype, jnp.asarray(q0).dtype, jnp.asarray(inertia).dtype)
@@ -164,9 +172,10 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
                             (L0, q0), stepsize_controller=diffrax.ConstantStepSize())
 
     Fixed steps only: there is no error estimate, so an adaptive controller cannot be used.
+    With :func:`rigidjax.simulate` the moments come from the model: ``LiePoissonSplitting(order=4)``.
     """
 
-    inertia: Array
+    inertia: Array | None
     splitting_order: int = eqx.field(static=True, default=2)
 
     term_structure: ClassVar = diffrax.AbstractTerm
@@ -174,10 +183,20 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         diffrax.LocalLinearInterpolation
     )
 
-    def __init__(self, inertia, order: int = 2):
+    def __init__(self, inertia=None, order: int = 2):
         if order not in (2, 4):
             raise ValueError(f"order must be 2 or 4, got {order!r}.")
-        self.inertia = jnp.asarray(inertia)
+        if inertia is not None:
+            inertia = as_float_array(inertia, "inertia")
+            if jnp.ndim(inertia) == 0:
+                # LiePoissonSplitting(4) would otherwise silently mean inertia=4, order 2.
+                raise ValueError(
+                    f"LiePoissonSplitting's first argument is the inertia; got the scalar {inertia}. "
+                    "For the order write LiePoissonSplitting(order=4)."
+                )
+            if not (inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)):
+                check_last_axis(inertia, 3, "inertia")
+        self.inertia = inertia
         self.splitting_order = order
 
     def order(self, terms):
@@ -189,6 +208,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         L0, q0 = y0
+        _require_parameters(self, "LiePoissonSplitting", "LiePoissonSplitting(inertia, order)")
         _check_principal(self.inertia, "LiePoissonSplitting")
         h = jnp.asarray(t1 - t0).astype(L0.dtype)
         inertia = self.inertia.astype(L0.dtype)
@@ -322,13 +342,14 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
                             HeavyTopSplitting(I, m, com, g, order=4), t0, t1, dt, (L0, q0),
                             stepsize_controller=diffrax.ConstantStepSize())
 
-    Fixed steps only (no error estimate).
+    Fixed steps only (no error estimate). With :func:`rigidjax.simulate` the parameters come from
+    the model: ``HeavyTopSplitting(order=4)``.
     """
 
-    inertia: Array
-    mass: Array
-    com: Array
-    gravity: Array
+    inertia: Array | None
+    mass: Array | None
+    com: Array | None
+    gravity: Array | None
     splitting_order: int = eqx.field(static=True, default=2)
 
     term_structure: ClassVar = diffrax.AbstractTerm
@@ -336,9 +357,18 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         diffrax.LocalLinearInterpolation
     )
 
-    def __init__(self, inertia, mass, com, gravity=9.81, order: int = 2):
+    def __init__(self, inertia=None, mass=None, com=None, gravity=9.81, order: int = 2):
         if order not in (2, 4):
             raise ValueError(f"order must be 2 or 4, got {order!r}.")
+        if inertia is None and mass is None and com is None:
+            # The scene's parameters come from the model (simulate / simulate_structure_preserving).
+            self.inertia = self.mass = self.com = self.gravity = None
+            self.splitting_order = order
+            return
+        if inertia is None or mass is None or com is None:
+            raise ValueError(
+                "HeavyTopSplitting needs all of inertia, mass and com, or none of them (simulate)."
+            )
         inertia = as_float_array(inertia, "inertia")
         if not (inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)):
             check_last_axis(inertia, 3, "inertia")
@@ -368,6 +398,9 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         L0, q0 = y0
+        _require_parameters(
+            self, "HeavyTopSplitting", "HeavyTopSplitting(inertia, mass, com, gravity, order)"
+        )
         _check_principal(self.inertia, "HeavyTopSplitting as a diffrax solver")
         dtype = L0.dtype
         h = jnp.asarray(t1 - t0).astype(dtype)

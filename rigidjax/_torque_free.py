@@ -307,10 +307,11 @@ def torque_free_motion(
     q_g = _general_orientation(inertia_g, omega0_g, omega_g, t, parts)
     q_g = quat_multiply(q0, q_g)
 
-    speed = safe_norm(omega0)
-    axis = omega0 / jnp.where(speed > 0, speed, 1.0)[..., None]
-    half = speed * t / 2
-    q_s = quat_multiply(q0, jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * axis], -1))
+    half = safe_norm(omega0) * t / 2
+    # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
+    # d q/d w0 = q0 (0, t/2 I) (a body at rest turned by a small w0 turns by w0 t).
+    vector = (t / 2 * jnp.sinc(half / jnp.pi))[..., None] * omega0
+    q_s = quat_multiply(q0, jnp.concatenate([jnp.cos(half)[..., None], vector], -1))
     omega = jnp.where(steady[..., None], omega0, omega_g)
     return omega, jnp.where(steady[..., None], q_s, q_g)
 
