@@ -3,30 +3,28 @@
 Everything is in the body frame, where the inertia tensor is constant. ``inertia`` is principal
 moments ``(..., 3)`` (body axes are principal axes) or a full symmetric tensor ``(..., 3, 3)``: a
 trailing ``(3, 3)`` is always read as a tensor.
+
+Bad input: shapes other than these, and complex or boolean dtypes, raise ``ValueError``/``TypeError``
+while tracing (integer arrays are promoted to float). At run time (``eqx.error_if``, also under
+``jit`` and ``vmap``) NaN or inf raises, and so does an ``inertia`` the formula cannot use: in
+:func:`euler_equations` a zero principal moment or a singular tensor (it is divided by). These are
+pointwise formulas, valid for any moments (and differentiated entry by entry): physical validity
+(positive moments, the triangle inequality) is checked where a body is built and simulated
+(:func:`rigidjax.check_inertia`, :func:`rigidjax.simulate`), not here. A zero ``orientation``
+quaternion raises (any other is normalised, as in :func:`rigidjax.quat_rotate`). Rigidjax's own
+integrators call unchecked private cores (``_euler_equations``...).
 """
 
+import equinox as eqx
 import jax.numpy as jnp
 
-from ._misc import check_last_axis, common_float
-from ._quaternion import quat_rotate
+from ._misc import check_finite, check_last_axis, check_rotation_quaternion, common_float, eps
+from ._misc import is_full_tensor as is_full_tensor
+from ._quaternion import _quat_normalize, _quat_rotate
 from ._types import Inertia, Quaternion, Scalar, ScalarOut, Vector, VectorOut
 
 
-def is_full_tensor(inertia, name: str = "inertia") -> bool:
-    """True when ``inertia`` is a ``(..., 3, 3)`` tensor, False for principal moments ``(..., 3)``;
-    a ``ValueError`` naming ``name`` for any other shape."""
-    shape = jnp.shape(inertia)
-    if len(shape) >= 2 and shape[-2:] == (3, 3):
-        return True
-    if len(shape) >= 1 and shape[-1] == 3:
-        return False
-    raise ValueError(
-        f"{name} must be principal moments of shape (..., 3) or a tensor of shape (..., 3, 3) "
-        f"(kg m^2), got shape {tuple(shape)}."
-    )
-
-
-def inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
+def _inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
     """``I @ omega`` for principal moments or a full tensor."""
     inertia, omega = common_float(inertia, omega, names=["inertia", "omega"])
     check_last_axis(omega, 3, "omega")
@@ -35,7 +33,7 @@ def inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
     return inertia * omega
 
 
-def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = None) -> VectorOut:
+def _euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = None) -> VectorOut:
     """Angular acceleration ``d(omega)/dt`` in the body frame (rad/s^2).
 
     Principal moments: ``I1 w1' = (I2 - I3) w2 w3 + tau1`` and cyclic. Full tensor:
@@ -62,26 +60,26 @@ def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = Non
     return (gyro + torque) / inertia
 
 
-def angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
+def _angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
     """Angular momentum ``L = I omega`` in body-frame components (kg m^2/s)."""
-    return inertia_times(inertia, omega)
+    return _inertia_times(inertia, omega)
 
 
-def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quaternion) -> VectorOut:
+def _space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quaternion) -> VectorOut:
     """Angular momentum in space-frame components, ``R L_body``; conserved when torque-free."""
-    L = inertia_times(inertia, omega)
+    L = _inertia_times(inertia, omega)
     orientation = jnp.asarray(orientation, L.dtype)
     check_last_axis(orientation, 4, "orientation")  # name the caller's argument, not quat_rotate's q
-    return quat_rotate(orientation, L)
+    return _quat_rotate(orientation, L)
 
 
-def kinetic_energy(inertia: Inertia, omega: Vector) -> ScalarOut:
+def _kinetic_energy(inertia: Inertia, omega: Vector) -> ScalarOut:
     """Rotational kinetic energy ``omega . (I omega) / 2`` (J)."""
-    L = inertia_times(inertia, omega)
+    L = _inertia_times(inertia, omega)
     return 0.5 * jnp.sum(jnp.asarray(omega, L.dtype) * L, axis=-1)
 
 
-def free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
+def _free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
     """Body-frame free precession rate ``(I3 - I1) / I1 * omega3`` of a torque-free symmetric top.
 
     ``I1 = I2`` are the transverse moments and ``I3`` the symmetry-axis moment. The transverse
@@ -90,3 +88,93 @@ def free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
     """
     I1, I3, omega3 = common_float(I1, I3, omega3, names=["I1", "I3", "omega3"])
     return (I3 - I1) / I1 * omega3
+
+
+# --- the public, checked functions -------------------------------------------------------------------
+
+
+def _checked(inertia, omega, where, extra=(), invertible=False):
+    """Float arrays of one dtype, shape-checked while tracing, value-checked at run time."""
+    names = ["inertia", "omega"] + [n for n, _ in extra]
+    arrays = common_float(inertia, omega, *[a for _, a in extra], names=names)
+    inertia, omega, *rest = arrays
+    tensor = is_full_tensor(inertia)
+    check_last_axis(omega, 3, "omega")
+    inertia = check_finite(inertia, "inertia", where)
+    omega = check_finite(omega, "omega", where)
+    if invertible:
+        if tensor:
+            scale = jnp.max(jnp.abs(inertia), axis=(-2, -1))
+            singular = jnp.abs(jnp.linalg.det(inertia)) <= 1e2 * eps(inertia.dtype) * scale**3
+        else:
+            singular = jnp.any(inertia == 0, axis=-1)
+        inertia = eqx.error_if(
+            inertia,
+            jnp.any(singular),
+            f"{where}: inertia is singular (a zero principal moment): I omega' = ... cannot be "
+            "solved for omega'. Every moment of inertia of a rigid body is > 0 kg m^2.",
+        )
+    return inertia, omega, rest
+
+
+def inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
+    """``I @ omega`` for principal moments or a full tensor. NaN or inf raises at run time."""
+    inertia, omega, _ = _checked(inertia, omega, "inertia_times")
+    return _inertia_times(inertia, omega)
+
+
+def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = None) -> VectorOut:
+    """Angular acceleration ``d(omega)/dt`` in the body frame (rad/s^2).
+
+    Principal moments: ``I1 w1' = (I2 - I3) w2 w3 + tau1`` and cyclic. Full tensor:
+    ``I w' = tau - w x (I w)``, solved for ``w'``. ``torque`` is in body-frame components (N m).
+    NaN/inf or a singular inertia raises at run time (the moments are not
+    checked for physical validity here; see the module docstring).
+    """
+    if torque is None:
+        inertia, omega, _ = _checked(inertia, omega, "euler_equations", invertible=True)
+        return _euler_equations(inertia, omega)
+    inertia, omega, (torque,) = _checked(
+        inertia, omega, "euler_equations", [("torque", torque)], invertible=True
+    )
+    check_last_axis(torque, 3, "torque")
+    return _euler_equations(inertia, omega, check_finite(torque, "torque", "euler_equations"))
+
+
+def angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
+    """Angular momentum ``L = I omega`` in body-frame components (kg m^2/s)."""
+    inertia, omega, _ = _checked(inertia, omega, "angular_momentum")
+    return _inertia_times(inertia, omega)
+
+
+def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quaternion) -> VectorOut:
+    """Angular momentum in space-frame components, ``R L_body``; conserved when torque-free.
+
+    ``orientation`` is normalised first; a zero quaternion raises."""
+    where = "space_angular_momentum"
+    inertia, omega, (orientation,) = _checked(inertia, omega, where, [("orientation", orientation)])
+    check_last_axis(orientation, 4, "orientation")
+    orientation = _quat_normalize(check_rotation_quaternion(orientation, "orientation", where))
+    return _space_angular_momentum(inertia, omega, orientation)
+
+
+def kinetic_energy(inertia: Inertia, omega: Vector) -> ScalarOut:
+    """Rotational kinetic energy ``omega . (I omega) / 2`` (J)."""
+    inertia, omega, _ = _checked(inertia, omega, "kinetic_energy")
+    return _kinetic_energy(inertia, omega)
+
+
+def free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
+    """Body-frame free precession rate ``(I3 - I1) / I1 * omega3`` of a torque-free symmetric top.
+
+    ``I1 = I2`` are the transverse moments and ``I3`` the symmetry-axis moment. The transverse
+    angular velocity turns about the body symmetry axis as ``w1 + i w2 = A exp(i Omega t)``, so a
+    prolate body (``I3 < I1``) precesses backwards. For the Earth this is the Euler wobble rate.
+    NaN/inf or ``I1 = 0`` (it is divided by) raises at run time; like Euler's equations this is a
+    pointwise formula and does not check the moments for physical validity.
+    """
+    where = "free_precession_rate"
+    I1, I3, omega3 = common_float(I1, I3, omega3, names=["I1", "I3", "omega3"])
+    I1, I3, omega3 = (check_finite(x, n, where) for x, n in ((I1, "I1"), (I3, "I3"), (omega3, "omega3")))
+    I1 = eqx.error_if(I1, jnp.any(I1 == 0), f"{where}: I1 = 0; the transverse moment must be > 0 kg m^2.")
+    return _free_precession_rate(I1, I3, omega3)

@@ -8,20 +8,32 @@ body-frame to space-frame components. This is scipy's upper-case (intrinsic) ``f
 Proper sequences (first axis = third axis) are singular at ``sin(theta) = 0``; Tait-Bryan sequences
 at ``cos(theta) = 0``. There only ``phi ± psi`` is defined: the conversions back to angles return the
 documented split ``psi = 0`` (all of the rotation in ``phi``) and never NaN, with finite gradients.
+
+Bad input: wrong shapes, complex or boolean dtypes and unknown sequences raise ``ValueError`` /
+``TypeError`` while tracing (integer arrays are promoted to float). At run time (``eqx.error_if``, so
+also under ``jit`` and ``vmap``) NaN or inf in any input raises, as do a zero quaternion in
+:func:`euler_from_quat` (any other ``q`` means the rotation of ``q / |q|``, as in scipy) and a
+matrix in :func:`euler_from_matrix` that is not a rotation (``max|R R^T - 1|`` beyond ``1e-6`` in
+float64, ``1e-4`` in float32, or ``det R < 0``; tiny non-orthogonality is accepted).
+:func:`euler_rates` with ``throw=False`` raises nothing and returns NaN instead.
+Rigidjax's own integrators call unchecked private cores (``_euler_from_quat``...).
 """
 
 import equinox as eqx
 import jax.numpy as jnp
 
 from ._misc import (
+    check_finite,
     check_last_axis,
     check_last_two_axes,
+    check_rotation_matrix,
+    check_rotation_quaternion,
     common_float,
     eps,
     safe_atan2,
     safe_hypot,
 )
-from ._quaternion import quat_from_matrix, quat_multiply
+from ._quaternion import _quat_from_matrix, _quat_multiply
 from ._types import Angles, Matrix, MatrixOut, Quaternion, Vector, VectorOut
 
 PROPER_SEQUENCES = ("zxz", "zyz", "xyx", "xzx", "yxy", "yzy")
@@ -87,18 +99,18 @@ def _split_angles(angles):
     return angles, angles[..., 0], angles[..., 1], angles[..., 2]
 
 
-def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
+def _matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
     """Rotation matrix ``R = R_a(phi) R_b(theta) R_c(psi)`` for ``seq = "abc"`` (body -> space)."""
     i, j, k = _parse_seq(seq)
     _, phi, theta, psi = _split_angles(angles)
     return _axis_matrix(i, phi) @ _axis_matrix(j, theta) @ _axis_matrix(k, psi)
 
 
-def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
+def _quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
     """Unit quaternion ``(w, x, y, z)`` of the same rotation as :func:`matrix_from_euler`."""
     i, j, k = _parse_seq(seq)
     _, phi, theta, psi = _split_angles(angles)
-    return quat_multiply(quat_multiply(_axis_quat(i, phi), _axis_quat(j, theta)), _axis_quat(k, psi))
+    return _quat_multiply(_quat_multiply(_axis_quat(i, phi), _axis_quat(j, theta)), _axis_quat(k, psi))
 
 
 def _wrap(angle):
@@ -107,7 +119,7 @@ def _wrap(angle):
     )
 
 
-def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
+def _euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     """Euler angles of a quaternion (Bernardes & Viollet 2022, as in scipy).
 
     Ranges: ``phi, psi`` in ``[-pi, pi]``; ``theta`` in ``[0, pi]`` for proper sequences and
@@ -148,11 +160,11 @@ def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     return jnp.stack([_wrap(first), middle, _wrap(third)], axis=-1)
 
 
-def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
+def _euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
     """Euler angles of a rotation matrix; same ranges and gimbal-lock split as :func:`euler_from_quat`."""
     (R,) = common_float(R, names=["R"])
     check_last_two_axes(R, "R")
-    return euler_from_quat(quat_from_matrix(R), seq)
+    return _euler_from_quat(_quat_from_matrix(R), seq)
 
 
 def _rate_axes(angles, seq):
@@ -165,7 +177,7 @@ def _rate_axes(angles, seq):
     return angles, u1, u2, u3
 
 
-def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
+def _body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
     """Body-frame angular velocity from Euler angles and their time derivatives (rad/s).
 
     For ``"zxz"``: ``omega = (phi' sin(theta) sin(psi) + theta' cos(psi),
@@ -178,14 +190,14 @@ def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> Ve
     return rates[..., 0:1] * u1 + rates[..., 1:2] * u2 + rates[..., 2:3] * u3
 
 
-def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
+def _space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
     """Space-frame angular velocity ``R @ body_angular_velocity(angles, rates, seq)``."""
-    omega_body = body_angular_velocity(angles, rates, seq)
-    R = matrix_from_euler(jnp.asarray(angles, omega_body.dtype), seq)
+    omega_body = _body_angular_velocity(angles, rates, seq)
+    R = _matrix_from_euler(jnp.asarray(angles, omega_body.dtype), seq)
     return jnp.einsum("...ij,...j->...i", R, omega_body)
 
 
-def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool = True) -> VectorOut:
+def _euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool = True) -> VectorOut:
     """Euler-angle rates ``(phi', theta', psi')`` from the body-frame angular velocity.
 
     The inverse of :func:`body_angular_velocity`. Its determinant is ``±sin(theta)`` (proper) or
@@ -221,3 +233,106 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
             "Use quaternions for this orientation, or pass throw=False to get NaN rates instead.",
         )
     return jnp.where(unreachable[..., None], jnp.nan, rates)
+
+
+# --- the public, checked functions -------------------------------------------------------------------
+
+
+def _checked_angles(angles, where):
+    (angles,) = common_float(angles, names=["angles"])
+    check_last_axis(angles, 3, "angles")
+    return check_finite(angles, "angles", where)
+
+
+def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
+    """Rotation matrix ``R = R_a(phi) R_b(theta) R_c(psi)`` for ``seq = "abc"`` (body -> space).
+
+    Equals scipy's ``Rotation.from_euler(seq.upper(), angles).as_matrix()``. NaN or inf raises."""
+    _parse_seq(seq)
+    return _matrix_from_euler(_checked_angles(angles, "matrix_from_euler"), seq)
+
+
+def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
+    """Unit quaternion ``(w, x, y, z)`` of the same rotation as :func:`matrix_from_euler`.
+
+    NaN or inf raises at run time."""
+    _parse_seq(seq)
+    return _quat_from_euler(_checked_angles(angles, "quat_from_euler"), seq)
+
+
+def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
+    """Euler angles of a quaternion (Bernardes & Viollet 2022, as in scipy).
+
+    Ranges: ``phi, psi`` in ``[-pi, pi]``; ``theta`` in ``[0, pi]`` for proper sequences and
+    ``[-pi/2, pi/2]`` for Tait-Bryan. At gimbal lock (within roundoff of it) ``psi = 0`` and ``phi``
+    carries the whole rotation about the aligned axis; values and gradients are finite there.
+    ``q`` and ``-q`` give the same angles, and ``q`` is normalised first (as scipy's ``from_quat``);
+    a zero ``q`` or NaN/inf raises at run time.
+    """
+    _parse_seq(seq)
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    return _euler_from_quat(check_rotation_quaternion(q, "q", "euler_from_quat"), seq)
+
+
+def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
+    """Euler angles of a rotation matrix; same ranges and gimbal-lock split as :func:`euler_from_quat`.
+
+    NaN/inf, ``max|R R^T - 1|`` beyond ``1e-6`` (float64) / ``1e-4`` (float32), or ``det R < 0``
+    raises at run time."""
+    _parse_seq(seq)
+    (R,) = common_float(R, names=["R"])
+    check_last_two_axes(R, "R")
+    return _euler_from_matrix(check_rotation_matrix(R, "R", "euler_from_matrix"), seq)
+
+
+def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
+    """Body-frame angular velocity from Euler angles and their time derivatives (rad/s).
+
+    For ``"zxz"``: ``omega = (phi' sin(theta) sin(psi) + theta' cos(psi),
+    phi' sin(theta) cos(psi) - theta' sin(psi), phi' cos(theta) + psi')``. Euler-angle rates are
+    not the components of omega. NaN or inf raises at run time.
+    """
+    _parse_seq(seq)
+    angles, rates = common_float(angles, rates, names=["angles", "rates"])
+    check_last_axis(angles, 3, "angles")
+    check_last_axis(rates, 3, "rates")
+    where = "body_angular_velocity"
+    return _body_angular_velocity(
+        check_finite(angles, "angles", where), check_finite(rates, "rates", where), seq
+    )
+
+
+def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
+    """Space-frame angular velocity ``R @ body_angular_velocity(angles, rates, seq)``.
+
+    NaN or inf raises at run time."""
+    _parse_seq(seq)
+    angles, rates = common_float(angles, rates, names=["angles", "rates"])
+    check_last_axis(angles, 3, "angles")
+    check_last_axis(rates, 3, "rates")
+    where = "space_angular_velocity"
+    return _space_angular_velocity(
+        check_finite(angles, "angles", where), check_finite(rates, "rates", where), seq
+    )
+
+
+def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool = True) -> VectorOut:
+    """Euler-angle rates ``(phi', theta', psi')`` from the body-frame angular velocity.
+
+    The inverse of :func:`body_angular_velocity`. Its determinant is ``±sin(theta)`` (proper) or
+    ``±cos(theta)`` (Tait-Bryan): near gimbal lock the rates grow like ``1/sin(theta)``, which is
+    the truth, not an artefact. Within roundoff of the lock the rates are unbounded unless ``omega``
+    lies in the plane the angles can follow; then the split ``psi' = 0`` is returned (matching the
+    angle split of :func:`euler_from_quat`). Otherwise the call fails with an error naming gimbal
+    lock (``throw=True``), or returns NaN rates (``throw=False``, for ``vmap`` users). NaN or inf in
+    the input raises with ``throw=True`` and propagates as NaN with ``throw=False``.
+    """
+    _parse_seq(seq)
+    angles, omega = common_float(angles, omega, names=["angles", "omega"])
+    check_last_axis(angles, 3, "angles")
+    check_last_axis(omega, 3, "omega")
+    if throw:
+        angles = check_finite(angles, "angles", "euler_rates")
+        omega = check_finite(omega, "omega", "euler_rates")
+    return _euler_rates(angles, omega, seq, throw=throw)

@@ -30,10 +30,10 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
-from ._dynamics import euler_equations
+from ._dynamics import _euler_equations
 from ._lie_group import quat_exp
 from ._models import State, _as_torque_tuple, _total_torque
-from ._quaternion import quat_conjugate, quat_from_matrix, quat_multiply
+from ._quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
 from ._torque_free import torque_free_motion, torque_free_omega
 
 _LOSSES = ("squared", "huber", "soft_l1", "cauchy")
@@ -105,14 +105,14 @@ class InertiaFit(eqx.Module):
         q0 = self.orientation0.reshape(-1, 4)
         window = jnp.clip(jnp.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
         axes = self.principal_axes
-        q_axes = quat_from_matrix(axes)
+        q_axes = _quat_from_matrix(axes)
         q = torque_free_motion(
             self.principal_moments,
             omega0[window] @ axes,
-            quat_multiply(q0[window], q_axes),
+            _quat_multiply(q0[window], q_axes),
             ts - starts[window],
         )[1]
-        return quat_multiply(q, quat_conjugate(q_axes))
+        return _quat_multiply(q, _quat_conjugate(q_axes))
 
 
 # --- parametrisation -------------------------------------------------------------------------
@@ -193,7 +193,7 @@ class _Problem(eqx.Module):
         return p[:k], w0, p[k + 3 * K :].reshape(K, 3)
 
     def initial_orientations(self, dq):
-        return quat_multiply(self.q_reference, quat_exp(dq))
+        return _quat_multiply(self.q_reference, quat_exp(dq))
 
     def tensor_parts(self, p_inertia):
         moments = _moments_from_z(p_inertia[:2])
@@ -227,7 +227,7 @@ class _Problem(eqx.Module):
 
         def vector_field(t, w, args):
             tau = _total_torque(torques, t / s, State(w * s), None) / s**2
-            return euler_equations(inertia, w, tau)
+            return _euler_equations(inertia, w, tau)
 
         def window(w0, t):
             solution = diffrax.diffeqsolve(
@@ -255,15 +255,15 @@ class _Problem(eqx.Module):
         # The principal frame is the sensor frame turned by the rotation vector p_inertia[2:].
         q_axes = quat_exp(p_inertia[2:5])
         q_principal = torque_free_motion(
-            moments, (w0 @ axes)[:, None, :], quat_multiply(q0, q_axes)[:, None, :], self.t
+            moments, (w0 @ axes)[:, None, :], _quat_multiply(q0, q_axes)[:, None, :], self.t
         )[1]
-        return quat_multiply(q_principal, quat_conjugate(q_axes))
+        return _quat_multiply(q_principal, _quat_conjugate(q_axes))
 
     def raw_residuals(self, p):
         if self.q_reference is None:
             return jnp.where(self.mask, self.predict(p) - self.observed, 0.0)
         # Rotation vector from predicted to observed (small-angle form), the same for q and -q.
-        relative = quat_multiply(quat_conjugate(self.predict_orientation(p)), self.observed)
+        relative = _quat_multiply(_quat_conjugate(self.predict_orientation(p)), self.observed)
         sign = jnp.where(relative[..., :1] < 0, -1.0, 1.0)
         return jnp.where(self.mask, 2.0 * sign * relative[..., 1:], 0.0)
 
@@ -648,7 +648,7 @@ def omega_from_orientations(ts, q_observed):
     lo = np.clip(np.arange(T) - 1, 0, T - 1)
     hi = np.clip(np.arange(T) + 1, 0, T - 1)
     conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])
-    rel = np.asarray(quat_multiply(conj, q[hi]))
+    rel = np.asarray(_quat_multiply(conj, q[hi]))
     rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)
     vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
     angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])

@@ -16,8 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._dynamics import is_full_tensor
-from ._misc import as_float_array, check_last_axis, check_last_two_axes, common_float, eps
+from ._misc import as_float_array, check_last_axis, check_last_two_axes, common_float, eps, is_full_tensor
 from ._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
 
 # Two moments closer than this many eps (relative to the largest |moment|) count as degenerate in

@@ -33,7 +33,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._inertia import principal_axes
 from ._misc import check_last_axis, eps
 from ._models import AbstractModel, HeavyTop, State
-from ._quaternion import quat_conjugate, quat_from_matrix, quat_multiply
+from ._quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
 from ._splitting import (
     HeavyTopSplitting,
     LiePoissonSplitting,
@@ -138,7 +138,7 @@ def _rkmk(accel, t0, omega0, q0, h, args, tableau, f0=None):
         else:
             omega_i = omega0 + _combine(row, k_w, h)
             theta_i = _combine(row, k_th, h)
-            q_i = quat_multiply(q0, quat_exp(theta_i))
+            q_i = _quat_multiply(q0, quat_exp(theta_i))
             f_i = accel(t0 + c[i] * h, omega_i, q_i, args)
             k_th.append(dexpinv(theta_i, omega_i))
         k_w.append(jnp.asarray(f_i, dtype))
@@ -146,7 +146,7 @@ def _rkmk(accel, t0, omega0, q0, h, args, tableau, f0=None):
     omega1, theta1, q1, f1 = omega_i, theta_i, q_i, k_w[-1]
     err_omega = _combine(b_err, k_w, h)
     theta_hat = theta1 - _combine(b_err, k_th, h)
-    err_q = q1 - quat_multiply(q0, quat_exp(theta_hat))
+    err_q = q1 - _quat_multiply(q0, quat_exp(theta_hat))
     return omega1, q1, theta1, (err_omega, err_q), f0, f1
 
 
@@ -183,7 +183,7 @@ def rigid_body_vector_field(angular_acceleration: Callable) -> Callable:
     def vf(t, y, args):
         omega, q = y
         pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
-        return angular_acceleration(t, omega, q, args), 0.5 * quat_multiply(q, pure)
+        return angular_acceleration(t, omega, q, args), 0.5 * _quat_multiply(q, pure)
 
     return vf
 
@@ -213,7 +213,7 @@ class _GeodesicHermiteInterpolation(diffrax.AbstractLocalInterpolation):
         h11 = s * s * (s - 1)
         omega = h00 * omega0 + h10 * dt * self.f0 + h01 * omega1 + h11 * dt * self.f1
         theta = h10 * dt * omega0 + h01 * self.theta1 + h11 * dt * dexpinv(self.theta1, omega1)
-        return omega, quat_multiply(q0, quat_exp(theta))
+        return omega, _quat_multiply(q0, quat_exp(theta))
 
     def evaluate(self, t0, t1=None, left=True):
         del left
@@ -330,7 +330,7 @@ def _structure_preserving_traced(model, omega0, q0, ts, counts, args, solver, n_
         inertia = values["inertia"]
         if inertia.ndim == 3:  # (n, 3, 3) tensors: integrate in each body's principal axes
             inertia, axes = principal_axes(inertia)  # axes: principal -> body components
-            axes_q = quat_from_matrix(axes)
+            axes_q = _quat_from_matrix(axes)
         else:
             axes = axes_q = None
 
@@ -352,13 +352,13 @@ def _structure_preserving_traced(model, omega0, q0, ts, counts, args, solver, n_
 
         def to_y(w, q):
             if axes is not None:
-                w, q = to_principal(w), quat_multiply(q, axes_q)
+                w, q = to_principal(w), _quat_multiply(q, axes_q)
             return inertia * w, q
 
         def from_y(y):
             w, q = y[0] / inertia, y[1]
             if axes is not None:
-                w, q = jnp.einsum("nij,nj->ni", axes, w), quat_multiply(q, quat_conjugate(axes_q))
+                w, q = jnp.einsum("nij,nj->ni", axes, w), _quat_multiply(q, _quat_conjugate(axes_q))
             return w, q
 
     def interval(y, xs):

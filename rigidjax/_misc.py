@@ -1,5 +1,6 @@
 """Small numerical helpers shared by the modules: dtype handling and NaN-safe primitives."""
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -7,11 +8,14 @@ import numpy as np
 def as_float_array(x, name: str = "array"):
     """Converts ``x`` to a JAX float array, keeping a float32/float64 dtype if it has one.
 
-    Integer or boolean inputs become the default float dtype. Complex input is rejected by name.
+    Integer inputs become the default float dtype. Complex and boolean input is rejected with a
+    ``TypeError`` naming ``name`` (a boolean array where numbers are expected is a mistake, not data).
     """
     x = jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
         raise TypeError(f"{name} must be real, got dtype {x.dtype}.")
+    if x.dtype == jnp.bool_:
+        raise TypeError(f"{name} must be a real number array, got dtype bool.")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
@@ -35,6 +39,67 @@ def check_last_axis(x, size: int, name: str):
 def check_last_two_axes(x, name: str):
     if x.ndim < 2 or x.shape[-2:] != (3, 3):
         raise ValueError(f"{name} must have shape (..., 3, 3), got shape {tuple(x.shape)}.")
+
+
+def is_full_tensor(inertia, name: str = "inertia") -> bool:
+    """True when ``inertia`` is a ``(..., 3, 3)`` tensor, False for principal moments ``(..., 3)``;
+    a ``ValueError`` naming ``name`` for any other shape."""
+    shape = jnp.shape(inertia)
+    if len(shape) >= 2 and shape[-2:] == (3, 3):
+        return True
+    if len(shape) >= 1 and shape[-1] == 3:
+        return False
+    raise ValueError(
+        f"{name} must be principal moments of shape (..., 3) or a tensor of shape (..., 3, 3) "
+        f"(kg m^2), got shape {tuple(shape)}."
+    )
+
+
+# --- run-time value checks of the public functions (eqx.error_if: they work under jit and vmap) ----
+
+
+def unit_tolerance(dtype) -> float:
+    """How far ``R R^T`` may be from ``1`` for a matrix to count as a rotation: ``1e-6`` in float64,
+    ``1e-4`` in lower precision. The same tolerance as :func:`rigidjax.simulate` uses for the norm of
+    ``state0.orientation``."""
+    return 1e-6 if np.dtype(dtype) == np.float64 else 1e-4
+
+
+def check_finite(x, name: str, where: str):
+    """``x`` wrapped in a run-time check that all its entries are finite."""
+    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{where}: {name} contains NaN or inf.")
+
+
+def check_rotation_quaternion(q, name: str, where: str):
+    """``q`` wrapped in run-time checks: finite, and with a norm that can be divided by (``|q|^2``
+    neither 0 nor under- or overflowing). Such a ``q`` means the rotation of ``q / |q|``."""
+    q = check_finite(q, name, where)
+    sq = jnp.sum(q * q, axis=-1)
+    return eqx.error_if(
+        q,
+        jnp.any(~jnp.isfinite(sq) | (sq < np.finfo(q.dtype).tiny)),
+        f"{where}: {name} has zero norm (or one whose square under- or overflows): it is not a "
+        "rotation. A rotation is a unit quaternion (w, x, y, z), e.g. (1, 0, 0, 0) for the identity.",
+    )
+
+
+def check_rotation_matrix(R, name: str, where: str):
+    """``R`` wrapped in run-time checks: finite, ``max|R R^T - 1| <= unit_tolerance`` and ``det R > 0``."""
+    R = check_finite(R, name, where)
+    tol = unit_tolerance(R.dtype)
+    gram = jnp.einsum("...ij,...kj->...ik", R, R)
+    off = jnp.max(jnp.abs(gram - jnp.eye(3, dtype=R.dtype)), axis=(-2, -1))
+    R = eqx.error_if(
+        R,
+        jnp.any(off > tol),
+        f"{where}: {name} is not a rotation matrix (max |{name} {name}^T - 1| > {tol:g}); "
+        "orthonormalise it first (e.g. the polar factor U V^T of its SVD).",
+    )
+    return eqx.error_if(
+        R,
+        jnp.any(jnp.linalg.det(R) <= 0),
+        f"{where}: {name} has determinant -1: it is a reflection, not a rotation.",
+    )
 
 
 def eps(dtype) -> float:

@@ -18,9 +18,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._dynamics import euler_equations, inertia_times, is_full_tensor
+from ._dynamics import _euler_equations, _inertia_times, is_full_tensor
 from ._misc import as_float_array, check_last_axis
-from ._quaternion import quat_conjugate, quat_rotate
+from ._quaternion import _quat_conjugate, _quat_rotate
 
 _Z = (0.0, 0.0, 1.0)
 
@@ -89,7 +89,7 @@ class ConstantTorque(AbstractTorque):
     def __call__(self, t, state, args):
         tau = jnp.asarray(self.torque, state.omega.dtype)
         if self.frame == "space":
-            return quat_rotate(quat_conjugate(state.orientation), tau)
+            return _quat_rotate(_quat_conjugate(state.orientation), tau)
         return tau
 
 
@@ -262,7 +262,7 @@ class FreeBody(AbstractModel):
         return True
 
     def angular_acceleration(self, t, state, args):
-        return euler_equations(self.inertia, state.omega)
+        return _euler_equations(self.inertia, state.omega)
 
     def omega_scale(self, state, duration, args):
         if is_full_tensor(self.inertia):
@@ -299,7 +299,7 @@ class RigidBody(AbstractModel):
         return all(t.conservative for t in self.torques)
 
     def angular_acceleration(self, t, state, args):
-        return euler_equations(self.inertia, state.omega, _total_torque(self.torques, t, state, args))
+        return _euler_equations(self.inertia, state.omega, _total_torque(self.torques, t, state, args))
 
     def omega_scale(self, state, duration, args):
         if not self.torques and not is_full_tensor(self.inertia):
@@ -351,27 +351,27 @@ class HeavyTop(AbstractModel):
     def gravity_torque(self, orientation):
         """Body-frame gravity torque ``com x (m g R^T (-Z))`` (N m)."""
         dtype = orientation.dtype
-        up_body = quat_rotate(quat_conjugate(orientation), jnp.array(_Z, dtype))
+        up_body = _quat_rotate(_quat_conjugate(orientation), jnp.array(_Z, dtype))
         weight = (self.mass * self.gravity).astype(dtype)
         return weight[..., None] * jnp.cross(up_body, self.com.astype(dtype))
 
     def angular_acceleration(self, t, state, args):
         tau = self.gravity_torque(state.orientation) + _total_torque(self.torques, t, state, args)
-        return euler_equations(self.inertia, state.omega, tau)
+        return _euler_equations(self.inertia, state.omega, tau)
 
     def omega_scale(self, state, duration, args):
         """Bound on |omega| from energy: the top can at most turn all of ``V0 - V_min`` into
         kinetic energy, and ``KE >= I_min |omega|^2 / 2``."""
         inertia = self.inertia
         moments = jnp.linalg.eigvalsh(inertia) if is_full_tensor(inertia) else inertia
-        kinetic = 0.5 * jnp.sum(state.omega * inertia_times(inertia, state.omega))
+        kinetic = 0.5 * jnp.sum(state.omega * _inertia_times(inertia, state.omega))
         drop = self.potential_energy(state.orientation) + self.mass * self.gravity * jnp.linalg.norm(self.com)
         bound = jnp.sqrt(2.0 * (kinetic + jnp.maximum(drop, 0.0)) / jnp.min(moments))
         return jnp.broadcast_to(jnp.maximum(bound, jnp.linalg.norm(state.omega)), (3,))
 
     def potential_energy(self, orientation):
         """``m g Z_com``: the height of the centre of mass above the pivot times the weight (J)."""
-        com_space = quat_rotate(orientation, self.com.astype(orientation.dtype))
+        com_space = _quat_rotate(orientation, self.com.astype(orientation.dtype))
         return (self.mass * self.gravity).astype(orientation.dtype) * com_space[..., 2]
 
     def _leaf_core_ndims(self):

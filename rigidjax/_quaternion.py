@@ -3,15 +3,35 @@
 A quaternion ``q`` and the matrix ``R = matrix_from_quat(q)`` mean the same rotation: they map
 body-frame components to space-frame components, ``v_space = R @ v_body = quat_rotate(q, v_body)``.
 ``q`` and ``-q`` are the same rotation.
+
+Bad input: wrong shapes and complex or boolean dtypes raise ``ValueError``/``TypeError`` while
+tracing; integer arrays are promoted to float. Values are checked at run time (``eqx.error_if``, so
+also under ``jit`` and ``vmap``): NaN or inf raises. A quaternion read as a rotation
+(:func:`matrix_from_quat`, :func:`quat_rotate`, :func:`quat_normalize`,
+:func:`rigidjax.euler_from_quat`) means the rotation of ``q / |q|``, as in scipy's ``from_quat``:
+drift off unit norm, small or large, is normalised away (documented, not an error), and only a zero
+quaternion -- which is no rotation -- raises. (A *state* is stricter: :func:`rigidjax.simulate`
+rejects an initial orientation more than ``1e-6`` off unit norm.) :func:`quat_from_matrix` rejects a
+matrix with ``max|R R^T - 1|`` above ``1e-6`` (float64) / ``1e-4`` (float32) or with ``det R < 0``
+and accepts tiny non-orthogonality. :func:`quat_multiply` and :func:`quat_conjugate` are algebra on
+any quaternions (e.g. ``q ⊗ (0, omega)``) and only check finiteness. Rigidjax's own integrators call
+unchecked private cores (``_quat_multiply``...).
 """
 
 import jax.numpy as jnp
 
-from ._misc import check_last_axis, check_last_two_axes, common_float
+from ._misc import (
+    check_finite,
+    check_last_axis,
+    check_last_two_axes,
+    check_rotation_matrix,
+    check_rotation_quaternion,
+    common_float,
+)
 from ._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
 
 
-def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
+def _quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
     """Hamilton product ``p ⊗ q`` (apply ``q`` first, then ``p``, as with matrices ``P @ Q``)."""
     p, q = common_float(p, q, names=["p", "q"])
     check_last_axis(p, 4, "p")
@@ -29,14 +49,14 @@ def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
     )
 
 
-def quat_conjugate(q: Quaternion) -> QuaternionOut:
+def _quat_conjugate(q: Quaternion) -> QuaternionOut:
     """``(w, -x, -y, -z)``: the inverse rotation of a unit quaternion."""
     (q,) = common_float(q, names=["q"])
     check_last_axis(q, 4, "q")
     return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
-def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
+def _quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
     """Rotates body-frame components ``v`` into space-frame components: ``q ⊗ (0, v) ⊗ q*``."""
     q, v = common_float(q, v, names=["q", "v"])
     check_last_axis(q, 4, "q")
@@ -47,14 +67,14 @@ def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
     return v + 2.0 * (w * uv + jnp.cross(u, uv))
 
 
-def quat_normalize(q: Quaternion) -> QuaternionOut:
+def _quat_normalize(q: Quaternion) -> QuaternionOut:
     """Scales ``q`` to unit norm."""
     (q,) = common_float(q, names=["q"])
     check_last_axis(q, 4, "q")
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def matrix_from_quat(q: Quaternion) -> MatrixOut:
+def _matrix_from_quat(q: Quaternion) -> MatrixOut:
     """Rotation matrix of ``q`` (``v_space = R @ v_body``).
 
     Uses ``2 / |q|^2`` rather than 2, so a quaternion that drifted slightly off unit norm still gives
@@ -75,7 +95,7 @@ def matrix_from_quat(q: Quaternion) -> MatrixOut:
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
-def quat_from_matrix(R: Matrix) -> QuaternionOut:
+def _quat_from_matrix(R: Matrix) -> QuaternionOut:
     """Unit quaternion of a rotation matrix, with ``w >= 0``.
 
     Shepperd's method: the component with the largest magnitude is found from the trace and
@@ -109,3 +129,67 @@ def quat_from_matrix(R: Matrix) -> QuaternionOut:
     q = jnp.take_along_axis(candidates, k[..., None, None], axis=-2)[..., 0, :]
     q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
     return jnp.where(q[..., :1] < 0, -q, q)
+
+
+# --- the public, checked functions -------------------------------------------------------------------
+
+
+def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
+    """Hamilton product ``p ⊗ q`` (apply ``q`` first, then ``p``, as with matrices ``P @ Q``).
+
+    Any quaternions (not only unit ones); NaN or inf raises at run time."""
+    p, q = common_float(p, q, names=["p", "q"])
+    check_last_axis(p, 4, "p")
+    check_last_axis(q, 4, "q")
+    return _quat_multiply(check_finite(p, "p", "quat_multiply"), check_finite(q, "q", "quat_multiply"))
+
+
+def quat_conjugate(q: Quaternion) -> QuaternionOut:
+    """``(w, -x, -y, -z)``: the inverse rotation of a unit quaternion. NaN or inf raises at run time."""
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    return _quat_conjugate(check_finite(q, "q", "quat_conjugate"))
+
+
+def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
+    """Rotates body-frame components ``v`` into space-frame components: ``q ⊗ (0, v) ⊗ q*``.
+
+    ``q`` is normalised first (so ``v`` keeps its length); a zero ``q`` or NaN/inf raises."""
+    q, v = common_float(q, v, names=["q", "v"])
+    check_last_axis(q, 4, "q")
+    check_last_axis(v, 3, "v")
+    q = _quat_normalize(check_rotation_quaternion(q, "q", "quat_rotate"))
+    return _quat_rotate(q, check_finite(v, "v", "quat_rotate"))
+
+
+def quat_normalize(q: Quaternion) -> QuaternionOut:
+    """Scales ``q`` to unit norm. A zero quaternion (no rotation can be made of it) or NaN/inf raises
+    at run time, rather than returning NaN."""
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    return _quat_normalize(check_rotation_quaternion(q, "q", "quat_normalize"))
+
+
+def matrix_from_quat(q: Quaternion) -> MatrixOut:
+    """Rotation matrix of ``q`` (``v_space = R @ v_body``).
+
+    Uses ``2 / |q|^2`` rather than 2, so the matrix is that of ``q / |q|`` and exactly orthogonal (up to
+    roundoff) even for a quaternion that drifted off unit norm. A zero ``q`` or NaN/inf raises at run
+    time.
+    """
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    return _matrix_from_quat(check_rotation_quaternion(q, "q", "matrix_from_quat"))
+
+
+def quat_from_matrix(R: Matrix) -> QuaternionOut:
+    """Unit quaternion of a rotation matrix, with ``w >= 0``.
+
+    Shepperd's method (accurate for every rotation, including 180 degrees) with finite gradients
+    everywhere. ``R`` must be a rotation: NaN/inf, ``max|R R^T - 1|`` beyond ``1e-6`` (float64) /
+    ``1e-4`` (float32), or a reflection raises at run time; tiny non-orthogonality is accepted and the
+    result is normalised.
+    """
+    (R,) = common_float(R, names=["R"])
+    check_last_two_axes(R, "R")
+    return _quat_from_matrix(check_rotation_matrix(R, "R", "quat_from_matrix"))

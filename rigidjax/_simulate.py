@@ -23,12 +23,12 @@ from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ._dynamics import is_full_tensor
-from ._euler import euler_from_quat, euler_rates, is_proper_sequence, quat_from_euler
+from ._euler import _euler_from_quat, _euler_rates, _quat_from_euler, is_proper_sequence
 from ._inertia import check_inertia
 from ._lie_group import RKMK, simulate_structure_preserving
 from ._misc import safe_norm
 from ._models import AbstractModel, FreeBody, State
-from ._quaternion import quat_multiply
+from ._quaternion import _quat_multiply
 from ._splitting import HeavyTopSplitting, LiePoissonSplitting
 from ._torque_free import torque_free_motion, torque_free_omega
 from ._trajectory import Trajectory
@@ -52,7 +52,7 @@ def _quat_derivative(q, omega):
     unchanged but makes unit norm attracting, so the norm does not drift."""
     pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
     speed = safe_norm(omega, keepdims=True)  # the gradient of |omega| at rest is 0, not NaN
-    return 0.5 * quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
+    return 0.5 * _quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
 
 
 def _check_inputs(model, leaves, omega0, q0, ts, dtype):
@@ -157,14 +157,14 @@ def _simulate_impl(
         return x[take].reshape((n_chunks, chunk) + x.shape[1:])
 
     if euler_seq is not None:
-        lock = _lock_distance(euler_from_quat(q0, euler_seq), euler_seq)
+        lock = _lock_distance(_euler_from_quat(q0, euler_seq), euler_seq)
         q0 = eqx.error_if(
             q0,
             jnp.any(lock < lock_tolerance),
             f"simulate: the initial orientation is within {lock_tolerance:g} of gimbal lock for the "
             f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
         )
-        attitude0 = euler_from_quat(q0, euler_seq)
+        attitude0 = _euler_from_quat(q0, euler_seq)
     else:
         attitude0 = q0
     chunks = (
@@ -192,8 +192,8 @@ def _simulate_impl(
                 q = attitude
                 dattitude = None if q is None else _quat_derivative(q, w)
             else:
-                q = quat_from_euler(attitude, euler_seq)
-                dattitude = euler_rates(attitude, w, euler_seq, throw=False)
+                q = _quat_from_euler(attitude, euler_seq)
+                dattitude = _euler_rates(attitude, w, euler_seq, throw=False)
             body = shared_model.replace_body_leaves(leaves, body_values)
             dw = body.angular_acceleration(t, State(w, q), args)
             return (dw / s, dattitude)
@@ -224,7 +224,7 @@ def _simulate_impl(
         u = jnp.transpose(u, (2, 0, 1))
         q = None if q is None else jnp.transpose(q, (2, 0, 1))
         if euler_seq is not None:
-            q = quat_from_euler(q, euler_seq)
+            q = _quat_from_euler(q, euler_seq)
         return (
             u,
             q,

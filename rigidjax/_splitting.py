@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._misc import as_float_array, check_last_axis
-from ._quaternion import quat_conjugate, quat_multiply, quat_rotate
+from ._quaternion import _quat_conjugate, _quat_multiply, _quat_rotate
 
 _YOSHIDA_W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 _YOSHIDA_W0 = 1.0 - 2.0 * _YOSHIDA_W1
@@ -59,7 +59,7 @@ def _axis_flow(inertia, L, q, h, i: int):
     vec = [zero, zero, zero]
     vec[i] = jnp.sin(half)
     r = jnp.stack([jnp.cos(half)] + vec, axis=-1)
-    return L_new, quat_multiply(q, r)
+    return L_new, _quat_multiply(q, r)
 
 
 def _strang(inertia, L, q, h):
@@ -227,7 +227,7 @@ def free_body_vector_field(inertia):
         L, q = y
         omega = L / inertia.astype(L.dtype)
         pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
-        return jnp.cross(L, omega), 0.5 * quat_multiply(q, pure)
+        return jnp.cross(L, omega), 0.5 * _quat_multiply(q, pure)
 
     return vf
 
@@ -238,7 +238,7 @@ def free_body_vector_field(inertia):
 
 def _up_body(q):
     """Body-frame components of the space vertical ``R(q)^T Z``."""
-    return quat_rotate(quat_conjugate(q), jnp.array([0.0, 0.0, 1.0], q.dtype))
+    return _quat_rotate(_quat_conjugate(q), jnp.array([0.0, 0.0, 1.0], q.dtype))
 
 
 def _gravity_kick(weight_com, L, q, h):

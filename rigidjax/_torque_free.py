@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from ._elliptic import _carlson_rf_rj, ellipj_m1, ellipkm1
 from ._misc import check_last_axis, common_float, safe_norm
-from ._quaternion import quat_multiply
+from ._quaternion import _quat_multiply
 from ._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 
 
@@ -305,13 +305,13 @@ def torque_free_motion(
     omega0_g = jnp.where(steady[..., None], jnp.array([1.0, 1.0, 1.0], dtype), omega0)
     omega_g, parts = _motion_parts(inertia_g, omega0_g, t)
     q_g = _general_orientation(inertia_g, omega0_g, omega_g, t, parts)
-    q_g = quat_multiply(q0, q_g)
+    q_g = _quat_multiply(q0, q_g)
 
     half = safe_norm(omega0) * t / 2
     # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
     # d q/d w0 = q0 (0, t/2 I) (a body at rest turned by a small w0 turns by w0 t).
     vector = (t / 2 * jnp.sinc(half / jnp.pi))[..., None] * omega0
-    q_s = quat_multiply(q0, jnp.concatenate([jnp.cos(half)[..., None], vector], -1))
+    q_s = _quat_multiply(q0, jnp.concatenate([jnp.cos(half)[..., None], vector], -1))
     omega = jnp.where(steady[..., None], omega0, omega_g)
     return omega, jnp.where(steady[..., None], q_s, q_g)
 
@@ -364,7 +364,7 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     zero = jnp.zeros_like(phi)
     precession = jnp.stack([jnp.cos(phi / 2), zero, zero, jnp.sin(phi / 2)], axis=-1)
     b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], inertia.dtype)
-    q = quat_multiply(b0_conj, quat_multiply(precession, b1)) * flip[..., None]
+    q = _quat_multiply(b0_conj, _quat_multiply(precession, b1)) * flip[..., None]
     vector = jnp.take_along_axis(q[..., 1:], from_cyclic, axis=-1)
     return jnp.concatenate([q[..., :1], vector], axis=-1)
 

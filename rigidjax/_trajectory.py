@@ -4,10 +4,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._dynamics import inertia_times, kinetic_energy
-from ._euler import euler_from_quat
+from ._dynamics import _inertia_times, _kinetic_energy
+from ._euler import _euler_from_quat
 from ._models import AbstractModel
-from ._quaternion import quat_rotate
+from ._quaternion import _quat_rotate
 
 
 def _stable_norm(v):
@@ -57,12 +57,12 @@ class Trajectory(eqx.Module):
             raise ValueError(
                 "This trajectory has no orientation (omega-only scene); simulate with an orientation."
             )
-        angles = euler_from_quat(self.orientation, seq)
+        angles = _euler_from_quat(self.orientation, seq)
         return jnp.unwrap(angles, axis=-2)
 
     def kinetic_energy(self) -> Float[Array, "*batch T"]:
         """Rotational kinetic energy ``omega . I omega / 2`` (J)."""
-        return kinetic_energy(self._model_per_time().inertia, self.omega)
+        return _kinetic_energy(self._model_per_time().inertia, self.omega)
 
     def potential_energy(self) -> Float[Array, "*batch T"]:
         """Potential energy (J); zero for scenes without a field."""
@@ -76,13 +76,13 @@ class Trajectory(eqx.Module):
 
     def angular_momentum(self) -> Float[Array, "*batch T 3"]:
         """Body-frame angular momentum ``I omega`` (kg m^2/s)."""
-        return inertia_times(self._model_per_time().inertia, self.omega)
+        return _inertia_times(self._model_per_time().inertia, self.omega)
 
     def space_angular_momentum(self) -> Float[Array, "*batch T 3"]:
         """Space-frame angular momentum ``R I omega`` (kg m^2/s)."""
         if self.orientation is None:
             raise ValueError("space_angular_momentum needs an orientation; simulate with one.")
-        return quat_rotate(self.orientation, self.angular_momentum())
+        return _quat_rotate(self.orientation, self.angular_momentum())
 
     def invariants(self) -> dict[str, Float[Array, "*batch"]]:
         """Largest relative drift of each quantity the scene conserves, per body.
