@@ -61,6 +61,7 @@ from ._models import AbstractModel as AbstractModel
 from ._models import AbstractTorque as AbstractTorque
 from ._models import ConstantTorque as ConstantTorque
 from ._models import FreeBody as FreeBody
+from ._models import GravityTorque as GravityTorque
 from ._models import HeavyTop as HeavyTop
 from ._models import RigidBody as RigidBody
 from ._models import State as State

@@ -15,6 +15,10 @@ Parametrisation (every parameter value is a valid inertia; nothing is clipped or
 The scale gauge: the torque-free motion of ``c I`` is that of ``I``, so the record fixes the inertia
 only up to a common factor. The fit returns ``trace(I) = 1`` unless a scale is supplied
 (``inertia_trace=`` or ``known_moment=``), in which case the result is in kg m^2.
+
+With a known torque (``torque=``: a constant or damping torque for gyro records; anything, gravity on
+a pivot included, for orientation records) the torque fixes the scale, a log-scale parameter is
+fitted, and the forward model is Dopri8 (rtol 1e-10, scaled units) instead of the closed form.
 """
 
 import functools
@@ -32,6 +36,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._dynamics import _euler_equations
 from ._lie_group import quat_exp
+from ._misc import safe_norm
 from ._models import State, _as_torque_tuple, _total_torque
 from ._quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
 from ._torque_free import torque_free_motion, torque_free_omega
@@ -82,9 +87,41 @@ class InertiaFit(eqx.Module):
     covariance: Float[Array, "p p"]
     normalised: bool = eqx.field(static=True)
     method: str = eqx.field(static=True)
+    torque: Any = None  # the known torque of the fit (a tuple of torques), or None: torque-free
+
+    def _predict_with_torque(self, ts, with_orientation: bool):
+        """Integrates the fitted model under its known torque from each window's start ("precise")."""
+        from ._models import RigidBody
+        from ._simulate import simulate
+
+        ts = np.asarray(ts, float)
+        starts = np.asarray(self.segment_starts)
+        window = np.clip(np.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
+        omega0 = self.omega0.reshape(-1, 3)
+        q0 = None if self.orientation0 is None else self.orientation0.reshape(-1, 4)
+        dtype = self.inertia.dtype
+        out = np.zeros((ts.shape[0], 4 if with_orientation else 3))
+        for k in np.unique(window):
+            rows = np.flatnonzero(window == k)
+            times = np.concatenate([[starts[k]], ts[rows]])
+            keep = np.concatenate([[True], np.diff(times) > 0])  # a sample exactly at the start
+            state = State(omega0[k], q0[k] if q0 is not None else None)
+            traj = simulate(
+                RigidBody(self.inertia, torque=self.torque),
+                state,
+                jnp.asarray(times[keep], dtype),
+                accuracy="precise",
+            )
+            values = np.asarray(traj.orientation if with_orientation else traj.omega)
+            index = np.cumsum(keep) - 1
+            out[rows] = values[index[1:]]
+        return jnp.asarray(out, dtype)
 
     def predict_omega(self, ts) -> Float[Array, "T 3"]:
-        """The fitted model's angular velocity (rad/s) at times ``ts`` (s), each from its window."""
+        """The fitted model's angular velocity (rad/s) at times ``ts`` (s), each from its window
+        (integrated under the known torque if the fit had one)."""
+        if self.torque is not None:
+            return self._predict_with_torque(ts, with_orientation=False)
         ts = jnp.asarray(ts, self.inertia.dtype)
         starts = self.segment_starts
         omega0 = self.omega0.reshape(-1, 3)
@@ -99,6 +136,8 @@ class InertiaFit(eqx.Module):
         """The fitted orientation (unit quaternions) at times ``ts`` (s); orientation fits only."""
         if self.orientation0 is None:
             raise ValueError("This fit has no orientation: it was fitted to angular velocity only.")
+        if self.torque is not None:
+            return self._predict_with_torque(ts, with_orientation=True)
         ts = jnp.asarray(ts, self.inertia.dtype)
         starts = self.segment_starts
         omega0 = self.omega0.reshape(-1, 3)
@@ -178,6 +217,7 @@ class _Problem(eqx.Module):
     torque: Any = None
     omega_scale: float = eqx.field(static=True, default=1.0)
     reverse_mode: bool = eqx.field(static=True, default=False)  # the optimiser differentiates in reverse
+    t_start: Float[Array, " segments"] | None = None  # window start times (s): the torque's clock
 
     @property
     def n_inertia_params(self) -> int:
@@ -225,31 +265,60 @@ class _Problem(eqx.Module):
         """omega of every window with the known torque, by Dopri8 at rtol 1e-10 (scaled units)."""
         torques, s = self.torque, self.omega_scale
 
-        def vector_field(t, w, args):
-            tau = _total_torque(torques, t / s, State(w * s), None) / s**2
+        def vector_field(t, w, t_start):
+            tau = _total_torque(torques, t_start + t / s, State(w * s), None) / s**2
             return _euler_equations(inertia, w, tau)
 
-        def window(w0, t):
-            solution = diffrax.diffeqsolve(
-                diffrax.ODETerm(vector_field),
-                diffrax.Dopri8(),
-                0.0,
-                t[-1],
-                None,
-                w0,
-                saveat=diffrax.SaveAt(ts=t),
-                stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
-                adjoint=diffrax.RecursiveCheckpointAdjoint() if self.reverse_mode else diffrax.ForwardMode(),
-                max_steps=200_000,
-            )
-            return solution.ys
+        return jax.vmap(lambda w0, t, t_start: self._solve_window(vector_field, w0, t, t_start))(
+            w0, self.t, self._window_starts()
+        )
 
-        return jax.vmap(window)(w0, self.t)
+    def integrate_orientation(self, inertia, w0, q0):
+        """(omega, q) of every window with the known torque (which may need the orientation), by
+        Dopri8 at rtol 1e-10 in scaled units; unit norm of q is made attracting as in ``simulate``."""
+        torques, s = self.torque, self.omega_scale
+
+        def vector_field(t, y, t_start):
+            w, q = y
+            tau = _total_torque(torques, t_start + t / s, State(w * s, q), None) / s**2
+            pure = jnp.concatenate([jnp.zeros_like(w[:1]), w])
+            speed = safe_norm(w)
+            dq = 0.5 * _quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q)) * q
+            return _euler_equations(inertia, w, tau), dq
+
+        def window(w0, q0, t, t_start):
+            _, q = self._solve_window(vector_field, (w0, q0), t, t_start)
+            return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+        return jax.vmap(window)(w0, q0, self.t, self._window_starts())
+
+    def _window_starts(self):
+        if self.t_start is None:
+            return jnp.zeros(self.t.shape[:1], self.t.dtype)
+        return self.t_start
+
+    def _solve_window(self, vector_field, y0, t, t_start):
+        solution = diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field),
+            diffrax.Dopri8(),
+            0.0,
+            t[-1],
+            None,
+            y0,
+            args=t_start,
+            saveat=diffrax.SaveAt(ts=t),
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            adjoint=diffrax.RecursiveCheckpointAdjoint() if self.reverse_mode else diffrax.ForwardMode(),
+            max_steps=200_000,
+        )
+        return solution.ys
 
     def predict_orientation(self, p):
         p_inertia, w0, dq = self.split(p)
         moments, axes = self.tensor_parts(p_inertia)
         q0 = self.initial_orientations(dq)
+        if self.torque is not None:
+            return self.integrate_orientation(self.inertia(p_inertia), w0, q0)
         if axes is None:
             return torque_free_motion(moments, w0[:, None, :], q0[:, None, :], self.t)[1]
         # The principal frame is the sensor frame turned by the rotation vector p_inertia[2:].
@@ -729,7 +798,7 @@ def _window_start_values(windows, smoothed, fallback, init, segments, name):
     return np.stack(values)
 
 
-def _torque_estimate(ts, omega, torques, full_tensor, inertia_free):
+def _torque_estimate(ts, omega, torques, full_tensor, inertia_free, orientations=None):
     """Inertia from the LINEAR equations I omega_dot + omega x (I omega) = tau(t, omega) (least
     squares with omega, omega_dot from local quadratic fits) as (trace-1 shape, trace); falls back
     to the torque-free shape with its scale by least squares if the unconstrained solve is not
@@ -739,9 +808,19 @@ def _torque_estimate(ts, omega, torques, full_tensor, inertia_free):
     value, slope, _ = _local_derivatives(ts, omega, half_width)
     ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
     w, wd, t = value[ok], slope[ok], ts[ok]
-    tau = np.asarray(
-        jax.vmap(lambda t, w: _total_torque(torques, t, State(w), None))(jnp.asarray(t), jnp.asarray(w))
-    )
+    if orientations is None:
+        tau = np.asarray(
+            jax.vmap(lambda t, w: _total_torque(torques, t, State(w), None))(jnp.asarray(t), jnp.asarray(w))
+        )
+    else:
+        q = np.asarray(orientations)[ok]
+        ok_q = np.all(np.isfinite(q), axis=1)
+        w, wd, t, q = w[ok_q], wd[ok_q], t[ok_q], q[ok_q]
+        tau = np.asarray(
+            jax.vmap(lambda t, w, q: _total_torque(torques, t, State(w, q), None))(
+                jnp.asarray(t), jnp.asarray(w), jnp.asarray(q)
+            )
+        )
     if full_tensor:
         pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
     else:
@@ -853,19 +932,40 @@ def _prepare_omega(
         torque=torques,
         omega_scale=omega_scale,
         reverse_mode=reverse_mode,
+        t_start=jnp.asarray(ts[bounds[:-1]], dtype),
     )
     return _Data(problem, p0, ts[bounds[:-1]], inertia_start, omega_scale, omega_scale, estimated)
 
 
 def _prepare_orientation(
-    ts, q, segments, full_tensor, inertia_init, omega0_init, orientation0_init, loss, f_scale, dtype
+    ts,
+    q,
+    segments,
+    full_tensor,
+    inertia_init,
+    omega0_init,
+    orientation0_init,
+    loss,
+    f_scale,
+    dtype,
+    torques=None,
+    reverse_mode=False,
 ):
     omega_fd = omega_from_orientations(ts, q)
     segments = _resolve_segments(segments, ts, omega_fd)
     valid_rows = np.isfinite(q[:, 0])
-    n_params = (5 if full_tensor else 2) + 6 * segments
+    n_params = (5 if full_tensor else 2) + 6 * segments + (1 if torques is not None else 0)
     bounds, windows = _windows(ts, valid_rows, segments, n_params)
     estimate, smoothed, fd_noise = _estimate(ts, omega_fd, full_tensor=full_tensor)
+    scale_start = None
+    if torques is not None:
+        if inertia_init is None:
+            estimate, scale_start = _torque_estimate(
+                ts, omega_fd, torques, full_tensor, estimate, _align_signs(q)
+            )
+        else:
+            init = np.asarray(inertia_init, float)
+            scale_start = float(np.trace(init) if init.ndim == 2 else init.sum())
     inertia_start = _inertia_start(inertia_init, estimate, full_tensor)
     w0 = _window_start_values(windows, smoothed, omega_fd, omega0_init, segments, "omega0_init")
     q_aligned = _align_signs(q)
@@ -895,9 +995,11 @@ def _prepare_orientation(
     noise_rad = float(rough * 2.0 * np.median(np.diff(ts)) / np.sqrt(2.0))
     if f_scale is None:
         f_scale = 3.0 * max(noise_rad, 1e-12)
-    p0 = np.concatenate(
-        [_inertia_params(inertia_start, full_tensor), (w0 / omega_scale).reshape(-1), np.zeros(3 * segments)]
-    )
+    p_inertia = _inertia_params(inertia_start, full_tensor)
+    if torques is not None:
+        p_inertia = np.concatenate([p_inertia, [math.log(scale_start)]])
+        inertia_start = inertia_start * scale_start
+    p0 = np.concatenate([p_inertia, (w0 / omega_scale).reshape(-1), np.zeros(3 * segments)])
     problem = _Problem(
         t=jnp.asarray(t_win, dtype),
         observed=jnp.asarray(obs_win, dtype),
@@ -907,6 +1009,10 @@ def _prepare_orientation(
         weights=jnp.ones(3, dtype),
         full_tensor=full_tensor,
         loss_kind=loss,
+        torque=torques,
+        omega_scale=omega_scale,
+        reverse_mode=reverse_mode,
+        t_start=jnp.asarray(ts[bounds[:-1]], dtype),
     )
     return _Data(problem, p0, ts[bounds[:-1]], inertia_start, 1.0, omega_scale, np.full(3, noise_rad))
 
@@ -997,6 +1103,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         covariance=covariance,
         normalised=inertia_trace is None and known_moment is None and problem.torque is None,
         method=method,
+        torque=problem.torque,
     )
 
 
@@ -1080,8 +1187,9 @@ def fit_inertia(
         torques = _as_torque_tuple(torque)
         if any(t.needs_orientation for t in torques):
             raise ValueError(
-                "torque: a torque that needs the orientation cannot be fitted from angular velocity "
-                "alone; only torques of (t, omega) are supported here."
+                "torque: a torque that needs the orientation (gravity on a heavy top, a space-fixed "
+                "torque) cannot be fitted from angular velocity alone; fit orientation samples with "
+                "fit_inertia_to_orientation(ts, q, torque=...) instead."
             )
         if inertia_trace is not None or known_moment is not None:
             raise ValueError("A known torque already fixes the scale; drop inertia_trace / known_moment.")
@@ -1128,11 +1236,13 @@ def fit_inertia_to_orientation(
     f_scale: float | None = None,
     inertia_trace: float | None = None,
     known_moment: tuple[int, float] | None = None,
+    torque: Any = None,
     tol: float = 1e-10,
     dtype: Any = None,
     callback: Callable[[int, float], None] | None = None,
 ) -> InertiaFit:
-    """Fits the inertia of a torque-free body to orientation samples (motion capture).
+    """Fits the inertia of a body to orientation samples (motion capture): torque-free, or under a
+    known torque.
 
     The residual of a sample is the rotation vector (rad) from the predicted to the observed
     orientation, ``2 sign(w) vec(q_pred^* q_obs)``, so ``q`` and ``-q`` are the same observation.
@@ -1146,6 +1256,11 @@ def fit_inertia_to_orientation(
       a NaN is a missing sample.
     - `orientation0_init`: starting orientation per window ``(4,)`` or ``(segments, 4)``; by
       default the observed one at each window start.
+    - `torque`: a KNOWN body-frame torque acting during the record, which may depend on the
+      orientation: ``GravityTorque(mass, com)`` for a heavy top or a gyroscope on a pivot (then the
+      inertia is about the pivot), a space-frame ``ConstantTorque``, ``Torque(fn)``, or a tuple. It
+      fixes the scale (inertia in kg m^2); (omega, q) is then integrated (Dopri8, rtol 1e-10,
+      forward-mode derivatives) instead of the closed form.
     {common}
     **Returns:** an :class:`InertiaFit` with ``orientation0`` and ``orientation0_stderr`` (rad, about
     the body axes).
@@ -1153,8 +1268,24 @@ def fit_inertia_to_orientation(
     ts, q = _check_quaternions(ts, orientation_observed)
     method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
     dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    torques = None
+    if torque is not None:
+        torques = _as_torque_tuple(torque)
+        if inertia_trace is not None or known_moment is not None:
+            raise ValueError("A known torque already fixes the scale; drop inertia_trace / known_moment.")
     data = _prepare_orientation(
-        ts, q, segments, full_tensor, inertia_init, omega0_init, orientation0_init, loss, f_scale, dtype
+        ts,
+        q,
+        segments,
+        full_tensor,
+        inertia_init,
+        omega0_init,
+        orientation0_init,
+        loss,
+        f_scale,
+        dtype,
+        torques,
+        reverse_mode=torques is not None and method == "optax",
     )
     return _solve(
         data,

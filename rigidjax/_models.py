@@ -129,6 +129,35 @@ class Torque(AbstractTorque):
         return jnp.asarray(out, state.omega.dtype)
 
 
+class GravityTorque(AbstractTorque):
+    """Uniform gravity on a body held at a fixed point (a pivot, a gimbal, a bearing): the torque
+    ``com x (m g R^T (-Z))`` in body axes (N m), with gravity ``gravity`` (m/s^2) along space -Z,
+    ``mass`` in kg and ``com`` the body-frame position (m) of the centre of mass relative to the fixed
+    point. ``RigidBody(I, torque=GravityTorque(m, com))`` is ``HeavyTop(I, m, com)``; as a known
+    torque it gives :func:`rigidjax.fit_inertia_to_orientation` the scale (a heavy top's m g l).
+    """
+
+    mass: Float[ArrayLike, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "mass"))
+    com: Float[ArrayLike, "*batch 3"] = eqx.field(converter=lambda x: as_float_array(x, "com"))
+    gravity: Float[ArrayLike, "*batch"] = eqx.field(
+        converter=lambda x: as_float_array(x, "gravity"), default=9.81
+    )
+    needs_orientation: ClassVar[bool] = True
+    # Not flagged conservative: RigidBody's energy has no potential term (HeavyTop's has).
+
+    def __check_init__(self):
+        check_last_axis(jnp.asarray(self.com), 3, "GravityTorque.com")
+
+    def _leaf_core_ndims(self):
+        return {"mass": 0, "com": 1, "gravity": 0}
+
+    def __call__(self, t, state, args):
+        dtype = state.omega.dtype
+        up_body = _quat_rotate(_quat_conjugate(state.orientation), jnp.array(_Z, dtype))
+        weight = jnp.asarray(self.mass, dtype) * jnp.asarray(self.gravity, dtype)
+        return weight[..., None] * jnp.cross(up_body, jnp.asarray(self.com, dtype))
+
+
 def _total_torque(torques, t, state, args):
     total = jnp.zeros_like(state.omega)
     for torque in torques:

@@ -1,0 +1,80 @@
+"""The published table of numerical extremes (issue 8), regenerated from the test suite.
+
+Runs ``tests/test_extremes_*.py`` with ``RIGIDJAX_EXTREMES_REPORT`` set: every check records what it
+measured (``extreme(...)`` in tests/conftest.py) next to the bound it asserts. Writes
+``benchmarks/results/extremes.json`` and ``benchmarks/results/extremes.md`` and replaces the table
+between the ``<!-- extremes-table -->`` markers in README.md.
+
+Usage: python benchmarks/extremes_table.py [--no-readme]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+BEGIN, END = "<!-- extremes-table -->", "<!-- /extremes-table -->"
+
+
+def _number(x):
+    return "" if x is None else f"{x:.2g}"
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = [
+        "| Extreme | Case | What rigidjax does | Measured | Bound (tested) | Advice |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        cells = [
+            r["area"],
+            r["case"],
+            r["behaviour"],
+            _number(r["measured"]),
+            _number(r["bound"]),
+            r["advice"],
+        ]
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-readme", action="store_true", help="do not rewrite README.md")
+    args = parser.parse_args()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    report = RESULTS / "extremes.json"
+    tests = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "tests").glob("test_extremes_*.py"))
+    env = dict(os.environ, RIGIDJAX_EXTREMES_REPORT=str(report))
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests], cwd=ROOT, env=env
+    )
+    if result.returncode != 0:
+        sys.exit(f"the extremes tests failed (exit {result.returncode}); the table was not updated")
+    rows = json.loads(report.read_text())
+    order = {name: i for i, name in enumerate(dict.fromkeys(r["area"] for r in rows))}
+    rows.sort(key=lambda r: order[r["area"]])
+    report.write_text(json.dumps(rows, indent=1) + "\n")
+    table = markdown(rows)
+    (RESULTS / "extremes.md").write_text(table)
+    print(table)
+    if not args.no_readme:
+        readme = ROOT / "README.md"
+        text = readme.read_text()
+        if BEGIN in text and END in text:
+            head, rest = text.split(BEGIN, 1)
+            _, tail = rest.split(END, 1)
+            readme.write_text(f"{head}{BEGIN}\n{table}{END}{tail}")
+            print("README.md table updated")
+        else:
+            print(f"README.md has no {BEGIN} ... {END} markers; table not inserted")
+
+
+if __name__ == "__main__":
+    main()
