@@ -53,7 +53,7 @@ def main():
     tests = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "tests").glob("test_extremes_*.py"))
     env = dict(os.environ, RIGIDJAX_EXTREMES_REPORT=str(report))
     result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests], cwd=ROOT, env=env
+        [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", *tests], cwd=ROOT, env=env
     )
     if result.returncode != 0:
         sys.exit(f"the extremes tests failed (exit {result.returncode}); the table was not updated")

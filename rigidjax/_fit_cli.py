@@ -139,7 +139,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--full-tensor", action="store_true", help="fit a full tensor (sensor axes not principal)")
     p.add_argument("--loss", default="squared", choices=("squared", "huber", "soft_l1", "cauchy"))
-    p.add_argument("--method", default="levenberg-marquardt", choices=("levenberg-marquardt", "optax"))
+    p.add_argument("--method", default="optax", choices=("optax", "levenberg-marquardt"))
     p.add_argument("--steps", type=int, default=None, help="iteration limit")
     p.add_argument("--trace", type=float, default=None, help="known trace of the inertia (kg m^2)")
     p.add_argument(

@@ -42,8 +42,9 @@ def test_principal_fit_recovers_truth_and_methods_agree():
     rng = np.random.default_rng(0)
     ts = short_times()
     obs = record(I_TRUE, W0_TRUE, ts, 0.01, rng)
-    lm = fit_inertia(ts, obs)  # Levenberg–Marquardt by default
-    lbfgs = fit_inertia(ts, obs, method="optax")  # optax L-BFGS by default
+    lbfgs = fit_inertia(ts, obs)  # optax (L-BFGS) by default
+    lm = fit_inertia(ts, obs, method="levenberg-marquardt")
+    assert lbfgs.method == "optax" and lm.method == "levenberg-marquardt"
     for fit in (lm, lbfgs):
         assert bool(fit.converged)
         assert fit.inertia.shape == (3,) and fit.omega0.shape == (3,)
