@@ -1190,7 +1190,7 @@ def test_period_near_the_separatrix(extreme):
         extreme,
         "sep/period/value",
         "separatrix (intermediate axis)",
-        "torque_free_period, ω0 = (0, 1, d), d = 1e-1 ... 1e-12 (T = 25 s ... 116 s)",
+        "torque_free_period, ω0 = (0, 1, d), d = 1e-1 ... 1e-12 (T = 27.6 s ... 230 s)",
         "max relative error of T vs 40-digit mpmath",
         value_err,
         "any",
