@@ -9,6 +9,15 @@ Differentiation at degenerate moments (a symmetric top has ``I1 = I2``, a sphere
 ``I1 = I2 = I3``) is safe: :func:`principal_axes` uses an eigendecomposition with its own JVP, which
 drops the ``1 / (I_j - I_i)`` terms of the eigenvector derivative where two moments coincide to
 within roundoff, so gradients stay finite there.
+
+Bad input: shapes other than documented, and complex or boolean dtypes, raise ``ValueError`` /
+``TypeError`` while tracing (integer arrays are promoted to float). At run time (``eqx.error_if``,
+also under ``jit`` and ``vmap``): NaN or inf raises in every function here except
+:func:`is_physical_inertia`, a predicate that answers False for it; negative masses or lengths
+raise in the shape helpers, :func:`parallel_axis` and :func:`composite_inertia` (whose total mass
+must be positive, and whose ``rotations`` must be rotation matrices); :func:`check_inertia` raises
+for a non-physical inertia. The shape helpers accept zero sizes (a thin rod has ``Iz = 0``): such
+moments are valid parts of a composite, and :func:`check_inertia` rejects them for a whole body.
 """
 
 import equinox as eqx
@@ -16,7 +25,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._misc import as_float_array, check_last_axis, check_last_two_axes, common_float, eps, is_full_tensor
+from ._misc import (
+    as_float_array,
+    check_finite,
+    check_last_axis,
+    check_last_two_axes,
+    check_rotation_matrix,
+    common_float,
+    eps,
+    is_full_tensor,
+)
 from ._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
 
 # Two moments closer than this many eps (relative to the largest |moment|) count as degenerate in
@@ -75,7 +93,8 @@ def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
     **Arguments:**
 
     - `tensor`: symmetric inertia tensor ``(..., 3, 3)`` in body axes (kg m^2). It is symmetrised as
-      ``(A + A^T) / 2`` first; use :func:`check_inertia` to reject a non-symmetric one.
+      ``(A + A^T) / 2`` first; use :func:`check_inertia` to reject a non-symmetric one. NaN or inf
+      raises at run time.
 
     **Returns:** ``(moments, axes)``:
 
@@ -94,6 +113,7 @@ def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
     """
     (tensor,) = common_float(tensor, names=["tensor"])
     check_last_two_axes(tensor, "tensor")
+    tensor = check_finite(tensor, "tensor", "principal_axes")
     return _eigh3(0.5 * (tensor + _swap(tensor)))
 
 
@@ -116,7 +136,7 @@ def _inertia_failure(inertia):
         scale = jnp.max(jnp.abs(safe), axis=(-2, -1))
         asym = jnp.max(jnp.abs(safe - _swap(safe)), axis=(-2, -1))
         symmetric = asym <= _SYMMETRY_EPS * tol_eps * scale
-        moments, _ = principal_axes(safe)
+        moments, _ = _eigh3(0.5 * (safe + _swap(safe)))
         trace = jnp.trace(safe, axis1=-2, axis2=-1)
         # Eigenvalues carry roundoff of order eps * trace: one within it of zero counts as zero.
         positive = jnp.all(moments > _TRIANGLE_EPS * tol_eps * jnp.abs(trace)[..., None], axis=-1)
@@ -217,10 +237,26 @@ def parallel_axis(inertia_com: Inertia, mass: Scalar, displacement: Vector) -> M
     )
     _check_inertia_shape(inertia_com, "inertia_com")
     check_last_axis(displacement, 3, "displacement")
+    where = "parallel_axis"
+    inertia_com = check_finite(inertia_com, "inertia_com", where)
+    mass = _check_nonnegative(mass, "mass", where)
+    displacement = check_finite(displacement, "displacement", where)
     return _as_tensor(inertia_com) + _point_mass_tensor(mass, displacement)
 
 
 # --- common shapes -------------------------------------------------------------------------------
+
+
+def _check_nonnegative(x, name: str, where: str):
+    """``x`` wrapped in run-time checks: finite and ``>= 0`` (a mass in kg or a length in m)."""
+    x = check_finite(x, name, where)
+    return eqx.error_if(x, jnp.any(x < 0), f"{where}: {name} must be >= 0, got a negative value.")
+
+
+def _nonnegative(where, **values):
+    """Float arrays of one dtype, each checked by :func:`_check_nonnegative`, in argument order."""
+    arrays = common_float(*values.values(), names=list(values))
+    return [_check_nonnegative(a, n, where) for a, n in zip(arrays, values, strict=True)]
 
 
 def _moments(mass, *factors):
@@ -236,6 +272,7 @@ def solid_box(mass: Scalar, size: Vector) -> VectorOut:
     """
     mass, size = common_float(mass, size, names=["mass", "size"])
     check_last_axis(size, 3, "size")
+    mass, size = _nonnegative("solid_box", mass=mass, size=size)
     s2 = size * size
     a2, b2, c2 = s2[..., 0], s2[..., 1], s2[..., 2]
     return _moments(mass, (b2 + c2) / 12.0, (c2 + a2) / 12.0, (a2 + b2) / 12.0)
@@ -247,7 +284,7 @@ def solid_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     The symmetry axis is z; `radius` and `height` (full length along z) in m, `mass` in kg.
     ``Ix = Iy = m (3 r^2 + h^2) / 12``, ``Iz = m r^2 / 2``.
     """
-    mass, radius, height = common_float(mass, radius, height, names=["mass", "radius", "height"])
+    mass, radius, height = _nonnegative("solid_cylinder", mass=mass, radius=radius, height=height)
     r2, h2 = radius * radius, height * height
     transverse = (3.0 * r2 + h2) / 12.0
     return _moments(mass, transverse, transverse, r2 / 2.0)
@@ -259,7 +296,7 @@ def hollow_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     All the mass is on the curved wall at `radius` (no end caps); the axis is z and `height` is the
     full length along it (m). ``Ix = Iy = m (6 r^2 + h^2) / 12``, ``Iz = m r^2``.
     """
-    mass, radius, height = common_float(mass, radius, height, names=["mass", "radius", "height"])
+    mass, radius, height = _nonnegative("hollow_cylinder", mass=mass, radius=radius, height=height)
     r2, h2 = radius * radius, height * height
     transverse = (6.0 * r2 + h2) / 12.0
     return _moments(mass, transverse, transverse, r2)
@@ -267,14 +304,14 @@ def hollow_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
 
 def solid_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a uniform solid ball: ``2 m r^2 / 5`` each."""
-    mass, radius = common_float(mass, radius, names=["mass", "radius"])
+    mass, radius = _nonnegative("solid_sphere", mass=mass, radius=radius)
     i = 0.4 * radius * radius
     return _moments(mass, i, i, i)
 
 
 def hollow_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a thin spherical shell: ``2 m r^2 / 3`` each."""
-    mass, radius = common_float(mass, radius, names=["mass", "radius"])
+    mass, radius = _nonnegative("hollow_sphere", mass=mass, radius=radius)
     i = (2.0 / 3.0) * radius * radius
     return _moments(mass, i, i, i)
 
@@ -287,6 +324,7 @@ def solid_ellipsoid(mass: Scalar, semi_axes: Vector) -> VectorOut:
     """
     mass, semi_axes = common_float(mass, semi_axes, names=["mass", "semi_axes"])
     check_last_axis(semi_axes, 3, "semi_axes")
+    mass, semi_axes = _nonnegative("solid_ellipsoid", mass=mass, semi_axes=semi_axes)
     s2 = semi_axes * semi_axes
     a2, b2, c2 = s2[..., 0], s2[..., 1], s2[..., 2]
     return _moments(mass, (b2 + c2) / 5.0, (c2 + a2) / 5.0, (a2 + b2) / 5.0)
@@ -299,7 +337,7 @@ def thin_rod(mass: Scalar, length: Scalar) -> VectorOut:
     only valid as a part of a composite body (:func:`composite_inertia`), not on its own; use
     :func:`solid_cylinder` for a rod of finite radius.
     """
-    mass, length = common_float(mass, length, names=["mass", "length"])
+    mass, length = _nonnegative("thin_rod", mass=mass, length=length)
     transverse = length * length / 12.0
     return _moments(mass, transverse, transverse, jnp.zeros_like(transverse))
 
@@ -310,7 +348,7 @@ def thin_disc(mass: Scalar, radius: Scalar) -> VectorOut:
     ``Ix = Iy = m r^2 / 4``, ``Iz = m r^2 / 2 = Ix + Iy`` (exactly): the flat-plate limit of the
     triangle inequality, which :func:`check_inertia` accepts.
     """
-    mass, radius = common_float(mass, radius, names=["mass", "radius"])
+    mass, radius = _nonnegative("thin_disc", mass=mass, radius=radius)
     quarter = radius * radius / 4.0
     return _moments(mass, quarter, quarter, 2.0 * quarter)
 
@@ -364,6 +402,7 @@ def composite_inertia(
     if rotations is not None:
         rotations = args[3]
         check_last_two_axes(rotations, "rotations")
+        rotations = check_rotation_matrix(rotations, "rotations", "composite_inertia")
         part_tensors = rotations @ part_tensors @ _swap(rotations)
     n_parts = masses.shape[0]
     for arr, nm in ((coms, "coms"), (part_tensors, "inertias"), (rotations, "rotations")):
@@ -372,7 +411,16 @@ def composite_inertia(
                 f"{nm} must have the parts axis first, with {n_parts} parts like masses, "
                 f"got shape {arr.shape}."
             )
+    where = "composite_inertia"
+    masses = _check_nonnegative(masses, "masses", where)
+    coms = check_finite(coms, "coms", where)
+    part_tensors = check_finite(part_tensors, "inertias", where)
     total_mass = jnp.sum(masses, axis=0)
+    total_mass = eqx.error_if(
+        total_mass,
+        jnp.any(total_mass <= 0),
+        f"{where}: the total mass is 0: the centre of mass is undefined. Give the parts positive masses.",
+    )
     com = jnp.sum(masses[..., None] * coms, axis=0) / total_mass[..., None]
     offsets = coms - com
     inertia = jnp.sum(part_tensors + _point_mass_tensor(masses, offsets), axis=0)
