@@ -16,11 +16,13 @@ nearly symmetric bodies (m -> 0). Steady rotations (spin about a principal axis,
 ``_steady_omega``).
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from ._elliptic import _carlson_rf_rj, ellipj_m1, ellipkm1
-from ._misc import check_last_axis, common_float, safe_norm
+from ._inertia import check_inertia
+from ._misc import check_finite, check_last_axis, check_rotation_quaternion, common_float, safe_norm
 from ._quaternion import _quat_multiply
 from ._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 
@@ -77,10 +79,19 @@ def _solution_parameters(moments, omega):
     return around_largest, (amp_a, amp_b, amp_c), rate, m, p
 
 
+def _checked(inertia, omega0, t, where):
+    """Run-time value checks of the public closed forms (``eqx.error_if``: also under jit/vmap)."""
+    inertia = check_inertia(inertia, name=f"{where}: inertia")
+    omega0 = check_finite(omega0, "omega0", where)
+    t = t if t is None else check_finite(t, "t", where)
+    return inertia, omega0, t
+
+
 def _broadcast_inputs(inertia, omega0, t):
     inertia, omega0, t = common_float(inertia, omega0, t, names=["inertia", "omega0", "t"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
+    inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_omega")
     batch = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], t.shape)
     return jnp.broadcast_to(inertia, batch + (3,)), jnp.broadcast_to(omega0, batch + (3,)), t
 
@@ -133,7 +144,9 @@ def _motion_parts(inertia, omega0, t):
     )
 
 
-@jax.jit  # one compiled program per shape: eager calls would dispatch op by op
+# One compiled program per shape (eager calls would dispatch op by op); filter_jit so that a
+# failed value check raises as an EquinoxRuntimeError with its message.
+@eqx.filter_jit
 def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     """Body-frame angular velocity of a torque-free body at time ``t`` (s) after ``omega0`` (rad/s).
 
@@ -148,8 +161,7 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     two moments; measured 6e-3 at ``gap = 1e-15``, 1e-8 at 1e-9, 7e-12 at 1e-6,
     ``tests/test_extremes_bodies.py``): the parametrisation's ``1 / (I_j - I_k)`` terms cancel. Exactly
     equal moments are exact; for gaps below ~1e-9 differentiate ``simulate`` instead.
-    Inertia is not validated here (any positive moments give the solution of Euler's equations);
-    ``simulate(..., accuracy="exact")`` rejects non-physical moments.
+    Non-physical moments (beyond the flat plate, non-positive) and NaN/inf inputs are errors.
     """
     inertia, omega0, t = _broadcast_inputs(inertia, omega0, t)
     steady = _steady(inertia, omega0)
@@ -161,7 +173,7 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     return jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
 
 
-@jax.jit
+@eqx.filter_jit
 def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     """Period of the body-frame angular velocity of a torque-free body, ``4 K(m) / lambda`` (s).
 
@@ -171,6 +183,7 @@ def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     inertia, omega0 = common_float(inertia, omega0, names=["inertia", "omega0"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
+    inertia, omega0, _ = _checked(inertia, omega0, None, "torque_free_period")
     inertia, omega0 = jnp.broadcast_arrays(inertia, omega0)
     _, moments, omega, _ = _sorted_frame(inertia, omega0)
     rate = _solution_parameters(moments, omega)[2]
@@ -349,6 +362,8 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
     check_last_axis(q0, 4, "q0")
+    inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_motion")
+    q0 = check_rotation_quaternion(q0, "q0", "torque_free_motion")
     batch = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], q0.shape[:-1], t.shape)
     return (
         jnp.broadcast_to(inertia, batch + (3,)),
@@ -358,7 +373,7 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
     )
 
 
-@jax.jit
+@eqx.filter_jit
 def torque_free_motion(
     inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar
 ) -> tuple[VectorOut, QuaternionOut]:
@@ -472,7 +487,7 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     return jnp.concatenate([q[..., :1], vector], axis=-1)
 
 
-@jax.jit
+@eqx.filter_jit
 def torque_free_orientation(inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar) -> QuaternionOut:
     """Orientation (unit quaternion, scalar first, body -> space) of a torque-free body at time ``t``.
 
