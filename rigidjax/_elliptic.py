@@ -32,6 +32,12 @@ Derivatives are closed forms (``jax.custom_jvp``), exact up to rounding, in ever
 ``dE(phi|m)/dm = (E - F) / (2 m)`` written without the division, and for the Jacobi functions
 ``d am/du = dn``, ``d am/dm = -dn dF/dm`` evaluated at ``phi = am``. They stay finite at ``m = 0``;
 at ``m = 1`` the Jacobi functions use the limits of Abramowitz & Stegun 16.15.
+
+Bad input: complex, boolean and unsupported float dtypes (float16) raise ``TypeError``, and
+arguments that do not broadcast raise ``ValueError`` naming them, while tracing. Values follow
+``scipy.special`` (these are elementwise special functions, used inside rigidjax's closed forms):
+NaN in gives NaN out, and an argument outside the domain (e.g. ``m > 1``) gives NaN, documented per
+function; nothing raises at run time, so a batch with one bad element keeps its other results.
 """
 
 import functools
@@ -50,6 +56,15 @@ from ._types import Scalar, ScalarOut
 _AGM_STEPS = {np.dtype(np.float32): 9, np.dtype(np.float64): 13}
 # Carlson duplication: the deviations shrink by 4 per step; 11 suffice for R_F(0, 1, 1e-300).
 _CARLSON_STEPS = {np.dtype(np.float32): 8, np.dtype(np.float64): 12}
+
+
+def _broadcast(arrays, names):
+    """``jnp.broadcast_arrays`` with a ``ValueError`` that names the arguments."""
+    try:
+        return jnp.broadcast_arrays(*arrays)
+    except ValueError:
+        shapes = ", ".join(f"{n} {tuple(jnp.shape(a))}" for n, a in zip(names, arrays, strict=True))
+        raise ValueError(f"the arguments must broadcast against each other, got shapes {shapes}.") from None
 
 
 def _steps(table, dtype) -> int:
@@ -353,7 +368,7 @@ def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
     ``F(phi | 1) = atanh(sin(phi))`` for ``|phi| < pi/2`` and ``+-inf`` beyond.
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
-    phi, m = jnp.broadcast_arrays(phi, m)
+    phi, m = _broadcast((phi, m), ("phi", "m"))
     return _legendre(phi, m, 1 - m)[0]
 
 
@@ -364,7 +379,7 @@ def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
     For ``m < 0`` the terms of the formula partly cancel: the relative error grows like ``|m| eps``.
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
-    phi, m = jnp.broadcast_arrays(phi, m)
+    phi, m = _broadcast((phi, m), ("phi", "m"))
     return _legendre(phi, m, 1 - m)[1]
 
 
@@ -483,7 +498,7 @@ def ellipj(u: Scalar, m: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Scala
     lie closer to 1 than ``eps / 2``; below that use ``ellipj_m1(u, p)`` with ``p = 1 - m``.
     """
     u, m = common_float(u, m, names=["u", "m"])
-    u, m = jnp.broadcast_arrays(u, m)
+    u, m = _broadcast((u, m), ("u", "m"))
     return _ellipj_checked(u, m, 1 - m)
 
 
@@ -494,7 +509,7 @@ def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Sc
     Derivatives are with respect to ``p`` (``d/dp = -d/dm``).
     """
     u, p = common_float(u, p, names=["u", "p"])
-    u, p = jnp.broadcast_arrays(u, p)
+    u, p = _broadcast((u, p), ("u", "p"))
     return _ellipj_checked(u, 1 - p, p)
 
 
@@ -576,7 +591,7 @@ def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
     duplication, finite wherever all arguments are positive.
     """
     x, y, z, p = common_float(x, y, z, p, names=["x", "y", "z", "p"])
-    x, y, z, p = jnp.broadcast_arrays(x, y, z, p)
+    x, y, z, p = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
     zeros = (x == 0).astype(jnp.int32) + (y == 0).astype(jnp.int32) + (z == 0).astype(jnp.int32)
     bad = (x < 0) | (y < 0) | (z < 0) | (p <= 0) | (zeros > 1) | jnp.isnan(x + y + z + p)
     one = jnp.ones_like(x)

@@ -333,7 +333,7 @@ def test_gradients_match_finite_differences_near_lock(extreme):
             rel = (np.abs(fd - J).max(axis=(-2, -1)) / np.abs(J).max(axis=(-2, -1))).max()
             worst = max(worst, rel)
         print("fd", d, h, worst)
-        bound = {1e-6: 1e-5, 1e-9: 1e-4, 1e-12: 1e-2}[d]
+        bound = {1e-6: 2e-6, 1e-9: 2e-4, 1e-12: 2e-2}[d]  # measured ~6e-7, 6e-5, 6e-3
         assert worst <= bound
         extreme(
             "gimbal lock",
@@ -463,11 +463,12 @@ def test_quat_from_matrix_half_turns(offset, extreme):
     assert err <= bound and err_R <= 1e-15
     assert np.all(q[:, 0] >= 0) and np.abs(np.linalg.norm(q, axis=-1) - 1).max() <= 2.3e-16
     fwd, rev = (np.asarray(j) for j in _rotation_jacobians(R))
+    angle_text = "pi" if offset == 0 else f"pi - {offset:g}"
     assert np.all(np.isfinite(fwd)) and np.all(np.isfinite(rev))
     np.testing.assert_allclose(fwd, rev, atol=1e-14)
     extreme(
         "quaternions",
-        f"quat_from_matrix of a rotation by pi - {offset:g} (trace ~ -1), {K} axes",
+        f"quat_from_matrix of a rotation by {angle_text} (trace ~ -1), {K} axes",
         "exact to roundoff, unit, finite gradients (q may flip sign at w = 0: both are the rotation)",
         err,
         bound,

@@ -1,0 +1,685 @@
+"""Bad inputs to every public function (issue 8): a clear error, nothing silent, nothing lost.
+
+The policy (module docstrings of _quaternion, _euler, _dynamics, _inertia, _misc):
+
+1. Structural problems -- wrong shape, complex or boolean dtype, unknown sequence -- raise
+   ``ValueError``/``TypeError`` while tracing, naming the argument. Integer arrays are promoted to
+   the default float dtype (``_misc.as_float_array``).
+2. Value problems -- NaN or inf, non-physical inertia, a zero quaternion, a matrix that is not a
+   rotation, unsorted times -- raise at run time through ``eqx.error_if``, eagerly, under ``jax.jit``
+   and under ``jax.vmap``, naming the argument and the problem (``EquinoxRuntimeError`` eagerly and
+   under ``eqx.filter_jit``; under a plain ``jax.jit`` equinox's message arrives as a
+   ``jax.errors.JaxRuntimeError``, or a ``ValueError`` from a reused compiled program). Host-side
+   entry points (the fitting functions, which work in NumPy) raise ``ValueError`` at call time.
+3. Finite valid input never manufactures NaN or inf (tests/test_extremes_kinematics.py covers
+   gimbal lock; here: zero omega, identity and half-turn quaternions, zero-size shapes).
+
+Tests of functions whose module lacks a check are ``xfail(strict=True)`` with the missing check as
+the reason, so that adding the check turns them into failures that ask for the marker to go.
+
+Compiling is the cost: each function is jitted once (module-level cache) and every bad value of
+the same shape reuses that program; structural errors raise before anything compiles.
+"""
+
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rigidjax as rj
+
+nan, inf = np.nan, np.inf
+I3 = np.array([1.0, 2.0, 2.5])  # physical principal moments (kg m^2)
+TENSOR = np.array([[2.0, 0.1, 0.0], [0.1, 1.5, 0.2], [0.0, 0.2, 2.5]])
+W = np.array([0.1, 1.0, 0.2])
+Q = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
+ANG = np.array([0.3, 1.1, -0.7])
+R = np.asarray(rj.matrix_from_quat(Q))
+T = np.array(0.5)
+COM = np.array([0.0, 0.0, 0.1])
+
+# eqx.error_if raises EquinoxRuntimeError eagerly and under eqx.filter_jit. Under a plain jax.jit
+# the same message arrives as a jax.errors.JaxRuntimeError on the first call and -- measured with
+# jax 0.10.2, when the compiled program is reused through JAX's fast dispatch path -- as a plain
+# ValueError. The tests therefore match on the message, which is what is stable.
+RUNTIME = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, ValueError)
+
+
+def with_value(x, value, index=0):
+    x = np.array(x, dtype=float)
+    x.flat[index] = value
+    return x
+
+
+# ----------------------------------------------------------------------------------------------
+# The table: name -> (function of positional array arguments, good arguments, argument names)
+# ----------------------------------------------------------------------------------------------
+
+CALLS = {
+    # kinematics
+    "matrix_from_euler": (lambda a: rj.matrix_from_euler(a, "zxz"), (ANG,), ("angles",)),
+    "quat_from_euler": (lambda a: rj.quat_from_euler(a, "xyz"), (ANG,), ("angles",)),
+    "euler_from_matrix": (lambda m: rj.euler_from_matrix(m, "zyz"), (R,), ("R",)),
+    "euler_from_quat": (lambda q: rj.euler_from_quat(q, "zyx"), (Q,), ("q",)),
+    "matrix_from_quat": (rj.matrix_from_quat, (Q,), ("q",)),
+    "quat_from_matrix": (rj.quat_from_matrix, (R,), ("R",)),
+    "quat_multiply": (rj.quat_multiply, (Q, Q), ("p", "q")),
+    "quat_conjugate": (rj.quat_conjugate, (Q,), ("q",)),
+    "quat_rotate": (rj.quat_rotate, (Q, W), ("q", "v")),
+    "quat_normalize": (rj.quat_normalize, (Q,), ("q",)),
+    "body_angular_velocity": (
+        lambda a, r: rj.body_angular_velocity(a, r, "zxz"),
+        (ANG, W),
+        ("angles", "rates"),
+    ),
+    "space_angular_velocity": (
+        lambda a, r: rj.space_angular_velocity(a, r, "yzx"),
+        (ANG, W),
+        ("angles", "rates"),
+    ),
+    "euler_rates": (lambda a, w: rj.euler_rates(a, w, "zxz"), (ANG, W), ("angles", "omega")),
+    # dynamics
+    "euler_equations": (rj.euler_equations, (I3, W, W), ("inertia", "omega", "torque")),
+    "euler_equations_tensor": (rj.euler_equations, (TENSOR, W), ("inertia", "omega")),
+    "inertia_times": (rj.inertia_times, (I3, W), ("inertia", "omega")),
+    "angular_momentum": (rj.angular_momentum, (I3, W), ("inertia", "omega")),
+    "kinetic_energy": (rj.kinetic_energy, (TENSOR, W), ("inertia", "omega")),
+    "space_angular_momentum": (rj.space_angular_momentum, (I3, W, Q), ("inertia", "omega", "orientation")),
+    "free_precession_rate": (
+        rj.free_precession_rate,
+        (np.array(1.0), np.array(1.5), T),
+        ("I1", "I3", "omega3"),
+    ),
+    # inertia
+    "check_inertia": (rj.check_inertia, (I3,), ("inertia",)),
+    "check_inertia_tensor": (rj.check_inertia, (TENSOR,), ("inertia",)),
+    "principal_axes": (lambda t: rj.principal_axes(t)[0], (TENSOR,), ("tensor",)),
+    "parallel_axis": (rj.parallel_axis, (I3, np.array(2.0), COM), ("inertia_com", "mass", "displacement")),
+    "composite_inertia": (
+        lambda m, c, i: rj.composite_inertia(m, c, i)[2],
+        (np.array([1.0, 2.0]), np.array([[0, 0, 0.1], [0, 0.2, 0]]), np.array([I3, I3])),
+        ("masses", "coms", "inertias"),
+    ),
+    "solid_box": (rj.solid_box, (np.array(2.0), np.array([1.0, 2.0, 3.0])), ("mass", "size")),
+    "solid_cylinder": (rj.solid_cylinder, (np.array(2.0), T, T), ("mass", "radius", "height")),
+    "hollow_cylinder": (rj.hollow_cylinder, (np.array(2.0), T, T), ("mass", "radius", "height")),
+    "solid_sphere": (rj.solid_sphere, (np.array(2.0), T), ("mass", "radius")),
+    "hollow_sphere": (rj.hollow_sphere, (np.array(2.0), T), ("mass", "radius")),
+    "solid_ellipsoid": (
+        rj.solid_ellipsoid,
+        (np.array(2.0), np.array([1.0, 2.0, 3.0])),
+        ("mass", "semi_axes"),
+    ),
+    "thin_rod": (rj.thin_rod, (np.array(2.0), T), ("mass", "length")),
+    "thin_disc": (rj.thin_disc, (np.array(2.0), T), ("mass", "radius")),
+}
+
+
+GOOD_ARGS = {name: tuple(np.asarray(a, np.float64) for a in good) for name, (_, good, _) in CALLS.items()}
+
+
+@jax.jit
+def _all_calls(args):
+    """Every function of the table in ONE compiled program. Bad values have the shapes of the good
+    ones, so all the jit cases below reuse this single compile; the one bad argument's check fires."""
+    return {name: CALLS[name][0](*a) for name, a in args.items()}
+
+
+def call(name, args, mode):
+    if mode == "jit":
+        return jax.block_until_ready(_all_calls({**GOOD_ARGS, name: tuple(args)})[name])
+    return jax.block_until_ready(CALLS[name][0](*args))
+
+
+def replaced(name, arg, value):
+    fn, good, names = CALLS[name]
+    args = list(good)
+    args[names.index(arg)] = value
+    return args
+
+
+def test_good_inputs_give_finite_output():
+    jitted = _all_calls(GOOD_ARGS)
+    for name in CALLS:
+        for out in (call(name, GOOD_ARGS[name], "eager"), jitted[name]):
+            assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(out)), name
+
+
+# ----------------------------------------------------------------------------------------------
+# 1. Structural problems: trace-time ValueError / TypeError naming the argument
+# ----------------------------------------------------------------------------------------------
+
+
+def _wrong_shape(x):
+    x = np.asarray(x)
+    if x.ndim == 0:
+        return None  # scalars broadcast: no shape is wrong
+    if x.shape[-2:] == (3, 3):
+        return np.zeros(x.shape[:-2] + (3, 2))
+    return np.zeros(x.shape[:-1] + (x.shape[-1] + 2,))
+
+
+SHAPE_CASES = [
+    (name, arg)
+    for name, (_, good, names) in CALLS.items()
+    for arg, x in zip(names, good, strict=True)
+    if _wrong_shape(x) is not None
+]
+
+
+@pytest.mark.parametrize("mode", ["eager", "jit"])
+@pytest.mark.parametrize(("name", "arg"), SHAPE_CASES, ids=[f"{n}-{a}" for n, a in SHAPE_CASES])
+def test_wrong_shape_raises_naming_the_argument(name, arg, mode, without_runtime_typecheck):
+    args = replaced(name, arg, _wrong_shape(CALLS[name][1][CALLS[name][2].index(arg)]))
+    fn = jax.jit(CALLS[name][0]) if mode == "jit" else CALLS[name][0]  # (raises while tracing)
+    with pytest.raises(ValueError, match=rf"\b{arg}\b.*shape"):
+        fn(*args)
+
+
+DTYPE_CASES = [(name, names[0]) for name, (_, _, names) in CALLS.items()]
+
+
+@pytest.mark.parametrize(("name", "arg"), DTYPE_CASES, ids=[n for n, _ in DTYPE_CASES])
+def test_complex_and_bool_raise_type_error(name, arg, without_runtime_typecheck):
+    good = np.asarray(CALLS[name][1][0])
+    for bad, what in ((good.astype(complex), "real"), (good != 0, "bool")):
+        for fn in (CALLS[name][0], jax.jit(CALLS[name][0])):
+            with pytest.raises(TypeError, match=rf"\b{arg}\b.*{what}"):
+                fn(*replaced(name, arg, bad))
+
+
+def test_integers_are_promoted(without_runtime_typecheck, extreme):
+    out = rj.matrix_from_euler(np.array([0, 1, 0]))
+    assert out.dtype == jnp.float64
+    np.testing.assert_allclose(out, rj.matrix_from_euler(np.array([0.0, 1.0, 0.0])))
+    assert rj.euler_equations(np.array([1, 2, 2]), np.array([0, 0, 1])).dtype == jnp.float64
+    assert rj.solid_box(3, np.array([1, 2, 3])).dtype == jnp.float64
+    extreme(
+        "bad input",
+        "wrong shape, complex or boolean dtype, unknown sequence (all public array functions)",
+        "ValueError/TypeError while tracing, naming the argument; integer arrays promoted to float",
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# 2. Value problems: run-time errors (eqx.error_if) eagerly and under jit
+# ----------------------------------------------------------------------------------------------
+
+_FLIP = np.diag([1.0, 1.0, -1.0])
+VALUE_CASES = [
+    # (name, argument, bad value, regex the message must match)
+    *[
+        (name, arg, with_value(x, bad), rf"{name.split('_tensor')[0]}: {arg} contains NaN or inf")
+        for name, (_, good, names) in CALLS.items()
+        if not name.startswith("check_inertia")
+        for arg, x in zip(names, good, strict=True)
+        for bad in (nan, inf)
+    ],
+    ("check_inertia", "inertia", with_value(I3, nan), r"inertia \(principal moments\) contains NaN"),
+    ("check_inertia", "inertia", np.array([1.0, 1.0, 3.0]), "triangle inequality"),
+    ("check_inertia", "inertia", np.array([-1.0, 2.0, 2.5]), "non-positive principal moment"),
+    ("check_inertia_tensor", "inertia", TENSOR + np.triu(np.ones((3, 3)), 1), "not symmetric"),
+    ("check_inertia_tensor", "inertia", with_value(TENSOR, inf, 4), r"inertia \(tensor\) contains NaN"),
+    ("euler_equations", "inertia", np.array([0.0, 2.0, 2.5]), "euler_equations: inertia is singular"),
+    ("euler_equations_tensor", "inertia", np.ones((3, 3)), "euler_equations: inertia is singular"),
+    ("free_precession_rate", "I1", np.array(0.0), "free_precession_rate: I1 = 0"),
+    *[
+        (name, arg, np.zeros(4), rf"{name}: {arg} has zero norm")
+        for name, arg in [
+            ("matrix_from_quat", "q"),
+            ("euler_from_quat", "q"),
+            ("quat_rotate", "q"),
+            ("quat_normalize", "q"),
+            ("space_angular_momentum", "orientation"),
+        ]
+    ],
+    ("quat_from_matrix", "R", 1.01 * R, r"quat_from_matrix: R is not a rotation matrix"),
+    ("euler_from_matrix", "R", R + 1e-5, r"euler_from_matrix: R is not a rotation matrix"),
+    ("quat_from_matrix", "R", R @ _FLIP, r"quat_from_matrix: R has determinant -1"),
+    ("euler_from_matrix", "R", -R, r"euler_from_matrix: R has determinant -1"),
+    *[
+        (name, "mass", np.array(-1.0), rf"{name}: mass must be >= 0")
+        for name in ("parallel_axis", "solid_box", "solid_cylinder", "solid_sphere", "thin_rod", "thin_disc")
+    ],
+    ("solid_ellipsoid", "semi_axes", np.array([1.0, -2.0, 3.0]), "semi_axes must be >= 0"),
+    ("hollow_cylinder", "height", np.array(-1.0), "height must be >= 0"),
+    ("composite_inertia", "masses", np.array([-1.0, 2.0]), "masses must be >= 0"),
+    ("composite_inertia", "masses", np.array([0.0, 0.0]), "total mass is 0"),
+]
+VALUE_IDS = [f"{n}-{a}-{i}" for i, (n, a, _, _) in enumerate(VALUE_CASES)]
+
+
+@pytest.mark.parametrize("mode", ["eager", "jit"])
+@pytest.mark.parametrize(("name", "arg", "bad", "match"), VALUE_CASES, ids=VALUE_IDS)
+def test_bad_values_raise_at_run_time(name, arg, bad, match, mode):
+    with pytest.raises(RUNTIME, match=match):
+        call(name, replaced(name, arg, bad), mode)
+
+
+def test_bad_value_under_vmap(extreme):
+    """One bad row in a vmapped batch fails the whole call, naming the argument."""
+    q = np.stack([Q, Q, np.zeros(4)])
+    with pytest.raises(RUNTIME, match="matrix_from_quat: q has zero norm"):
+        jax.block_until_ready(jax.vmap(rj.matrix_from_quat)(q))
+    omega = np.stack([W, with_value(W, nan)])
+    with pytest.raises(RUNTIME, match="euler_equations: omega contains NaN"):
+        jax.block_until_ready(jax.jit(jax.vmap(rj.euler_equations, in_axes=(None, 0)))(I3, omega))
+    np.testing.assert_allclose(jax.vmap(rj.matrix_from_quat)(q[:2]), np.stack([R, R]), atol=1e-15)
+    for area, case, behaviour in [
+        (
+            "bad input",
+            "NaN or inf in any array argument",
+            "EquinoxRuntimeError naming the function and argument",
+        ),
+        (
+            "bad input",
+            "non-physical inertia (check_inertia, simulate, models)",
+            "EquinoxRuntimeError naming the problem (triangle inequality, non-positive, non-symmetric)",
+        ),
+        (
+            "bad input",
+            "zero quaternion; matrix off a rotation by > 1e-6 (float64) / 1e-4 (float32), or det -1",
+            "EquinoxRuntimeError; a non-unit but nonzero quaternion is normalised (as scipy)",
+        ),
+        ("bad input", "negative mass or length; zero total mass", "EquinoxRuntimeError naming the argument"),
+    ]:
+        extreme(area, case, behaviour, advice="errors fire under jit and vmap too (eqx.error_if)")
+
+
+def test_non_unit_quaternion_is_normalised_not_rejected():
+    """The contract's quaternions are unit, but any nonzero q means the rotation of q/|q| (scipy's
+    from_quat; tests/test_kinematics.py pins it for euler_from_quat): matrices stay orthogonal and
+    rotated vectors keep their length."""
+    for scale in (1 + 1e-9, 2.5, 1e-3):
+        np.testing.assert_allclose(rj.matrix_from_quat(scale * Q), R, atol=1e-15)
+        np.testing.assert_allclose(rj.quat_rotate(scale * Q, W), R @ W, atol=1e-15)
+        np.testing.assert_allclose(rj.quat_normalize(scale * Q), Q, atol=1e-16)
+        np.testing.assert_allclose(rj.euler_from_quat(scale * Q), rj.euler_from_matrix(R), atol=1e-15)
+
+
+def test_tiny_non_orthogonality_is_accepted():
+    np.testing.assert_allclose(rj.quat_from_matrix(R + 1e-9), Q, atol=1e-8)
+    R32 = (R + 1e-5).astype(np.float32)  # float32 tolerance is 1e-4
+    assert rj.quat_from_matrix(R32).dtype == jnp.float32
+    with pytest.raises(RUNTIME, match="not a rotation matrix"):
+        jax.block_until_ready(rj.quat_from_matrix((R + 1e-3).astype(np.float32)))
+
+
+def test_is_physical_inertia_answers_instead_of_raising():
+    out = rj.is_physical_inertia(np.array([I3, with_value(I3, nan), [1.0, 1.0, 3.0], [-1.0, 2.0, 2.5]]))
+    np.testing.assert_array_equal(out, [True, False, False, False])
+
+
+def test_euler_rates_throw_false_propagates_nan():
+    out = rj.euler_rates(ANG, with_value(W, nan), throw=False)
+    assert np.all(np.isnan(out))
+
+
+# ----------------------------------------------------------------------------------------------
+# 3. Finite valid input never manufactures NaN or inf
+# ----------------------------------------------------------------------------------------------
+
+
+def test_valid_degenerate_inputs_stay_finite(extreme):
+    zero = np.zeros(3)
+    outs = [
+        rj.euler_equations(I3, zero),
+        rj.euler_equations(TENSOR, zero),
+        rj.kinetic_energy(I3, zero),
+        rj.quat_rotate(Q, zero),
+        rj.euler_rates(ANG, zero),
+        rj.euler_rates(np.array([0.3, 0.0, 0.2]), zero),  # at gimbal lock, omega = 0 is followable
+        rj.body_angular_velocity(np.array([0.3, 0.0, 0.2]), zero),
+        rj.quat_from_matrix(np.eye(3)),
+        rj.quat_from_matrix(np.diag([1.0, -1.0, -1.0])),
+        rj.euler_from_quat(np.array([0.0, 0.0, 0.0, 1.0])),
+        rj.thin_rod(np.array(1.0), np.array(0.0)),
+        rj.solid_sphere(np.array(0.0), T),
+        rj.principal_axes(np.eye(3))[1],
+        rj.free_precession_rate(np.array(1.0), np.array(2.0), np.array(0.0)),
+        rj.parallel_axis(I3, np.array(0.0), COM),
+    ]
+    for out in outs:
+        assert np.all(np.isfinite(np.asarray(out)))
+    # Gradients too, at zero omega and the identity rotation.
+    g = jax.grad(lambda w: rj.kinetic_energy(I3, w) + jnp.sum(rj.euler_equations(I3, w)))(zero)
+    assert np.all(np.isfinite(g))
+    g = jax.jacrev(rj.quat_from_matrix)(np.eye(3))
+    assert np.all(np.isfinite(g))
+    extreme(
+        "bad input",
+        "valid degenerate input: zero omega, identity / half-turn rotations, zero-size parts",
+        "finite values and gradients (no manufactured NaN/inf)",
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# 4. Elliptic functions: scipy.special's conventions
+# ----------------------------------------------------------------------------------------------
+
+ELLIPTIC = {
+    "ellipk": (rj.ellipk, (0.5,)),
+    "ellipkm1": (rj.ellipkm1, (0.5,)),
+    "ellipe": (rj.ellipe, (0.5,)),
+    "ellipkinc": (rj.ellipkinc, (0.3, 0.5)),
+    "ellipeinc": (rj.ellipeinc, (0.3, 0.5)),
+    "ellipj": (rj.ellipj, (0.3, 0.5)),
+    "ellipj_m1": (rj.ellipj_m1, (0.3, 0.5)),
+    "elliprj": (rj.elliprj, (1.0, 2.0, 3.0, 4.0)),
+}
+
+
+@pytest.mark.parametrize("name", list(ELLIPTIC))
+def test_elliptic_bad_inputs(name, without_runtime_typecheck, extreme):
+    """Elementwise special functions keep scipy's semantics: NaN in, NaN out (never a finite
+    number), while structural problems raise naming the argument."""
+    fn, good = ELLIPTIC[name]
+    args = [np.asarray(a) for a in good]
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(fn(*args)))
+    nan_out = fn(*([np.asarray(nan)] + args[1:]))
+    assert all(np.all(np.isnan(x)) for x in jax.tree.leaves(nan_out))
+    for bad, error in ((args[0].astype(complex), "must be real"), (np.asarray(True), "bool")):
+        with pytest.raises(TypeError, match=error):
+            fn(*([bad] + args[1:]))
+    with pytest.raises(TypeError, match="float32 and float64"):
+        fn(*[a.astype(np.float16) for a in args])
+    if len(args) > 1:
+        with pytest.raises(ValueError, match="must broadcast"):
+            fn(*([np.ones(2)] + [np.full(3, a) for a in args[1:]]))
+    if name == "ellipk":
+        extreme(
+            "bad input",
+            "elliptic functions: NaN or out-of-domain arguments",
+            "NaN results, as scipy.special (elementwise; a batch keeps its other elements)",
+            advice="check domains (0 <= m <= 1) before calling",
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# 5. Entry points of the other modules: scenes, simulate, closed forms, fitting, integrators
+# ----------------------------------------------------------------------------------------------
+
+TS = np.linspace(0.0, 1.0, 5)
+
+
+def _simulate(model=None, state=None, ts=TS):
+    model = rj.FreeBody(I3) if model is None else model
+    state = rj.State(W, Q) if state is None else state
+    return jax.block_until_ready(rj.simulate(model, state, ts, accuracy="fast").omega)
+
+
+def _heavy_top(mass=1.0, com=COM, torque=W):
+    """One model structure (so one compile) for the model-field cases: a heavy top with a torque."""
+    return rj.HeavyTop(I3, np.asarray(mass), com, torque=rj.ConstantTorque(torque))
+
+
+SIMULATE_CASES = {
+    "nan-inertia": (lambda: _simulate(rj.FreeBody(with_value(I3, nan))), "inertia .*contains NaN"),
+    "non-physical-inertia": (
+        lambda: _simulate(rj.FreeBody(np.array([1.0, 1.0, 3.0]))),
+        "triangle inequality",
+    ),
+    "negative-moment": (lambda: _simulate(rj.FreeBody(np.array([-1.0, 2.0, 2.5]))), "non-positive"),
+    "nan-omega": (lambda: _simulate(state=rj.State(with_value(W, nan), Q)), "state0.omega contains NaN"),
+    "inf-orientation": (lambda: _simulate(state=rj.State(W, with_value(Q, inf))), "orientation contains NaN"),
+    "non-unit-orientation": (lambda: _simulate(state=rj.State(W, 1.1 * Q)), "not a unit quaternion"),
+    "zero-orientation": (lambda: _simulate(state=rj.State(W, np.zeros(4))), "not a unit quaternion"),
+    "unsorted-ts": (lambda: _simulate(ts=TS[::-1]), "strictly increasing"),
+    "duplicate-ts": (lambda: _simulate(ts=np.array([0.0, 0.5, 0.5, 0.7, 1.0])), "strictly increasing"),
+    "nan-ts": (lambda: _simulate(ts=with_value(TS, nan, 2)), "ts contains NaN"),
+    "heavy-top-nan-mass": (lambda: _simulate(_heavy_top(mass=nan)), "'mass' contains NaN"),
+    "heavy-top-nan-com": (lambda: _simulate(_heavy_top(com=with_value(COM, nan))), "'com' contains NaN"),
+    "constant-torque-nan": (lambda: _simulate(_heavy_top(torque=with_value(W, nan))), "torque' contains NaN"),
+}
+
+
+@pytest.mark.parametrize("case", list(SIMULATE_CASES))
+def test_simulate_rejects_bad_values(case):
+    """simulate is itself jitted (eqx.filter_jit): these are run-time errors inside a compiled program."""
+    fn, match = SIMULATE_CASES[case]
+    with pytest.raises(RUNTIME, match=match):
+        fn()
+
+
+def test_scene_structural_errors(without_runtime_typecheck, extreme):
+    for fn, match in [
+        (lambda: rj.State(np.ones(4)), r"State\.omega must have shape"),
+        (lambda: rj.State(W, np.ones(3)), r"State\.orientation must have shape"),
+        (lambda: rj.State(W.astype(complex)), "omega must be real"),
+        (lambda: rj.FreeBody(np.ones(4)), "inertia must be principal moments"),
+        (lambda: rj.HeavyTop(I3, 1.0, np.ones(2)), r"HeavyTop\.com must have shape"),
+        (lambda: rj.ConstantTorque(np.ones(2)), r"ConstantTorque\.torque must have shape"),
+        (lambda: rj.ConstantTorque(W, frame="world"), "frame must be 'body' or 'space'"),
+        (
+            lambda: rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="bogus"),
+            "accuracy must be one of",
+        ),
+        (lambda: rj.simulate(rj.FreeBody(I3), rj.State(W, Q), np.ones((2, 3))), "ts must be a 1-D array"),
+    ]:
+        with pytest.raises((ValueError, TypeError), match=match):
+            fn()
+    trajectory = rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="fast")
+    with pytest.raises(ValueError, match="seq must be one of"):
+        trajectory.euler_angles("abc")
+    omega_only = rj.simulate(rj.FreeBody(I3), rj.State(W), TS, accuracy="fast")
+    for method in (omega_only.space_angular_momentum, omega_only.euler_angles):
+        with pytest.raises(ValueError, match="orientation"):
+            method()
+    extreme(
+        "bad input",
+        "simulate: NaN/inf in the model or state, non-physical inertia, non-unit orientation, "
+        "unsorted or repeated ts",
+        "EquinoxRuntimeError inside the compiled simulation, naming the field",
+    )
+
+
+_TS_FIT = np.linspace(0.0, 10.0, 41)
+_W_FIT = np.asarray(rj.torque_free_omega(I3, W, _TS_FIT))
+_Q_FIT = np.asarray(rj.torque_free_orientation(I3, W, Q, _TS_FIT))
+FIT_CASES = {
+    "fit_inertia-inf": (
+        lambda: rj.fit_inertia(_TS_FIT, with_value(_W_FIT, inf)),
+        "omega_observed contains inf",
+    ),
+    "fit_inertia-unsorted": (lambda: rj.fit_inertia(_TS_FIT[::-1], _W_FIT), "strictly increasing"),
+    "fit_inertia-nan-ts": (lambda: rj.fit_inertia(with_value(_TS_FIT, nan), _W_FIT), "ts contains NaN"),
+    "fit_inertia-shape": (
+        lambda: rj.fit_inertia(_TS_FIT, _W_FIT[:, :2]),
+        r"omega_observed must have shape \(T, 3\)",
+    ),
+    "fit_inertia-all-missing": (
+        lambda: rj.fit_inertia(_TS_FIT, np.full_like(_W_FIT, nan)),
+        "Too few samples",
+    ),
+    "fit_to_orientation-non-unit": (
+        lambda: rj.fit_inertia_to_orientation(_TS_FIT, 1.1 * _Q_FIT),
+        "orientation_observed must hold unit quaternions",
+    ),
+    "fit_to_orientation-unsorted": (
+        lambda: rj.fit_inertia_to_orientation(_TS_FIT[::-1], _Q_FIT),
+        "strictly increasing",
+    ),
+    "omega_from_orientations-zero": (
+        lambda: rj.omega_from_orientations(_TS_FIT, with_value(_Q_FIT, 0.0) * (np.arange(41) > 0)[:, None]),
+        "unit quaternions; row 0 has norm 0",
+    ),
+    "omega_from_orientations-unsorted": (
+        lambda: rj.omega_from_orientations(_TS_FIT[::-1], _Q_FIT),
+        "strictly increasing",
+    ),
+    "omega_from_orientations-inf": (
+        lambda: rj.omega_from_orientations(_TS_FIT, with_value(_Q_FIT, inf)),
+        "orientation_observed contains inf",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(FIT_CASES))
+def test_fitting_rejects_bad_data_at_call_time(case):
+    """The fitting entry points prepare data in NumPy: errors are ValueErrors before any compile.
+    NaN samples are missing data by contract, not an error (all missing: too few samples)."""
+    fn, match = FIT_CASES[case]
+    with pytest.raises(ValueError, match=match):
+        fn()
+
+
+def _raises_or_nan(fn):
+    """For the xfail tests below: pass only if ``fn`` raises naming a problem."""
+    with pytest.raises((RuntimeError, ValueError, TypeError)):
+        out = jax.block_until_ready(fn())
+        assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(out) if hasattr(x, "dtype"))
+
+
+_MISSING = {
+    # (case) -> (call, reason); reason = the check that is missing, and where.
+    "torque_free_omega-nan": (
+        lambda: rj.torque_free_omega(I3, with_value(W, nan), 0.5),
+        "_torque_free.torque_free_omega: NaN/inf in inertia, omega0 or t returns NaN silently",
+    ),
+    "torque_free_period-negative-moment": (
+        lambda: rj.torque_free_period(np.array([-1.0, 2.0, 2.5]), W),
+        "_torque_free.torque_free_period: non-positive moments give NaN silently",
+    ),
+    "torque_free_motion-zero-q0": (
+        lambda: rj.torque_free_motion(I3, W, np.zeros(4), 0.5),
+        "_torque_free.torque_free_motion/orientation: a zero q0 returns a finite (meaningless) quaternion",
+    ),
+    "spin_stability-nan-omega": (
+        lambda: rj.spin_stability(I3, nan),
+        "_stability.spin_stability: NaN omega_magnitude returns NaN rates silently",
+    ),
+    "sleeping_top-nan-omega3": (
+        lambda: rj.sleeping_top(np.array([1.0, 1.0, 0.5]), 1.0, COM, nan),
+        "_stability.sleeping_top: NaN omega3 (or mass, gravity) returns NaN silently",
+    ),
+    "sleeping_top-negative-mass": (
+        lambda: rj.sleeping_top(np.array([1.0, 1.0, 0.5]), -1.0, COM, 20.0),
+        "_stability.sleeping_top: a negative mass is accepted",
+    ),
+    "simulate-heavy-top-negative-mass": (
+        lambda: _simulate(_heavy_top(mass=-1.0)),
+        "_simulate/_models: HeavyTop with a negative mass is simulated without error",
+    ),
+    "estimate_inertia-unsorted": (
+        lambda: rj.estimate_inertia(_TS_FIT[::-1], _W_FIT),
+        "_fit.estimate_inertia: unsorted ts give NaN results instead of the ValueError fit_inertia raises",
+    ),
+    "estimate_inertia-inf": (
+        lambda: rj.estimate_inertia(_TS_FIT, with_value(_W_FIT, inf)),
+        "_fit.estimate_inertia: inf samples give NaN results instead of a ValueError",
+    ),
+    "quat_exp-nan": (
+        lambda: rj.quat_exp(with_value(W, nan)),
+        "_lie_group.quat_exp: NaN/inf theta returns NaN silently",
+    ),
+    "dexpinv-nan": (
+        lambda: rj.dexpinv(W, with_value(W, nan)),
+        "_lie_group.dexpinv: NaN/inf returns NaN silently",
+    ),
+    "rkmk_step-nan-omega": (
+        lambda: rj.rkmk_step(lambda t, w, q, args: -w, 0.0, with_value(W, nan), Q, 0.1),
+        "_lie_group.rkmk_step: NaN omega/q/h returns NaN silently",
+    ),
+    "simulate_structure_preserving-nan-omega": (
+        lambda: (
+            rj.simulate_structure_preserving(
+                rj.FreeBody(I3), rj.State(with_value(W, nan), Q), TS, rj.RKMK(), 0.1
+            ).omega
+        ),
+        "_lie_group.simulate_structure_preserving: NaN state0.omega gives a NaN trajectory (simulate raises)",
+    ),
+    "simulate_structure_preserving-non-physical": (
+        lambda: (
+            rj.simulate_structure_preserving(
+                rj.FreeBody(np.array([1.0, 1.0, 3.0])), rj.State(W, Q), TS, rj.RKMK(), 0.1
+            ).omega
+        ),
+        "_lie_group.simulate_structure_preserving: non-physical inertia is integrated (simulate raises)",
+    ),
+    "split_free_body-nan": (
+        lambda: rj.split_free_body(with_value(I3, nan), W, Q, 0.1, 2),
+        "_splitting.split_free_body: NaN/inf inertia, L0, q0 or dt returns NaN silently",
+    ),
+    "split_free_body-zero-q0": (
+        lambda: rj.split_free_body(I3, W, np.zeros(4), 0.1, 2),
+        "_splitting.split_free_body: a zero q0 is integrated silently",
+    ),
+    "split_heavy_top-nan": (
+        lambda: rj.split_heavy_top(I3, nan, COM, 9.81, W, Q, 0.1, 2),
+        "_splitting.split_heavy_top: NaN mass (or other input) returns NaN silently",
+    ),
+    "LiePoissonSplitting-nan": (
+        lambda: rj.LiePoissonSplitting(with_value(I3, nan)).inertia,
+        "_splitting.LiePoissonSplitting: NaN/non-physical inertia is accepted at construction",
+    ),
+    "HeavyTopSplitting-nan": (
+        lambda: rj.HeavyTopSplitting(I3, nan, COM).inertia,
+        "_splitting.HeavyTopSplitting: NaN mass is accepted at construction",
+    ),
+}
+
+
+@pytest.mark.parametrize(
+    "case",
+    [pytest.param(c, marks=pytest.mark.xfail(strict=True, reason=r)) for c, (_, r) in _MISSING.items()],
+)
+def test_missing_value_checks(case):
+    _raises_or_nan(_MISSING[case][0])
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="_fit: complex omega_observed is cast to float (imaginary part dropped; only a ComplexWarning)",
+)
+def test_fit_rejects_complex_data():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (the warning, not a fit: this stays cheap)
+        with pytest.raises(TypeError, match="omega_observed"):
+            rj.fit_inertia(_TS_FIT, _W_FIT.astype(complex), steps=1)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="_lie_group.dexpinv: a wrong shape raises jnp.cross's message, not naming the argument",
+)
+def test_dexpinv_shape_error_names_argument(without_runtime_typecheck):
+    with pytest.raises(ValueError, match=r"\btheta\b"):
+        rj.dexpinv(np.ones(4), W)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="_fit.estimate_inertia: a (T, 2) omega_observed raises IndexError, not a ValueError naming it",
+)
+def test_estimate_inertia_shape_error_names_argument():
+    with pytest.raises(ValueError, match="omega_observed"):
+        rj.estimate_inertia(_TS_FIT, _W_FIT[:, :2])
+
+
+def test_other_structural_errors(without_runtime_typecheck):
+    for fn, match in [
+        (lambda: rj.torque_free_omega(np.ones(4), W, 0.5), "inertia must have shape"),
+        (lambda: rj.torque_free_orientation(I3, W, np.zeros(3), 0.5), "q0 must have shape"),
+        (lambda: rj.torque_free_period(I3.astype(complex), W), "inertia must be real"),
+        (lambda: rj.quat_exp(np.ones(4)), "theta must have shape"),
+        (lambda: rj.rkmk_step(lambda t, w, q, a: w, 0.0, np.ones(4), Q, 0.1), "omega must have shape"),
+        (
+            lambda: rj.rkmk_step(lambda t, w, q, a: w, 0.0, W, Q, 0.1, tableau="bogus"),
+            "tableau must be one of",
+        ),
+        (lambda: rj.split_free_body(I3, np.ones(4), Q, 0.1, 2), "must have shape"),
+        (lambda: rj.split_free_body(np.eye(3), W, Q, 0.1, 2), "needs principal moments"),
+        (lambda: rj.split_free_body(I3, W, Q, 0.1, 2, order=3), "order must be 2 or 4"),
+        (lambda: rj.spin_stability(TENSOR, 1.0), "needs principal moments"),
+        (
+            lambda: rj.simulate_structure_preserving(
+                rj.FreeBody(I3), rj.State(W, Q), TS[::-1], rj.RKMK(), 0.1
+            ),
+            "strictly increasing",
+        ),
+    ]:
+        with pytest.raises((ValueError, TypeError), match=match):
+            fn()
