@@ -201,7 +201,8 @@ def test_known_torque_fixes_the_scale():
     w = np.asarray(rj.simulate(model, rj.State(jnp.array([3.0, 0.5, 10.0])), ts, accuracy="precise").omega)
     rng = np.random.default_rng(10)
     obs = w + 0.01 * np.std(w, axis=0) * rng.standard_normal(w.shape)
-    fit = fit_inertia(ts, obs, torque=rj.ConstantTorque(jnp.asarray(tau)))
+    # LM: the optax path differentiates the integrator in reverse mode, a second large compile.
+    fit = fit_inertia(ts, obs, torque=rj.ConstantTorque(jnp.asarray(tau)), method="levenberg-marquardt")
     assert bool(fit.converged) and not fit.normalised
     z = (np.asarray(fit.inertia) - inertia) / np.asarray(fit.inertia_stderr)
     assert np.all(np.abs(z) < 4.0), z
@@ -239,7 +240,9 @@ def test_heavy_top_gravity_fixes_the_scale_from_orientations():
     q = np.array(rj.quat_multiply(truth, rj.quat_exp(jnp.asarray(noise * rng.standard_normal((151, 3))))))
     q *= np.where(rng.uniform(size=(151, 1)) < 0.3, -1.0, 1.0)
     q[70] = np.nan
-    fit = fit_inertia_to_orientation(ts, q, torque=rj.GravityTorque(mass, jnp.asarray(com)))
+    fit = fit_inertia_to_orientation(
+        ts, q, torque=rj.GravityTorque(mass, jnp.asarray(com)), method="levenberg-marquardt"
+    )
     assert bool(fit.converged) and not fit.normalised
     z = (np.asarray(fit.inertia) - inertia) / np.asarray(fit.inertia_stderr)
     assert np.all(np.abs(z) < 4.0), (fit.inertia, z)
@@ -266,7 +269,9 @@ def orientation_record(rng, noise, rotation=None):
 def test_orientation_fit_principal():
     rng = np.random.default_rng(8)
     ts, q, q0 = orientation_record(rng, 2e-3)
-    fit = fit_inertia_to_orientation(ts, q)
+    # Levenberg–Marquardt here and below: the default (optax) would compile a reverse-mode gradient
+    # through the closed-form orientation besides the Jacobian (~1 min more on a 2-core CPU).
+    fit = fit_inertia_to_orientation(ts, q, method="levenberg-marquardt")
     assert bool(fit.converged)
     z = (np.asarray(fit.inertia) - TRUTH) / np.asarray(fit.inertia_stderr)
     assert np.all(np.abs(z) < 4.0), z
@@ -287,7 +292,7 @@ def test_orientation_fit_full_tensor():
     rng = np.random.default_rng(9)
     R = np.asarray(rj.matrix_from_euler(np.array([0.4, 0.7, -0.3])))
     ts, q, _ = orientation_record(rng, 2e-3, rotation=R)
-    fit = fit_inertia_to_orientation(ts, q, full_tensor=True)
+    fit = fit_inertia_to_orientation(ts, q, full_tensor=True, method="levenberg-marquardt")
     tensor = R @ np.diag(I_TRUE) @ R.T
     z = (np.asarray(fit.inertia) - tensor / np.trace(tensor)) / np.asarray(fit.inertia_stderr)
     assert np.all(np.abs(z) < 4.0), z
