@@ -35,7 +35,7 @@ import optax
 from jaxtyping import Array, Bool, Float
 
 from ._dynamics import _euler_equations
-from ._lie_group import quat_exp
+from ._lie_group import _quat_exp as quat_exp
 from ._misc import safe_norm
 from ._models import State, _as_torque_tuple, _total_torque
 from ._quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
@@ -583,7 +583,8 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     Returns ``(inertia, smoothed_omega)``: moments ``(3,)`` or tensor ``(3, 3)``, and the smoothed
     record ``(T, 3)`` (NaN where too few neighbours were observed).
     """
-    return _estimate(ts, omega_observed, full_tensor=full_tensor, half_width=half_width)[:2]
+    ts, omega = _check_data(ts, omega_observed)
+    return _estimate(ts, omega, full_tensor=full_tensor, half_width=half_width)[:2]
 
 
 def _estimate(ts, omega_observed, *, full_tensor: bool = False, half_width: int | None = None):
@@ -653,7 +654,7 @@ def _estimate(ts, omega_observed, *, full_tensor: bool = False, half_width: int 
 
 
 def _check_times(ts):
-    ts = np.asarray(ts, dtype=float)
+    ts = _real_array(ts, "ts")
     if ts.ndim != 1:
         raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}.")
     if not np.all(np.isfinite(ts)):
@@ -667,9 +668,16 @@ def _check_times(ts):
     return ts
 
 
+def _real_array(x, name):
+    x = np.asarray(x)
+    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise TypeError(f"{name} must hold real numbers, got dtype {x.dtype}.")
+    return x.astype(float)
+
+
 def _check_data(ts, omega_observed):
     ts = _check_times(ts)
-    omega = np.asarray(omega_observed, dtype=float)
+    omega = _real_array(omega_observed, "omega_observed")
     if omega.shape != (ts.shape[0], 3):
         raise ValueError(
             f"omega_observed must have shape (T, 3) = ({ts.shape[0]}, 3) to match ts, got {omega.shape}."
@@ -681,7 +689,7 @@ def _check_data(ts, omega_observed):
 
 def _check_quaternions(ts, q_observed):
     ts = _check_times(ts)
-    q = np.asarray(q_observed, dtype=float)
+    q = _real_array(q_observed, "orientation_observed")
     if q.shape != (ts.shape[0], 4):
         raise ValueError(
             f"orientation_observed must have shape (T, 4) = ({ts.shape[0]}, 4) (unit quaternions, scalar "

@@ -31,7 +31,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._inertia import principal_axes
-from ._misc import check_last_axis, eps
+from ._misc import as_float_array, check_finite, check_last_axis, check_rotation_quaternion, common_float, eps
 from ._models import AbstractModel, HeavyTop, State
 from ._quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
 from ._splitting import (
@@ -49,9 +49,14 @@ from ._trajectory import Trajectory
 
 def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
     """Unit quaternion of the rotation vector ``theta`` (rad): ``(cos(n/2), sin(n/2) theta / n)``,
-    ``n = |theta|``. NaN-free value and gradient at ``theta = 0`` (Taylor branch for small ``n``)."""
-    theta = jnp.asarray(theta)
+    ``n = |theta|``. NaN-free value and gradient at ``theta = 0`` (Taylor branch for small ``n``).
+    NaN/inf in ``theta`` is an error."""
+    theta = as_float_array(theta, "theta")
     check_last_axis(theta, 3, "theta")
+    return _quat_exp(check_finite(theta, "theta", "quat_exp"))
+
+
+def _quat_exp(theta):
     n2 = jnp.sum(theta * theta, axis=-1, keepdims=True)
     small = n2 < math.sqrt(eps(theta.dtype))
     n = jnp.sqrt(jnp.where(small, jnp.ones_like(n2), n2))  # safe input for the exact branch
@@ -64,7 +69,17 @@ def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
 
 def dexpinv(theta: Float[ArrayLike, "... 3"], omega: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """``d(theta)/dt`` for ``q = q0 ⊗ Exp(theta)`` rotating at body rate ``omega``, truncated after
-    the second commutator: ``omega + theta x omega / 2 + theta x (theta x omega) / 12``."""
+    the second commutator: ``omega + theta x omega / 2 + theta x (theta x omega) / 12``. NaN/inf
+    inputs are an error."""
+    theta, omega = common_float(theta, omega, names=["theta", "omega"])
+    check_last_axis(theta, 3, "theta")
+    check_last_axis(omega, 3, "omega")
+    theta = check_finite(theta, "theta", "dexpinv")
+    omega = check_finite(omega, "omega", "dexpinv")
+    return _dexpinv(theta, omega)
+
+
+def _dexpinv(theta, omega):
     t_x_w = jnp.cross(theta, omega)
     return omega + 0.5 * t_x_w + jnp.cross(theta, t_x_w) / 12.0
 
@@ -138,15 +153,15 @@ def _rkmk(accel, t0, omega0, q0, h, args, tableau, f0=None):
         else:
             omega_i = omega0 + _combine(row, k_w, h)
             theta_i = _combine(row, k_th, h)
-            q_i = _quat_multiply(q0, quat_exp(theta_i))
+            q_i = _quat_multiply(q0, _quat_exp(theta_i))
             f_i = accel(t0 + c[i] * h, omega_i, q_i, args)
-            k_th.append(dexpinv(theta_i, omega_i))
+            k_th.append(_dexpinv(theta_i, omega_i))
         k_w.append(jnp.asarray(f_i, dtype))
     # FSAL: the last row of a is b, so the last stage point is the solution.
     omega1, theta1, q1, f1 = omega_i, theta_i, q_i, k_w[-1]
     err_omega = _combine(b_err, k_w, h)
     theta_hat = theta1 - _combine(b_err, k_th, h)
-    err_q = q1 - _quat_multiply(q0, quat_exp(theta_hat))
+    err_q = q1 - _quat_multiply(q0, _quat_exp(theta_hat))
     return omega1, q1, theta1, (err_omega, err_q), f0, f1
 
 
@@ -169,6 +184,9 @@ def rkmk_step(
     omega, q = jnp.asarray(omega), jnp.asarray(q)
     check_last_axis(omega, 3, "omega")
     check_last_axis(q, 4, "q")
+    omega = check_finite(omega, "omega", "rkmk_step")
+    q = check_rotation_quaternion(q, "q", "rkmk_step")
+    h = check_finite(jnp.asarray(h), "h", "rkmk_step")
     omega1, q1, *_ = _rkmk(angular_acceleration, t, omega, q.astype(omega.dtype), h, args, tableau)
     return omega1, q1
 
@@ -212,8 +230,8 @@ class _GeodesicHermiteInterpolation(diffrax.AbstractLocalInterpolation):
         h01 = s * s * (3 - 2 * s)
         h11 = s * s * (s - 1)
         omega = h00 * omega0 + h10 * dt * self.f0 + h01 * omega1 + h11 * dt * self.f1
-        theta = h10 * dt * omega0 + h01 * self.theta1 + h11 * dt * dexpinv(self.theta1, omega1)
-        return omega, _quat_multiply(q0, quat_exp(theta))
+        theta = h10 * dt * omega0 + h01 * self.theta1 + h11 * dt * _dexpinv(self.theta1, omega1)
+        return omega, _quat_multiply(q0, _quat_exp(theta))
 
     def evaluate(self, t0, t1=None, left=True):
         del left
@@ -483,10 +501,31 @@ def simulate_structure_preserving(
         dtypes.append(state0.orientation.dtype)
     dtype = np.result_type(*[np.dtype(d) for d in dtypes])  # numpy promotion: widen float32 + float64
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
+    from ._simulate import _check_inputs  # (_simulate imports this module)
+
+    model, _, _, _ = _check_inputs(
+        model,
+        model.body_leaves(),
+        state0.omega.astype(dtype),
+        None,
+        jnp.asarray(ts_np, dtype),
+        dtype,
+        where="simulate_structure_preserving",
+    )
     omega0 = state0.omega.astype(dtype)
+    omega0 = eqx.error_if(
+        omega0,
+        ~jnp.all(jnp.isfinite(omega0)),
+        "simulate_structure_preserving: state0.omega contains NaN or inf.",
+    )
     has_orientation = state0.orientation is not None
     if has_orientation:
         q0 = state0.orientation.astype(dtype)
+        q0 = eqx.error_if(
+            q0,
+            ~jnp.all(jnp.isfinite(q0)),
+            "simulate_structure_preserving: state0.orientation contains NaN or inf.",
+        )
         norm = jnp.linalg.norm(q0, axis=-1, keepdims=True)
         tol = 1e-6 if dtype == jnp.float64 else 1e-4
         q0 = eqx.error_if(

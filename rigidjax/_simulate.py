@@ -59,20 +59,24 @@ def _quat_derivative(q, omega):
     return 0.5 * _quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
 
 
-def _check_inputs(model, leaves, omega0, q0, ts, dtype):
-    checked = [
-        check_inertia(leaf.get(model))
-        if leaf.label == "inertia"
-        else eqx.error_if(
-            leaf.get(model),
-            ~jnp.all(jnp.isfinite(leaf.get(model))),
-            f"simulate: model field {leaf.label!r} contains NaN or inf.",
+def _check_field(where, label, value):
+    if label == "inertia":
+        return check_inertia(value, name=f"{where}: inertia")
+    value = eqx.error_if(
+        value, ~jnp.all(jnp.isfinite(value)), f"{where}: model field {label!r} contains NaN or inf."
+    )
+    if label.split(".")[-1] == "mass":
+        value = eqx.error_if(
+            value, jnp.any(value <= 0), f"{where}: model field {label!r} must be positive (kg)."
         )
-        for leaf in leaves
-    ]
+    return value
+
+
+def _check_inputs(model, leaves, omega0, q0, ts, dtype, where="simulate"):
+    checked = [_check_field(where, leaf.label, leaf.get(model)) for leaf in leaves]
     model = model.replace_body_leaves(leaves, checked)
     omega0 = eqx.error_if(
-        omega0, ~jnp.all(jnp.isfinite(omega0)), "simulate: state0.omega contains NaN or inf."
+        omega0, ~jnp.all(jnp.isfinite(omega0)), f"{where}: state0.omega contains NaN or inf."
     )
     if q0 is not None:
         q0 = eqx.error_if(q0, ~jnp.all(jnp.isfinite(q0)), "simulate: state0.orientation contains NaN or inf.")
@@ -85,7 +89,7 @@ def _check_inputs(model, leaves, omega0, q0, ts, dtype):
             "normalise it (rigidjax.quat_normalize) or build it with quat_from_euler / quat_from_matrix.",
         )
         q0 = q0 / norm[..., None]
-    ts = eqx.error_if(ts, ~jnp.all(jnp.isfinite(ts)), "simulate: ts contains NaN or inf.")
+    ts = eqx.error_if(ts, ~jnp.all(jnp.isfinite(ts)), f"{where}: ts contains NaN or inf.")
     if ts.shape[0] > 1:
         ts = eqx.error_if(
             ts,

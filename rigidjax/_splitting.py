@@ -36,7 +36,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._misc import as_float_array, check_last_axis
+from ._inertia import check_inertia
+from ._misc import as_float_array, check_finite, check_last_axis, check_rotation_quaternion
 from ._quaternion import _quat_conjugate, _quat_multiply, _quat_rotate
 
 _YOSHIDA_W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
@@ -119,6 +120,10 @@ def _as_state(inertia, L0, q0, dt):
             "split_free_body: inertia and L0 must have shape (..., 3) and q0 shape (..., 4); got "
             f"{inertia.shape}, {L0.shape}, {q0.shape}."
         )
+    inertia = check_inertia(inertia, name="the splitting: inertia")
+    L0 = check_finite(L0, "L0", "the splitting")
+    q0 = check_rotation_quaternion(q0, "q0", "the splitting")
+    dt = check_finite(dt, "dt", "the splitting")
     batch = jnp.broadcast_shapes(inertia.shape[:-1], L0.shape[:-1], q0.shape[:-1])
     return (
         inertia,
@@ -196,6 +201,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
                 )
             if not (inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)):
                 check_last_axis(inertia, 3, "inertia")
+            inertia = check_inertia(inertia, name="LiePoissonSplitting: inertia")
         self.inertia = inertia
         self.splitting_order = order
 
@@ -274,6 +280,15 @@ def heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
     raise ValueError(f"order must be 2 or 4, got {order!r}.")
 
 
+def _checked_top_parameters(mass, com, gravity, where):
+    mass, com, gravity = (
+        as_float_array(x, n) for x, n in ((mass, "mass"), (com, "com"), (gravity, "gravity"))
+    )
+    mass = check_finite(mass, "mass", where)
+    mass = eqx.error_if(mass, jnp.any(mass <= 0), f"{where}: mass must be positive (kg).")
+    return mass, check_finite(com, "com", where), check_finite(gravity, "gravity", where)
+
+
 def heavy_top_weight_com(mass, com, gravity, dtype=None):
     """``m g com`` (N m, body frame), the one combination of the heavy top's parameters the
     splitting needs; ``mass``, ``gravity`` ``(...)``, ``com`` ``(..., 3)``."""
@@ -317,6 +332,7 @@ def split_heavy_top(
     if order not in (2, 4):
         raise ValueError(f"order must be 2 or 4, got {order!r}.")
     inertia, L0, q0, dt = _as_state(inertia, L0, q0, dt)
+    mass, com, gravity = _checked_top_parameters(mass, com, gravity, "split_heavy_top")
     weight_com = heavy_top_weight_com(mass, com, gravity, L0.dtype)
     batch = jnp.broadcast_shapes(L0.shape[:-1], weight_com.shape[:-1])
     L0 = jnp.broadcast_to(L0, batch + (3,))
@@ -372,11 +388,12 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         inertia = as_float_array(inertia, "inertia")
         if not (inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)):
             check_last_axis(inertia, 3, "inertia")
-        self.inertia = inertia
-        self.mass = as_float_array(mass, "mass")
-        self.com = as_float_array(com, "com")
+        self.inertia = check_inertia(inertia, name="HeavyTopSplitting: inertia")
+        mass, com, gravity = _checked_top_parameters(mass, com, gravity, "HeavyTopSplitting")
+        self.mass = mass
+        self.com = com
         check_last_axis(self.com, 3, "com")
-        self.gravity = as_float_array(gravity, "gravity")
+        self.gravity = gravity
         self.splitting_order = order
 
     @classmethod

@@ -15,7 +15,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._dynamics import is_full_tensor
 from ._inertia import check_inertia
-from ._misc import check_last_axis, common_float
+from ._misc import check_finite, check_last_axis, common_float
 from ._types import Inertia, Scalar, Vector
 
 # Default relative tolerance on ``I1 = I2`` and on the centre of mass lying on the symmetry axis in
@@ -128,6 +128,7 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
     at ``lambda = 0`` (the square root's branch point) the derivative of the vanishing part is 0.
     """
     inertia, omega = _common_float(inertia, omega_magnitude, names=["inertia", "omega_magnitude"])
+    omega = check_finite(omega, "omega_magnitude", "spin_stability")
     inertia = _principal_moments(inertia, "spin_stability")
     # Axis i with its neighbours j = i + 1 and k = i + 2 (cyclic); the product is symmetric in j, k.
     I_i = inertia
@@ -218,6 +219,11 @@ def sleeping_top(
         inertia, mass, com, omega3, gravity, names=["inertia", "mass", "com", "omega3", "gravity"]
     )
     check_last_axis(com, 3, "com")
+    mass, com, omega3, gravity = (
+        check_finite(x, name, "sleeping_top")
+        for x, name in ((mass, "mass"), (com, "com"), (omega3, "omega3"), (gravity, "gravity"))
+    )
+    mass = eqx.error_if(mass, jnp.any(mass <= 0), "sleeping_top: mass must be positive (kg).")
     inertia = _principal_moments(inertia, "sleeping_top")
     I1, I2, I3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
     I1 = eqx.error_if(

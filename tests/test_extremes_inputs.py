@@ -14,8 +14,8 @@ The policy (module docstrings of _quaternion, _euler, _dynamics, _inertia, _misc
 3. Finite valid input never manufactures NaN or inf (tests/test_extremes_kinematics.py covers
    gimbal lock; here: zero omega, identity and half-turn quaternions, zero-size shapes).
 
-Tests of functions whose module lacks a check are ``xfail(strict=True)`` with the missing check as
-the reason, so that adding the check turns them into failures that ask for the marker to go.
+``_MISSING`` lists the cases that returned NaN or meaningless output silently when this suite was
+written (strict xfails then); their checks were added for issue 8 and the cases now must raise.
 
 Compiling is the cost: each function is jitted once (module-level cache) and every bad value of
 the same shape reuses that program; structural errors raise before anything compiles.
@@ -527,7 +527,7 @@ def test_fitting_rejects_bad_data_at_call_time(case):
 
 
 def _raises_or_nan(fn):
-    """For the xfail tests below: pass only if ``fn`` raises naming a problem."""
+    """Pass only if ``fn`` raises (a finite or NaN result fails)."""
     with pytest.raises((RuntimeError, ValueError, TypeError)):
         out = jax.block_until_ready(fn())
         assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(out) if hasattr(x, "dtype"))
@@ -622,18 +622,13 @@ _MISSING = {
 }
 
 
-@pytest.mark.parametrize(
-    "case",
-    [pytest.param(c, marks=pytest.mark.xfail(strict=True, reason=r)) for c, (_, r) in _MISSING.items()],
-)
-def test_missing_value_checks(case):
+@pytest.mark.parametrize("case", list(_MISSING))
+def test_value_checks_added_for_issue_8(case):
+    """Each case returned NaN or meaningless output silently when this suite was written; the
+    check named in the reason is now in place."""
     _raises_or_nan(_MISSING[case][0])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="_fit: complex omega_observed is cast to float (imaginary part dropped; only a ComplexWarning)",
-)
 def test_fit_rejects_complex_data():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # (the warning, not a fit: this stays cheap)
@@ -641,19 +636,11 @@ def test_fit_rejects_complex_data():
             rj.fit_inertia(_TS_FIT, _W_FIT.astype(complex), steps=1)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="_lie_group.dexpinv: a wrong shape raises jnp.cross's message, not naming the argument",
-)
 def test_dexpinv_shape_error_names_argument(without_runtime_typecheck):
     with pytest.raises(ValueError, match=r"\btheta\b"):
         rj.dexpinv(np.ones(4), W)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="_fit.estimate_inertia: a (T, 2) omega_observed raises IndexError, not a ValueError naming it",
-)
 def test_estimate_inertia_shape_error_names_argument():
     with pytest.raises(ValueError, match="omega_observed"):
         rj.estimate_inertia(_TS_FIT, _W_FIT[:, :2])
