@@ -506,7 +506,16 @@ def simulate(
         # "precise" lands a step on every sample time: Dopri8's dense output is accurate to ~1e-9
         # only, far worse than its steps; the other presets' interpolants are within their tolerance.
         step_ts = ts if accuracy == "precise" and solver_from_preset else None
-        stepsize_controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=_max_norm, step_ts=step_ts)
+        dtmax = None
+        if representation == "euler":
+            # The gimbal-lock event is checked at step ends (signed sin/cos theta): at most 0.5 rad
+            # of turn per step, so a step cannot jump over the lock unseen (a turn about the line of
+            # nodes is integrated exactly, and the controller would otherwise take 1-2 s steps).
+            speed = jnp.max(jnp.linalg.norm(jnp.asarray(state0.omega, dtype), axis=-1))
+            dtmax = jnp.where(speed > 0, 0.5 / jnp.where(speed > 0, speed, 1.0), jnp.inf)
+        stepsize_controller = diffrax.PIDController(
+            rtol=rtol, atol=atol, norm=_max_norm, step_ts=step_ts, dtmax=dtmax
+        )
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     if chunk_size is None:
         chunk_size = 1024 if jax.default_backend() == "cpu" else 65536

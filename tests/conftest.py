@@ -62,3 +62,14 @@ def pytest_sessionfinish(session, exitstatus):
     if path and _EXTREME_ROWS:
         with open(path, "w") as f:
             json.dump(_EXTREME_ROWS, f, indent=1)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under ``--dist loadgroup`` (pyproject's addopts) each test file runs on one worker, so module-
+    level compiled functions and fixtures are shared; the notebooks are independent programs and each
+    forms its own group, so the two workers share them out."""
+    for item in items:
+        group = item.path.stem
+        if group == "test_notebooks" and hasattr(item, "callspec"):
+            group = f"{group}-{item.callspec.id}"
+        item.add_marker(pytest.mark.xdist_group(group))
