@@ -97,13 +97,64 @@ def scipy_methods(scene, index, quick, note):
     ]
 
 
+def _mujoco_solver(scene, integrator, dt):
+    """All N bodies as free joints of ONE MuJoCo model (no geoms, gravity off): omega(T), q(T).
+
+    MuJoCo's free-joint angular velocity (qvel[3:6]) is in body axes and its quaternion is scalar
+    first, body to world: the same conventions as rigidjax (checked against the closed form to 1e-12
+    before this benchmark was written). The model is built on the first call (counted as compile)."""
+    import mujoco
+
+    inertia, omega0, q0 = scene
+    n_steps = int(round(B.T_END / dt))
+    cache = {}
+
+    def run():
+        if "model" not in cache:
+            bodies = "".join(
+                '<body><freejoint/><inertial pos="0 0 0" mass="1" '
+                f'diaginertia="{a:.17g} {b:.17g} {c:.17g}"/></body>'
+                for a, b, c in inertia
+            )
+            xml = (
+                '<mujoco><size memory="1G"/>'  # MuJoCo's default arena is too small for 1e4 bodies
+                f'<option gravity="0 0 0" integrator="{integrator}" timestep="{dt:.17g}"/>'
+                f"<worldbody>{bodies}</worldbody></mujoco>"
+            )
+            cache["model"] = mujoco.MjModel.from_xml_string(xml)
+        model = cache["model"]
+        data = mujoco.MjData(model)
+        qpos = data.qpos.reshape(-1, 7)
+        qvel = data.qvel.reshape(-1, 6)
+        qpos[:, 3:] = q0
+        qvel[:, 3:] = omega0
+        for _ in range(n_steps):
+            mujoco.mj_step(model, data)
+        state_q = data.qpos.reshape(-1, 7)[:, 3:].copy()
+        state_w = data.qvel.reshape(-1, 6)[:, 3:].copy()
+        return state_w, state_q
+
+    return run
+
+
 def mujoco_methods(scene, quick):
     """MuJoCo free bodies (gravity off), RK4 and Euler; [] with a note when it is not installed."""
     try:
-        import mujoco  # noqa: F401
+        import mujoco
     except ImportError:
-        return [], "mujoco is not installed (optional: pip install mujoco); skipped"
-    return [], "mujoco is installed but this script has no MuJoCo scene yet; skipped"
+        return [], "mujoco is not installed (optional: pip install mujoco, the bench extra); skipped"
+    settings = [("RK4", 0.01), ("Euler", 0.01)] + ([] if quick else [("RK4", 0.0025)])
+    methods = [
+        B.Method(
+            f"MuJoCo {integrator} (all bodies in one model)",
+            f"dt={dt:g}",
+            _mujoco_solver(scene, integrator, dt),
+            f"mujoco-{integrator}-{dt}",
+            kind="peer",
+        )
+        for integrator, dt in settings
+    ]
+    return methods, f"mujoco {mujoco.__version__}: {', '.join(f'{i} dt={d:g}' for i, d in settings)}"
 
 
 def check_reference(scene, checked, omega_ref, q_ref, omega_cf, q_cf, n_scipy):
@@ -188,7 +239,9 @@ def main(argv=None):
     p.add_argument("--n", type=int, default=10_000, help="number of bodies")
     p.add_argument("--quick", action="store_true", help="fewer sweep points (development)")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per method after the first")
-    p.add_argument("--only", default=None, help=f"comma-separated subset of {','.join(B.METHOD_KEYS)},scipy")
+    p.add_argument(
+        "--only", default=None, help=f"comma-separated subset of {','.join(B.METHOD_KEYS)},scipy,mujoco"
+    )
     p.add_argument("--taylor-sensitive", type=int, default=200, help="bodies nearest the separatrix redone")
     p.add_argument("--taylor-random", type=int, default=200, help="random other bodies redone")
     p.add_argument("--scipy-ref-bodies", type=int, default=20, help="DOP853 1e-13 cross-check bodies")
@@ -253,15 +306,18 @@ def main(argv=None):
     meta["reference"] = ref_info
 
     only = None if a.only is None else [k.strip() for k in a.only.split(",") if k.strip()]
-    keys = None if only is None else [k for k in only if k != "scipy"]
+    keys = None if only is None else [k for k in only if k not in ("scipy", "mujoco")]
     methods = B.standard_methods(scene, "quick" if a.quick else "full", include=keys)
     if (only is None or "scipy" in only) and a.scipy_bodies:
         # A quarter of them the bodies nearest the separatrix, so that the max is comparable.
         k = max(1, a.scipy_bodies // 4)
         index = B.sensitive_subset(scene, min(a.scipy_bodies, a.n), n_sensitive=k, seed=3)
         methods += scipy_methods(scene, index, a.quick, f"incl. the {k} nearest the separatrix")
-    mj, meta["mujoco"] = mujoco_methods(scene, a.quick)
-    methods += mj
+    if only is None or "mujoco" in only:
+        mj, meta["mujoco"] = mujoco_methods(scene, a.quick)
+        methods += mj
+    else:
+        meta["mujoco"] = "not selected (--only)"
     print(f"mujoco: {meta['mujoco']}", flush=True)
 
     def progress(what, done, total):
