@@ -198,15 +198,8 @@ def _space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> 
 
 
 def _euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool = True) -> VectorOut:
-    """Euler-angle rates ``(phi', theta', psi')`` from the body-frame angular velocity.
-
-    The inverse of :func:`body_angular_velocity`. Its determinant is ``±sin(theta)`` (proper) or
-    ``±cos(theta)`` (Tait-Bryan): near gimbal lock the rates grow like ``1/sin(theta)``, which is
-    the truth, not an artefact. Within roundoff of the lock the rates are unbounded unless ``omega``
-    lies in the plane the angles can follow; then the split ``psi' = 0`` is returned (matching the
-    angle split of :func:`euler_from_quat`). Otherwise the call fails with an error naming gimbal
-    lock (``throw=True``), or returns NaN rates (``throw=False``, for ``vmap`` users).
-    """
+    """:func:`euler_rates` without the NaN/inf input checks (integrator right-hand sides); the
+    gimbal-lock handling (``throw``) is the same."""
     angles, omega = common_float(angles, omega, names=["angles", "omega"])
     check_last_axis(omega, 3, "omega")
     _, u1, u2, u3 = _rate_axes(angles, seq)

@@ -36,9 +36,9 @@ from jaxtyping import Array, Bool, Float
 
 from ._dynamics import _euler_equations
 from ._lie_group import _quat_exp as quat_exp
-from ._misc import safe_norm
-from ._models import State, _as_torque_tuple, _total_torque
+from ._models import RigidBody, State, _as_torque_tuple, _total_torque
 from ._quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
+from ._simulate import _quat_derivative, simulate
 from ._torque_free import torque_free_motion, torque_free_omega
 
 _LOSSES = ("squared", "huber", "soft_l1", "cauchy")
@@ -91,9 +91,6 @@ class InertiaFit(eqx.Module):
 
     def _predict_with_torque(self, ts, with_orientation: bool):
         """Integrates the fitted model under its known torque from each window's start ("precise")."""
-        from ._models import RigidBody
-        from ._simulate import simulate
-
         ts = np.asarray(ts, float)
         starts = np.asarray(self.segment_starts)
         window = np.clip(np.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
@@ -283,10 +280,7 @@ class _Problem(eqx.Module):
         def vector_field(t, y, t_start):
             w, q = y
             tau = _total_torque(torques, t_start + t / s, State(w * s, q), None) / s**2
-            pure = jnp.concatenate([jnp.zeros_like(w[:1]), w])
-            speed = safe_norm(w)
-            dq = 0.5 * _quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q)) * q
-            return _euler_equations(inertia, w, tau), dq
+            return _euler_equations(inertia, w, tau), _quat_derivative(q, w)
 
         def window(w0, q0, t, t_start):
             _, q = self._solve_window(vector_field, (w0, q0), t, t_start)
@@ -1031,6 +1025,23 @@ def _prepare_orientation(
     return _Data(problem, p0, ts[bounds[:-1]], inertia_start, 1.0, omega_scale, np.full(3, noise_rad))
 
 
+def _known_torques(torque, inertia_trace, known_moment, *, orientation_data: bool):
+    """The known torque as a tuple of torques (None without one), checked against the other scales
+    and, for gyro records, against torques that need the orientation."""
+    if torque is None:
+        return None
+    torques = _as_torque_tuple(torque)
+    if not orientation_data and any(t.needs_orientation for t in torques):
+        raise ValueError(
+            "torque: a torque that needs the orientation (gravity on a heavy top, a space-fixed "
+            "torque) cannot be fitted from angular velocity alone; fit orientation samples with "
+            "fit_inertia_to_orientation(ts, q, torque=...) instead."
+        )
+    if inertia_trace is not None or known_moment is not None:
+        raise ValueError("A known torque already fixes the scale; drop inertia_trace / known_moment.")
+    return torques
+
+
 def _check_options(loss, method, optimizer, inertia_trace, known_moment):
     if loss not in _LOSSES:
         raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}.")
@@ -1195,17 +1206,7 @@ def fit_inertia(
     ts, omega = _check_data(ts, omega_observed)
     method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
     dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    torques = None
-    if torque is not None:
-        torques = _as_torque_tuple(torque)
-        if any(t.needs_orientation for t in torques):
-            raise ValueError(
-                "torque: a torque that needs the orientation (gravity on a heavy top, a space-fixed "
-                "torque) cannot be fitted from angular velocity alone; fit orientation samples with "
-                "fit_inertia_to_orientation(ts, q, torque=...) instead."
-            )
-        if inertia_trace is not None or known_moment is not None:
-            raise ValueError("A known torque already fixes the scale; drop inertia_trace / known_moment.")
+    torques = _known_torques(torque, inertia_trace, known_moment, orientation_data=False)
     data = _prepare_omega(
         ts,
         omega,
@@ -1281,11 +1282,7 @@ def fit_inertia_to_orientation(
     ts, q = _check_quaternions(ts, orientation_observed)
     method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
     dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
-    torques = None
-    if torque is not None:
-        torques = _as_torque_tuple(torque)
-        if inertia_trace is not None or known_moment is not None:
-            raise ValueError("A known torque already fixes the scale; drop inertia_trace / known_moment.")
+    torques = _known_torques(torque, inertia_trace, known_moment, orientation_data=True)
     data = _prepare_orientation(
         ts,
         q,

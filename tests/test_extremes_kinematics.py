@@ -135,44 +135,29 @@ def _wrapped(d):
 # ----------------------------------------------------------------------------------------------
 
 
-def test_float64_angles_reproduce_the_rotation(extreme):
-    k = kinematics(np.float64)
+ANGLE_CASES = {
+    # dtype: (bound, what the row says)
+    np.float64: (1.2e-15, "finite angles; matrix_from_euler(euler_from_matrix/quat(R)) reproduces R"),
+    np.float32: (4e-7, "finite angles; matrix reproduced to float32 roundoff"),
+}
+
+
+@pytest.mark.parametrize("dtype", list(ANGLE_CASES), ids=["float64", "float32"])
+def test_angles_reproduce_the_rotation(dtype, extreme):
+    bound, behaviour = ANGLE_CASES[dtype]
+    k = kinematics(dtype)
     for key in ("angles_R", "angles_q", "angles_neg", "q", "w_body", "special_angles"):
-        assert np.all(np.isfinite(k[key])), key
+        assert k[key].dtype == dtype and np.all(np.isfinite(k[key])), key
     for cls, rows in CLASSES.items():
         for d in DELTAS:
             cols = DELTA == d
             err = max(k["err_R"][rows][:, cols].max(), k["err_q"][rows][:, cols].max())
             where = "exactly at" if d == 0 else f"within {d:g} of"
-            print(cls, d, err)
-            bound = 1.2e-15
             assert err <= bound, (cls, d, err)
             extreme(
                 "gimbal lock",
-                f"{cls} sequences, theta {where} the lock (float64)",
-                "finite angles; matrix_from_euler(euler_from_matrix/quat(R)) reproduces R",
-                err,
-                bound,
-                ADVICE,
-            )
-
-
-def test_float32_angles_reproduce_the_rotation(extreme):
-    k = kinematics(np.float32)
-    for key in ("angles_R", "angles_q", "angles_neg", "q", "w_body", "special_angles"):
-        assert k[key].dtype == np.float32 and np.all(np.isfinite(k[key])), key
-    for cls, rows in CLASSES.items():
-        for d in DELTAS:
-            cols = DELTA == d
-            err = max(k["err_R"][rows][:, cols].max(), k["err_q"][rows][:, cols].max())
-            where = "exactly at" if d == 0 else f"within {d:g} of"
-            print(cls, d, err)
-            bound = 4e-7
-            assert err <= bound, (cls, d, err)
-            extreme(
-                "gimbal lock",
-                f"{cls} sequences, theta {where} the lock (float32)",
-                "finite angles; matrix reproduced to float32 roundoff",
+                f"{cls} sequences, theta {where} the lock ({np.dtype(dtype).name})",
+                behaviour,
                 err,
                 bound,
                 ADVICE,

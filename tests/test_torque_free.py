@@ -456,7 +456,10 @@ def test_gradients_match_finite_differences_and_stay_finite():
         ([1.0, 2.0, 2.5], [0.3, -0.5, 1.0]),
         ([2.5, 1.0, 2.0], [0.2, 3.0, 0.1]),  # relabelled axes, the other side of the separatrix
         ([2.0, 2.0, 3.0], [0.3, 0.1, 5.0]),  # exactly symmetric: d/dI breaks the symmetry
-        ([1.0, 2.0, 2.9], [0.05, 4.0, -0.05]),  # near the separatrix (off the flat plate: FD steps stay physical)
+        (
+            [1.0, 2.0, 2.9],
+            [0.05, 4.0, -0.05],
+        ),  # near the separatrix (off the flat plate: FD steps stay physical)
     ]
     zero = np.zeros(3)
     rows_I, rows_w, expected = [], [], []
