@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._elliptic import _carlson_rf_rj, ellipj_m1, ellipkm1
+from ._elliptic import _carlson_rf_rj, _ellipj_checked, ellipkm1
 from ._inertia import check_inertia
 from ._misc import check_finite, check_last_axis, check_rotation_quaternion, common_float, safe_norm
 from ._quaternion import _quat_multiply
@@ -36,6 +36,14 @@ def _sorted_frame(inertia, omega0):
     inversions = sum((x > y).astype(jnp.int32) for x, y in ((p0, p1), (p0, p2), (p1, p2)))
     parity = jnp.where(inversions % 2 == 0, 1.0, -1.0).astype(inertia.dtype)
     return perm, moments, omega, parity
+
+
+def _take(x, index):
+    """``take_along_axis`` on the last axis, ``index`` broadcast against ``x``'s batch axes."""
+    shape = jnp.broadcast_shapes(x.shape[:-1], index.shape[:-1]) + index.shape[-1:]
+    return jnp.take_along_axis(
+        jnp.broadcast_to(x, shape[:-1] + x.shape[-1:]), jnp.broadcast_to(index, shape), axis=-1
+    )
 
 
 def _momentum_defect(moments, x, j):
@@ -92,8 +100,9 @@ def _broadcast_inputs(inertia, omega0, t):
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
     inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_omega")
-    batch = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], t.shape)
-    return jnp.broadcast_to(inertia, batch + (3,)), jnp.broadcast_to(omega0, batch + (3,)), t
+    body = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1])
+    batch = jnp.broadcast_shapes(body, t.shape)
+    return jnp.broadcast_to(inertia, body + (3,)), jnp.broadcast_to(omega0, body + (3,)), t, batch
 
 
 def _motion_parts(inertia, omega0, t):
@@ -112,7 +121,7 @@ def _motion_parts(inertia, omega0, t):
     # The sign of d(tau)/dt follows the sense of rotation about axis c; an odd relabelling of the
     # body axes reverses it (it flips the cross product in Euler's equations).
     u = parity * sign_c * rate * t
-    sn, cn, dn, _ = ellipj_m1(u, p)
+    sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
     # separatrix, where m = 1).
     denominator = cn0 * cn0 + sn0 * sn0 * dn * dn
@@ -127,7 +136,7 @@ def _motion_parts(inertia, omega0, t):
     # the intermediate axis, the unstable equilibrium on the separatrix.
     steady = (rate == 0) | ((w_a == 0) & (w_c == 0))
     sorted_out = jnp.where(steady[..., None], omega, sorted_out)
-    omega_t = jnp.take_along_axis(sorted_out, jnp.argsort(perm, axis=-1), axis=-1)
+    omega_t = _take(sorted_out, jnp.argsort(perm, axis=-1))
     return omega_t, dict(
         perm=perm,
         moments=moments,
@@ -163,14 +172,15 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     equal moments are exact; for gaps below ~1e-9 differentiate ``simulate`` instead.
     Non-physical moments (beyond the flat plate, non-positive) and NaN/inf inputs are errors.
     """
-    inertia, omega0, t = _broadcast_inputs(inertia, omega0, t)
+    inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t)
     steady = _steady(inertia, omega0)
     # A generic body stands in for steady ones (the elliptic parametrisation is singular there: its
     # amplitudes are square roots of zero), whose motion and derivatives are _steady_omega's.
     inertia_g = jnp.where(steady[..., None], jnp.array([1.0, 2.0, 3.0], inertia.dtype), inertia)
     omega0_g = jnp.where(steady[..., None], jnp.array([1.0, 1.0, 1.0], inertia.dtype), omega0)
     omega_g = _motion_parts(inertia_g, omega0_g, t)[0]
-    return jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
+    omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
+    return jnp.broadcast_to(omega, batch + (3,))
 
 
 @eqx.filter_jit
@@ -201,44 +211,45 @@ def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
 # Orientation
 
 
-def _phase_integrals(sn, cn, dn, p, n):
+def _quarter_integrals(p, n):
+    """``K = R_F(0, 1, p)`` and ``G(K) = Pi(-n | m)`` (DLMF 19.25.1-2), for ``p = 1 - m > 0``."""
+    zero, one = jnp.zeros_like(p), jnp.ones_like(p)
+    rf, rj = _carlson_rf_rj(zero, one, p, p / (1 + n))
+    return rf, (rf + n / (1 + n) * p / 3 * rj) / (1 + n)
+
+
+def _reduced_phase(sn, cn, dn, p, n, quarter_f, quarter_g):
     """Reduced phase of the point ``(sn, cn, dn)`` of the elliptic solution and ``G`` there.
 
     ``G(tau) = int_0^tau dtau' / (1 + n sn^2(tau')) = Pi(-n; am(tau) | m)``. The point fixes ``tau`` up to
     multiples of ``2K``: ``tau = rho + 2 j K`` with ``|rho| <= K``, and then ``G(tau) = gamma + 2 j G(K)``.
-    Points are stacked on a leading axis; returns ``rho``, ``gamma``, ``am(rho)`` per point and ``K``,
-    ``G(K)`` (from the first point's ``p``, ``n``). Carlson forms (DLMF 19.25.5, 19.25.14)
-    on ``|sn| <= 1/sqrt 2``; above, the same integrals measured back from ``K`` (substituting
-    ``theta -> pi/2 - theta``), whose ``R_F``/``R_J`` arguments are ``O(p)`` but never zero, so that the
-    terms are positive and ``rho``, ``gamma`` keep their accuracy as ``p = 1 - m -> 0``. ``p = 0`` is
-    handled by the caller.
+    Returns ``rho``, ``gamma`` and ``am(rho)``; ``quarter_f``, ``quarter_g`` are ``K``, ``G(K)`` from
+    :func:`_quarter_integrals`. Carlson forms (DLMF 19.25.5, 19.25.14) on ``|sn| <= 1/sqrt 2``; above,
+    the same integrals measured back from ``K`` (substituting ``theta -> pi/2 - theta``), whose
+    ``R_F``/``R_J`` arguments are ``O(p)`` but never zero, so that the terms are positive and ``rho``,
+    ``gamma`` keep their accuracy as ``p = 1 - m -> 0``. One ``R_F``/``R_J`` evaluation per point: the
+    two forms' arguments are selected before it (both are positive, so gradients stay finite).
+    ``p = 0`` is handled by the caller.
     """
     c = jnp.abs(cn)
     s = jnp.abs(sn)
     sign_s = jnp.where(sn < 0, -1.0, 1.0).astype(sn.dtype)
     sign_c = jnp.where(cn < 0, -1.0, 1.0).astype(sn.dtype)
     direct = s * s <= 0.5
-    one, zero = jnp.ones_like(s), jnp.zeros_like(s)
-    pc = jnp.where(p > 0, p, one)
-    # Unselected branches get harmless points (all arguments positive), so gradients stay finite.
-    sd, cd, dd = jnp.where(direct, s, zero), jnp.where(direct, c, one), jnp.where(direct, dn, one)
-    sc, cc, dc = jnp.where(direct, one, s), jnp.where(direct, zero, c), jnp.where(direct, one, dn)
+    pc = jnp.where(p > 0, p, jnp.ones_like(p))
+    pole = 1 + n * s * s
     rf, rj = _carlson_rf_rj(
-        jnp.stack([cd * cd, pc * sc * sc, zero]),
-        jnp.stack([dd * dd, dc * dc, one]),
-        jnp.stack([one, pc, pc]),
-        jnp.stack([1 + n * sd * sd, pc * (1 + n * sc * sc) / (1 + n), pc / (1 + n)]),
+        jnp.where(direct, c * c, pc * s * s),
+        dn * dn,
+        jnp.where(direct, jnp.ones_like(s), pc),
+        jnp.where(direct, pole, pc * pole / (1 + n)),
     )
-    f_direct = sd * rf[0]
-    g_direct = f_direct - (n / 3) * sd**3 * rj[0]
     weight = n / (1 + n) * pc / 3
-    quarter_f = rf[2]
-    quarter_g = (rf[2] + weight * rj[2]) / (1 + n)
-    f_comp = quarter_f - cc * rf[1]
-    g_comp = quarter_g - (cc * rf[1] + weight * cc**3 * rj[1]) / (1 + n)
-    f = sign_s * jnp.where(direct, f_direct, f_comp)
-    g = sign_s * jnp.where(direct, g_direct, g_comp)
-    return sign_c * f, sign_c * g, jnp.arctan2(sign_c * sn, c), quarter_f[0], quarter_g[0]
+    f = sign_s * jnp.where(direct, s * rf, quarter_f - c * rf)
+    g = sign_s * jnp.where(
+        direct, s * rf - (n / 3) * s**3 * rj, quarter_g - (c * rf + weight * c**3 * rj) / (1 + n)
+    )
+    return sign_c * f, sign_c * g, jnp.arctan2(sign_c * sn, c)
 
 
 def _half_angles(momentum):
@@ -302,13 +313,35 @@ def _steady_omega(inertia, omega0, t, steady):
     (``lambda^2`` of :func:`rigidjax.spin_stability`), so ``exp(J t) = 1 + g1 J + g2 J^2`` with
     ``g1 = sinh(x) / sqrt(c)``, ``g2 = (cosh(x) - 1) / c``, ``x = sqrt(c) t`` (circular for ``c < 0``),
     which is exact: growth about the intermediate axis, oscillation about the others, linear drift
-    in a degenerate plane. The value is ``omega0`` exactly; unused entries get harmless inputs.
+    in a degenerate plane. The value is ``omega0`` exactly; unused entries get harmless inputs. The
+    flow matrices are only formed for derivatives (a custom JVP): the value costs nothing.
     """
-    dtype = omega0.dtype
     safe_w = jnp.where(steady[..., None], omega0, jnp.zeros_like(omega0))
     safe_i = jnp.where(steady[..., None], inertia, jnp.ones_like(inertia))
-    i_sg, w_sg = jax.lax.stop_gradient(safe_i), jax.lax.stop_gradient(safe_w)
-    t_sg = jnp.broadcast_to(jax.lax.stop_gradient(t), omega0.shape[:-1])
+    return _linearised_flow(
+        safe_i, safe_w, jnp.broadcast_to(t, jnp.broadcast_shapes(omega0.shape[:-1], jnp.shape(t)))
+    )
+
+
+@jax.custom_jvp
+def _linearised_flow(inertia, omega, t):
+    """``omega`` at every time ``t`` (a steady rotation), whose tangent is the linearised flow."""
+    return jnp.broadcast_to(omega, t.shape + (3,))
+
+
+@_linearised_flow.defjvp
+def _linearised_flow_jvp(primals, tangents):
+    # The tangent of t does not enter: a steady rotation does not change with time. The primals are
+    # constants of the tangent map (second derivatives along the steady rotation are not provided).
+    d_inertia, d_omega, _ = tangents
+    flow, drive = _flow_matrices(*(jax.lax.stop_gradient(x) for x in primals))
+    tangent = (flow @ d_omega[..., None])[..., 0] + (drive @ d_inertia[..., None])[..., 0]
+    return _linearised_flow(*primals), tangent
+
+
+def _flow_matrices(i_sg, w_sg, t_sg):
+    """``exp(J t)`` and ``int_0^t exp(J s) ds B`` of :func:`_steady_omega`."""
+    dtype = w_sg.dtype
     I1, I2, I3 = i_sg[..., 0], i_sg[..., 1], i_sg[..., 2]
     w1, w2, w3 = w_sg[..., 0], w_sg[..., 1], w_sg[..., 2]
     k1, k2, k3 = (I2 - I3) / I1, (I3 - I1) / I2, (I1 - I2) / I3
@@ -351,10 +384,7 @@ def _steady_omega(inertia, omega0, t, steady):
     eye = jnp.eye(3, dtype=dtype)
     flow = eye + g1[..., None, None] * J + g2[..., None, None] * J2
     drive = (t_sg[..., None, None] * eye + g2[..., None, None] * J + g3[..., None, None] * J2) @ B
-    d_omega = safe_w - w_sg
-    d_inertia = safe_i - i_sg
-    base = jax.lax.stop_gradient(omega0)
-    return base + (flow @ d_omega[..., None])[..., 0] + (drive @ d_inertia[..., None])[..., 0]
+    return flow, drive
 
 
 def _broadcast_motion_inputs(inertia, omega0, q0, t):
@@ -364,12 +394,16 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
     check_last_axis(q0, 4, "q0")
     inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_motion")
     q0 = check_rotation_quaternion(q0, "q0", "torque_free_motion")
-    batch = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], q0.shape[:-1], t.shape)
+    # The body's arrays broadcast together, t stays apart: what depends on the body only (its
+    # elliptic parameters, K, G(K), the initial phase) is computed once per body, not per time.
+    body = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], q0.shape[:-1])
+    batch = jnp.broadcast_shapes(body, t.shape)
     return (
-        jnp.broadcast_to(inertia, batch + (3,)),
-        jnp.broadcast_to(omega0, batch + (3,)),
-        jnp.broadcast_to(q0, batch + (4,)),
-        jnp.broadcast_to(t, batch),
+        jnp.broadcast_to(inertia, body + (3,)),
+        jnp.broadcast_to(omega0, body + (3,)),
+        jnp.broadcast_to(q0, body + (4,)),
+        t,
+        batch,
     )
 
 
@@ -415,7 +449,7 @@ def torque_free_motion(
     the flow's, as in :func:`torque_free_omega`.
     Elsewhere values and gradients (forward and reverse) are finite.
     """
-    inertia, omega0, q0, t = _broadcast_motion_inputs(inertia, omega0, q0, t)
+    inertia, omega0, q0, t, batch = _broadcast_motion_inputs(inertia, omega0, q0, t)
     dtype = inertia.dtype
     steady = _steady(inertia, omega0)
     # A generic body stands in for steady ones, whose motion is below: no 0/0 in the general branch.
@@ -431,7 +465,8 @@ def torque_free_motion(
     vector = (t / 2 * jnp.sinc(half / jnp.pi))[..., None] * omega0
     q_s = _quat_multiply(q0, jnp.concatenate([jnp.cos(half)[..., None], vector], -1))
     omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
-    return omega, jnp.where(steady[..., None], q_s, q_g)
+    q = jnp.where(steady[..., None], q_s, q_g)
+    return jnp.broadcast_to(omega, batch + (3,)), jnp.broadcast_to(q, batch + (4,))
 
 
 def _general_orientation(inertia, omega0, omega_t, t, parts):
@@ -444,20 +479,21 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     I_c = jnp.where(around_largest, moments[..., 2], moments[..., 0])
     n = _clip(_safe_div(I_c * (I_b - I_a), I_a * (I_c - I_b)), 0.0, jnp.inf)
 
-    # The precession angle phi.
+    # The precession angle phi. K, G(K) and the start's reduced phase depend on the body only (they
+    # keep its shape when t has more axes: computed once per body, not per sample time).
     (sn0, cn0, dn0), (sn1, cn1, dn1) = parts["start"], parts["now"]
-    rho, gamma, am, quarter_f, quarter_g = _phase_integrals(
-        jnp.stack([sn0, sn1]), jnp.stack([cn0, cn1]), jnp.stack([dn0, dn1]), p, n
-    )
+    quarter_f, quarter_g = _quarter_integrals(jnp.where(p > 0, p, 1.0), n)
+    rho0, gamma0, am0 = _reduced_phase(sn0, cn0, dn0, p, n, quarter_f, quarter_g)
+    rho1, gamma1, am1 = _reduced_phase(sn1, cn1, dn1, p, n, quarter_f, quarter_g)
     on_separatrix = p == 0
     quarter_f = jnp.where(on_separatrix, 1.0, quarter_f)
-    turns = jnp.where(on_separatrix, 0.0, jnp.round((u + rho[0] - rho[1]) / (2 * quarter_f)))
-    delta_g = gamma[1] - gamma[0] + 2 * turns * jnp.where(on_separatrix, 0.0, quarter_g)
+    turns = jnp.where(on_separatrix, 0.0, jnp.round((u + rho0 - rho1) / (2 * quarter_f)))
+    delta_g = gamma1 - gamma0 + 2 * turns * jnp.where(on_separatrix, 0.0, quarter_g)
     # p = 0: G(tau) = tau / (1 + n) + sqrt(n) atan(sqrt(n) tanh(tau)) / (1 + n), tanh(tau) = sn.
     root_n = jnp.sqrt(jnp.where(on_separatrix, n, 1.0))
     delta_g_separatrix = (u + root_n * (jnp.arctan(root_n * sn1) - jnp.arctan(root_n * sn0))) / (1 + n)
     delta_g = jnp.where(on_separatrix, delta_g_separatrix, delta_g)
-    delta_am = am[1] - am[0] + jnp.pi * turns
+    delta_am = am1 - am0 + jnp.pi * turns
     speed = parts["speed"]
     size = safe_norm(inertia * omega0)
     phi = (size / I_c) * (t + (I_c - I_a) / I_a * delta_g / jnp.where(speed != 0, speed, 1.0))
@@ -468,7 +504,7 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     to_cyclic = (c_index + jnp.arange(1, 4)) % 3
     from_cyclic = (jnp.arange(3) - c_index - 1) % 3
     l0 = jnp.take_along_axis(inertia * omega0, to_cyclic, axis=-1)
-    l1 = jnp.take_along_axis(inertia * omega_t, to_cyclic, axis=-1)
+    l1 = _take(inertia * omega_t, to_cyclic)
     b0, psi0 = _nutation_spin_quat(l0)
     b1, psi1 = _nutation_spin_quat(l1)
 
@@ -483,7 +519,7 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     precession = jnp.stack([jnp.cos(phi / 2), zero, zero, jnp.sin(phi / 2)], axis=-1)
     b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], inertia.dtype)
     q = _quat_multiply(b0_conj, _quat_multiply(precession, b1)) * flip[..., None]
-    vector = jnp.take_along_axis(q[..., 1:], from_cyclic, axis=-1)
+    vector = _take(q[..., 1:], from_cyclic)
     return jnp.concatenate([q[..., :1], vector], axis=-1)
 
 

@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
 from rigidjax._torque_free import (
-    _phase_integrals,
+    _quarter_integrals,
+    _reduced_phase,
     torque_free_motion,
     torque_free_omega,
     torque_free_orientation,
@@ -419,12 +420,16 @@ def test_third_kind_integral_against_mpmath():
     phi, p, n = (np.array(x) for x in zip(*grid, strict=True))
     sn, cn = np.sin(phi), np.cos(phi)
     dn = np.sqrt(cn**2 + p * sn**2)
-    rho, gamma, _, quarter_f, quarter_g = jax.jit(_phase_integrals)(
-        *(jnp.asarray(x)[None] for x in (sn, cn, dn)), jnp.asarray(p), jnp.asarray(n)
-    )
+
+    @jax.jit
+    def phase(sn, cn, dn, p, n):
+        quarter_f, quarter_g = _quarter_integrals(p, n)
+        return *_reduced_phase(sn, cn, dn, p, n, quarter_f, quarter_g)[:2], quarter_f, quarter_g
+
+    rho, gamma, quarter_f, quarter_g = phase(*(jnp.asarray(x) for x in (sn, cn, dn, p, n)))
     half_turns = np.where(cn < 0, np.sign(phi), 0.0)  # tau = rho + 2 j K with j = 0 or +-1
-    got_f = np.asarray(rho[0]) + 2 * half_turns * np.asarray(quarter_f)
-    got_g = np.asarray(gamma[0]) + 2 * half_turns * np.asarray(quarter_g)
+    got_f = np.asarray(rho) + 2 * half_turns * np.asarray(quarter_f)
+    got_g = np.asarray(gamma) + 2 * half_turns * np.asarray(quarter_g)
     with mp.workdps(30):
         for k, (ph, pp, nn) in enumerate(grid):
             m = 1 - mp.mpf(pp)
