@@ -243,8 +243,10 @@ def _vmap_diffrax_program():
                 sol = diffrax.diffeqsolve(
                     diffrax.ODETerm(vector_field),
                     diffrax.Tsit5(),
-                    0.0,
-                    T_END,
+                    # Times in the state's dtype: diffrax promotes a float32 state to float64
+                    # times (under x64), which would make the float32 peer a float64 one.
+                    jnp.asarray(0.0, y0.dtype),
+                    jnp.asarray(T_END, y0.dtype),
                     None,
                     y0,
                     args=inertia,
@@ -261,16 +263,17 @@ def _vmap_diffrax_program():
     return _PROGRAMS["vmap"]
 
 
-def vmap_diffrax_method(scene, rtol: float) -> Method:
+def vmap_diffrax_method(scene, rtol: float, dtype: str = "float64") -> Method:
     """What a user writes: ``jax.vmap`` of ``diffeqsolve(Tsit5(), PIDController(rtol, atol=rtol))``."""
     import jax.numpy as jnp
 
     inertia, omega0, q0 = scene
+    jd = {"float64": jnp.float64, "float32": jnp.float32}[dtype]
     args = (
-        jnp.asarray(inertia),
-        jnp.asarray(np.concatenate([omega0, q0], axis=-1)),
-        jnp.asarray(rtol, jnp.float64),
-        jnp.asarray(rtol, jnp.float64),
+        jnp.asarray(inertia, jd),
+        jnp.asarray(np.concatenate([omega0, q0], axis=-1), jd),
+        jnp.asarray(rtol, jd),
+        jnp.asarray(rtol, jd),
     )
     solve = _vmap_diffrax_program()
 
@@ -278,7 +281,9 @@ def vmap_diffrax_method(scene, rtol: float) -> Method:
         y = solve(*args)
         return y[:, :3], y[:, 3:]
 
-    return Method("vmap diffeqsolve Tsit5 (user)", f"rtol={rtol:g}", fn, "vmap-tsit5", kind="peer")
+    return Method(
+        "vmap diffeqsolve Tsit5 (user)", f"rtol={rtol:g}", fn, f"vmap-tsit5-{dtype}", dtype, kind="peer"
+    )
 
 
 METHOD_KEYS = (
@@ -400,17 +405,82 @@ def standard_methods(scene, level: str = "full", include: Sequence[str] | None =
             vmap_diffrax_method(scene, r)
             for r in ((1e-6, 1e-8) if (quick or cli) else (1e-6, 1e-8, 1e-9, 1e-10))
         ]
-    if "float32" in keys:  # presets, closed form and hand RK4; errors against the float64 reference
-        for p in ("fast", "balanced") if quick else presets:
+    if "float32" in keys:
+        m += _float32_methods(scene, quick)
+    return m
+
+
+def _float32_methods(scene, quick: bool) -> list[Method]:
+    """Every method family again in float32 (errors against the float64 reference): presets, the
+    closed form, the diffrax solvers at rtol 1e-4 / 1e-6, hand RK4, the splittings, RKMK and the
+    vmapped peer. scipy and MuJoCo compute in float64 only."""
+    import diffrax
+    import jax.numpy as jnp
+
+    from ._lie_group import RKMK
+    from ._splitting import LiePoissonSplitting
+
+    f32 = "float32"
+    inertia = scene[0]
+    m = [
+        simulate_method(scene, f"simulate {p!r}", "preset", f"f32-preset-{p}", f32, accuracy=p)
+        for p in (("fast", "balanced") if quick else ("fast", "balanced", "precise"))
+    ]
+    m.append(
+        simulate_method(scene, "simulate 'exact' (closed form)", "-", "f32-exact", f32, accuracy="exact")
+    )
+    m.append(
+        simulate_method(
+            scene,
+            "simulate 'exact' (closed form)",
+            "omega only",
+            "f32-exact-omega",
+            f32,
+            omega_only=True,
+            accuracy="exact",
+        )
+    )
+    for name in ("Tsit5",) if quick else ("Tsit5", "Dopri5", "Dopri8"):
+        for r in (1e-4, 1e-6):
             m.append(
-                simulate_method(scene, f"simulate {p!r}", "preset", f"f32-preset-{p}", "float32", accuracy=p)
+                simulate_method(
+                    scene,
+                    f"simulate solver={name}",
+                    f"rtol={r:g}",
+                    f"f32-simulate-{name}",
+                    f32,
+                    solver=getattr(diffrax, name)(),
+                    rtol=r,
+                )
             )
+    m += [rk4_method(scene, dt, f32) for dt in ((0.02, 0.01) if quick else (0.04, 0.02, 0.01, 0.005))]
+    sub = sensitive_subset(scene, 1000)
+    for order, dt in ((2, 0.01), (4, 0.02)):
         m.append(
             simulate_method(
-                scene, "simulate 'exact' (closed form)", "-", "f32-exact", "float32", accuracy="exact"
+                scene,
+                f"LiePoissonSplitting order {order}",
+                f"dt={dt:g}",
+                f"f32-split{order}-{dt}",
+                f32,
+                subset=None if sub.size == len(inertia) else sub,
+                solver=LiePoissonSplitting(jnp.asarray(inertia[sub], jnp.float32), order=order),
+                dt0=dt,
             )
         )
-        m.append(rk4_method(scene, 0.01, "float32"))
+    for dt in (0.04,) if quick else (0.04, 0.02):
+        m.append(
+            simulate_method(
+                scene,
+                "RKMK dopri5 (fixed step)",
+                f"dt={dt:g}",
+                f"f32-rkmk-{dt}",
+                f32,
+                solver=RKMK("dopri5"),
+                dt0=dt,
+            )
+        )
+    m += [vmap_diffrax_method(scene, r, f32) for r in (1e-4, 1e-6)]
     return m
 
 
@@ -457,6 +527,8 @@ def run_methods(
         (omega, q), first = _call(m.fn)
         done += 1
         omega, q = np.asarray(omega), None if q is None else np.asarray(q)
+        if omega.dtype != np.dtype(m.dtype):  # e.g. a solver that silently promoted float32 state
+            raise RuntimeError(f"{m.family} {m.setting}: computed in {omega.dtype}, declared {m.dtype}.")
         sub = slice(None) if m.subset is None else m.subset
         errors_on = "all bodies" if m.subset is None else f"{len(m.subset)} bodies ({m.subset_note})"
         if not m.integrator and m.dtype == "float64" and checked is not None:
