@@ -461,10 +461,12 @@ def _ellipj_jvp(primals, tangents):
 
 def _ellipj_dm(u, m, p, sn, cn, dn, am):
     """``d(sn, cn, dn, am)/dm``."""
+    # m and p may have fewer axes than u (one body, many times): broadcast them to the output.
+    m, p = (jnp.broadcast_to(x, sn.shape) for x in (m, p))
     m1 = p == 0
     p_safe = jnp.where(m1, jnp.ones_like(p), p)
     m_safe = jnp.where(m1, jnp.zeros_like(m), m)
-    one = jnp.ones_like(u)
+    one = jnp.ones_like(sn)
 
     # d am/dm = -dn dF(phi|m)/dm at phi = am: F(am) = 2 j K + F(r), r = am - j pi, sin r = (-1)^j sn.
     j = jnp.round(am / jnp.pi)

@@ -498,6 +498,24 @@ def test_gradients_match_finite_differences_and_stay_finite():
         assert np.all(np.isfinite(np.asarray(d))), (I, w)
 
 
+def test_derivatives_at_many_times_match_one_time():
+    """A body's arrays keep their own shape against a vector of times (K, G(K), the initial phase and
+    the AGM are computed once per body, not per time): the derivatives there, d/d inertia included
+    (whose elliptic-function rule broadcasts the body's parameter), equal those at one time."""
+    inertia, omega0 = jnp.array([1.0, 2.0, 2.5]), jnp.array([0.3, -0.5, 1.0])
+    d_inertia, d_omega0 = jnp.array([0.3, -0.2, 0.5]), jnp.array([0.1, 0.4, -0.3])
+    ts = jnp.array([1.0, 3.0])
+
+    def state(inertia, omega0):
+        omega, q = torque_free_motion(inertia, omega0, jnp.asarray(Q0), ts)
+        return jnp.concatenate([omega, q], axis=-1)
+
+    many = jax.jvp(state, (inertia, omega0), (d_inertia, d_omega0))[1]
+    assert many.shape == (2, 7)
+    one = directional_derivative(inertia, omega0, d_inertia, d_omega0)  # at t = 3
+    np.testing.assert_allclose(np.asarray(many[1]), np.asarray(one), rtol=1e-12, atol=1e-13)
+
+
 def test_orientation_batches_and_wrapper():
     """Broadcasting like torque_free_omega; restarting from a state on the trajectory continues it."""
     rng = np.random.default_rng(5)
