@@ -234,6 +234,86 @@ def write_reports(meta, rows, targets, prefix, no_plot=False):
             print("matplotlib is not installed: no plot", file=sys.stderr)
 
 
+README = os.path.join(os.path.dirname(HERE), "README.md")
+README_MARKERS = ("<!-- work-precision-table -->", "<!-- /work-precision-table -->")
+
+# (label, family prefix, setting or None for any, dtype) of the rows the main README shows.
+README_ROWS = [
+    ('`simulate` "fast"', "simulate 'fast'", "preset", "float64"),
+    ('`simulate` "balanced"', "simulate 'balanced'", "preset", "float64"),
+    ('`simulate` "precise"', "simulate 'precise'", "preset", "float64"),
+    ('`simulate` "exact" (closed form, ω and q)', "simulate 'exact'", "-", "float64"),
+    ('`simulate` "exact", ω only', "simulate 'exact'", "omega only", "float64"),
+    ("`simulate(solver=Dopri8(), rtol=1e-6)`", "simulate solver=Dopri8", "rtol=1e-06", "float64"),
+    ("hand-written RK4 (7, N), dt 0.01", "hand RK4", "dt=0.01", "float64"),
+    ("hand-written RK4 (7, N), dt 0.0025", "hand RK4", "dt=0.0025", "float64"),
+    ("`jax.vmap(diffeqsolve(Tsit5, PID))`, rtol 1e-6", "vmap diffeqsolve", "rtol=1e-06", "float64"),
+    ("`jax.vmap(diffeqsolve(Tsit5, PID))`, rtol 1e-8", "vmap diffeqsolve", "rtol=1e-08", "float64"),
+    ("`jax.vmap(diffeqsolve(Tsit5, PID))`, rtol 1e-10", "vmap diffeqsolve", "rtol=1e-10", "float64"),
+    ("scipy `solve_ivp` DOP853 per body, rtol 1e-10", "scipy solve_ivp DOP853", "rtol=1e-10", "float64"),
+    ("MuJoCo RK4, dt 0.01", "MuJoCo RK4", "dt=0.01", "float64"),
+    ("MuJoCo RK4, dt 0.0025", "MuJoCo RK4", "dt=0.0025", "float64"),
+    ("MuJoCo Euler, dt 0.01", "MuJoCo Euler", "dt=0.01", "float64"),
+    ('float32 `simulate` "balanced"', "simulate 'balanced'", "preset", "float32"),
+    ('float32 `simulate` "exact"', "simulate 'exact'", "-", "float32"),
+    ("float32 hand RK4, dt 0.01", "hand RK4", "dt=0.01", "float32"),
+    ("float32 `jax.vmap(diffeqsolve(Tsit5, PID))`, rtol 1e-6", "vmap diffeqsolve", "rtol=1e-06", "float32"),
+]
+
+
+def readme_section(meta, rows, targets) -> str:
+    """The key rows and the targets, as the main README shows them (between README_MARKERS)."""
+    load = f"load {meta['loadavg_start'][0]:.1f} -> {meta['loadavg_end'][0]:.1f}"
+    lines = [
+        f"Measured by `{meta['command']}` ({meta['devices'][0]}, {meta['cpu_count']} CPUs, {load}, "
+        f"jax {meta['jax']}); median of {meta['repeats']} calls, compile excluded. Every row and column: "
+        "`benchmarks/results/work_precision.md`.",
+        "",
+        "| method | run s | compile s | max rel ω err | median rel ω err | max angle err rad |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    any_scaled = False
+    for label, family, setting, dtype in README_ROWS:
+        match = [
+            r
+            for r in rows
+            if r["family"].startswith(family) and r["dtype"] == dtype and setting in (None, r["setting"])
+        ]
+        if not match:
+            continue
+        r = match[0]
+        scaled = "" if r["time_scale"] == 1 else " ¹"
+        any_scaled = any_scaled or bool(scaled)
+        # None or ~0: the program was compiled by an earlier row (a new rtol is a traced value).
+        compile_s = "(shared)" if r["compile_s"] is None or r["compile_s"] < 0.1 else f"{r['compile_s']:.1f}"
+        angle = "-" if r["max_angle"] is None else f"{r['max_angle']:.1e}"
+        lines.append(
+            f"| {label} | {r['run_s']:.3g}{scaled} | {compile_s} | {r['max_rel_omega']:.1e} | "
+            f"{r['median_rel_omega']:.1e} | {angle} |"
+        )
+    if any_scaled:
+        lines += ["", "¹ run on a subset of the bodies (the most sensitive included), time scaled to N."]
+    lines += ["", "Issue-6 targets, as the script evaluates them (float64, this run):", ""]
+    for t in targets:
+        flag = {True: "**met**", False: "**missed**", None: "n/a"}[t["met"]]
+        lines.append(f"- {flag} — {t['target']}: {t['text']}")
+    return "\n".join(lines)
+
+
+def update_readme(meta, rows, targets, path=README):
+    with open(path) as fh:
+        text = fh.read()
+    start, end = README_MARKERS
+    if start not in text or end not in text:
+        print(f"{path} has no {start} ... {end} markers: README not updated", file=sys.stderr)
+        return
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
+    with open(path, "w") as fh:
+        fh.write(head + start + "\n" + readme_section(meta, rows, targets) + "\n" + end + tail)
+    print(f"updated the table in {path}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--n", type=int, default=10_000, help="number of bodies")
@@ -249,6 +329,11 @@ def main(argv=None):
     p.add_argument("--out-prefix", default=DEFAULT_PREFIX, help="writes PREFIX.json, PREFIX.md, PREFIX.png")
     p.add_argument("--no-plot", action="store_true")
     p.add_argument(
+        "--no-readme",
+        action="store_true",
+        help="do not rewrite the key-rows table of README.md (a full run with the default prefix does)",
+    )
+    p.add_argument(
         "--replot", action="store_true", help="only redo PREFIX.md and PREFIX.png from PREFIX.json"
     )
     a = p.parse_args(argv)
@@ -259,6 +344,8 @@ def main(argv=None):
         with open(a.out_prefix + ".json", "w") as fh:
             json.dump(saved, fh, indent=1)
         write_reports(saved["meta"], saved["rows"], saved["targets"], a.out_prefix, a.no_plot)
+        if a.out_prefix == DEFAULT_PREFIX and not a.no_readme:
+            update_readme(saved["meta"], saved["rows"], saved["targets"])
         return
 
     t_start = time.perf_counter()
@@ -343,6 +430,8 @@ def main(argv=None):
     with open(a.out_prefix + ".json", "w") as fh:
         json.dump(dict(meta=meta, rows=rows, targets=targets), fh, indent=1)
     write_reports(meta, rows, targets, a.out_prefix, a.no_plot)
+    if a.out_prefix == DEFAULT_PREFIX and not a.no_readme and a.only is None and not a.quick:
+        update_readme(meta, rows, targets)
     print(f"total {meta['total_s']:.0f} s; wrote {a.out_prefix}.json/.md/.png", flush=True)
 
 
