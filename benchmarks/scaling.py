@@ -72,18 +72,6 @@ def _reset_hwm():
         return False
 
 
-def make_scene(n: int):
-    """numpy float64 inertia (N, 3), omega0 (N, 3), q0 (N, 4): the issue 6 reference scene."""
-    import numpy as np
-
-    rng = np.random.default_rng(0)
-    u = rng.uniform(-1.0, 1.0, size=(n, 3))
-    inertia = np.array([1.0, 2.0, 2.5]) * (1.0 + 0.05 * u)
-    omega0 = np.array([0.05, 4.0, 0.05]) + 0.01 * rng.standard_normal(size=(n, 3))
-    q0 = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (n, 1))
-    return inertia, omega0, q0
-
-
 def worker(spec: dict) -> dict:
     import resource
 
@@ -109,7 +97,9 @@ def worker(spec: dict) -> dict:
     if spec.get("rtol") is not None:
         kwargs["rtol"] = float(spec["rtol"])
 
-    inertia_np, omega_np, q_np = make_scene(n)
+    from rigidjax._bench import reference_scene  # the issue-6 scene, one definition
+
+    inertia_np, omega_np, q_np = reference_scene(n)
     inertia = jnp.asarray(inertia_np, dtype)
     omega0 = jnp.asarray(omega_np, dtype)
     q0 = jnp.asarray(q_np, dtype)
