@@ -317,3 +317,70 @@ def test_time_at_error_interpolates_on_the_pareto_front():
     assert time_at_error(rows, 1e-10) == (None, False)
     t, extrapolated = time_at_error(rows, 1e-10, extrapolate=True)
     assert t == pytest.approx(1e-10**-0.25) and extrapolated
+
+
+def test_bench_refuses_a_row_computed_in_another_dtype():
+    """A method declared float32 whose output comes back float64 (diffrax promotes a float32 state
+    under float64 times) stops the run instead of landing in the float32 rows."""
+    from rigidjax._bench import Method, reference_scene, run_methods
+
+    scene = reference_scene(4)
+    omega, q = scene[1], scene[2]  # float64 numpy arrays
+
+    promoted = Method("peer", "rtol=1e-6", lambda: (omega, q), "g", dtype="float32", kind="peer")
+    with pytest.raises(RuntimeError, match="computed in float64, declared float32"):
+        run_methods([promoted], scene, (omega, q), repeats=0)
+    honest = Method("peer", "rtol=1e-6", lambda: (omega, q), "g", dtype="float64", kind="peer")
+    (row,) = run_methods([honest], scene, (omega, q), repeats=0)
+    assert row["max_rel_omega"] == 0.0 and row["dtype"] == "float64"
+
+
+def test_work_precision_readme_section_lists_the_key_rows_and_targets(tmp_path):
+    """benchmarks/work_precision.py rewrites the README table between its markers from the results."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "work_precision.py"
+    spec = importlib.util.spec_from_file_location("work_precision", path)
+    wp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(wp)
+
+    def row(family, setting, dtype, run_s, err, compile_s=None, scale=1.0):
+        return dict(
+            family=family,
+            setting=setting,
+            dtype=dtype,
+            run_s=run_s,
+            compile_s=compile_s,
+            time_scale=scale,
+            max_rel_omega=err,
+            median_rel_omega=err / 10,
+            max_angle=None,
+        )
+
+    rows = [
+        row("simulate 'balanced'", "preset", "float64", 0.5, 4e-9, compile_s=3.0),
+        row("simulate 'balanced'", "preset", "float32", 0.2, 1.7),
+        row("scipy solve_ivp DOP853 per body", "rtol=1e-10", "float64", 120.0, 1.6e-8, scale=500.0),
+    ]
+    targets = [{"target": "balanced >= 10x vmapped diffrax at <= 1e-06", "met": False, "text": "3.1x"}]
+    meta = dict(
+        command="python benchmarks/work_precision.py",
+        devices=["cpu:0"],
+        cpu_count=2,
+        jax="0",
+        repeats=3,
+        loadavg_start=[1.0],
+        loadavg_end=[1.0],
+    )
+    text = wp.readme_section(meta, rows, targets)
+    assert '| `simulate` "balanced" | 0.5 | 3.0 | 4.0e-09 | 4.0e-10 | - |' in text
+    assert '| float32 `simulate` "balanced" | 0.2 | (shared) | 1.7e+00 |' in text
+    assert "| 120 ¹ |" in text and "¹ run on a subset" in text
+    assert "- **missed** — balanced >= 10x vmapped diffrax at <= 1e-06: 3.1x" in text
+    readme = tmp_path / "README.md"
+    start, end = wp.README_MARKERS
+    readme.write_text(f"head\n{start}\nold\n{end}\ntail\n")
+    wp.update_readme(meta, rows, targets, path=readme)
+    new = readme.read_text()
+    assert new.startswith(f"head\n{start}\n") and new.endswith(f"{end}\ntail\n") and "old" not in new
