@@ -211,20 +211,15 @@ def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
 # Orientation
 
 
-def _quarter_integrals(p, n):
-    """``K = R_F(0, 1, p)`` and ``G(K) = Pi(-n | m)`` (DLMF 19.25.1-2), for ``p = 1 - m > 0``."""
-    zero, one = jnp.zeros_like(p), jnp.ones_like(p)
-    rf, rj = _carlson_rf_rj(zero, one, p, p / (1 + n))
-    return rf, (rf + n / (1 + n) * p / 3 * rj) / (1 + n)
-
-
-def _reduced_phase(sn, cn, dn, p, n, quarter_f, quarter_g):
+def _reduced_phase(sn, cn, dn, p, n, quarter=None):
     """Reduced phase of the point ``(sn, cn, dn)`` of the elliptic solution and ``G`` there.
 
     ``G(tau) = int_0^tau dtau' / (1 + n sn^2(tau')) = Pi(-n; am(tau) | m)``. The point fixes ``tau`` up to
     multiples of ``2K``: ``tau = rho + 2 j K`` with ``|rho| <= K``, and then ``G(tau) = gamma + 2 j G(K)``.
-    Returns ``rho``, ``gamma`` and ``am(rho)``; ``quarter_f``, ``quarter_g`` are ``K``, ``G(K)`` from
-    :func:`_quarter_integrals`. Carlson forms (DLMF 19.25.5, 19.25.14) on ``|sn| <= 1/sqrt 2``; above,
+    Returns ``rho``, ``gamma``, ``am(rho)`` and ``quarter = (K, G(K))`` (DLMF 19.25.1-2; pass them back
+    for further points of the same body, or None to evaluate them in the same ``R_F``/``R_J`` call:
+    one duplication loop fewer to compile and differentiate). Carlson forms (DLMF 19.25.5, 19.25.14)
+    on ``|sn| <= 1/sqrt 2``; above,
     the same integrals measured back from ``K`` (substituting ``theta -> pi/2 - theta``), whose
     ``R_F``/``R_J`` arguments are ``O(p)`` but never zero, so that the terms are positive and ``rho``,
     ``gamma`` keep their accuracy as ``p = 1 - m -> 0``. One ``R_F``/``R_J`` evaluation per point: the
@@ -238,18 +233,28 @@ def _reduced_phase(sn, cn, dn, p, n, quarter_f, quarter_g):
     direct = s * s <= 0.5
     pc = jnp.where(p > 0, p, jnp.ones_like(p))
     pole = 1 + n * s * s
-    rf, rj = _carlson_rf_rj(
+    args = (
         jnp.where(direct, c * c, pc * s * s),
         dn * dn,
         jnp.where(direct, jnp.ones_like(s), pc),
         jnp.where(direct, pole, pc * pole / (1 + n)),
     )
     weight = n / (1 + n) * pc / 3
+    if quarter is None:  # K = R_F(0, 1, p), G(K) from R_J(0, 1, p, p / (1 + n)), stacked with the point
+        extra = (jnp.zeros_like(pc), jnp.ones_like(pc), pc, pc / (1 + n))
+        rf, rj = _carlson_rf_rj(
+            *(jnp.stack(jnp.broadcast_arrays(a, b)) for a, b in zip(args, extra, strict=True))
+        )
+        quarter = rf[1], (rf[1] + weight * rj[1]) / (1 + n)
+        rf, rj = rf[0], rj[0]
+    else:
+        rf, rj = _carlson_rf_rj(*args)
+    quarter_f, quarter_g = quarter
     f = sign_s * jnp.where(direct, s * rf, quarter_f - c * rf)
     g = sign_s * jnp.where(
         direct, s * rf - (n / 3) * s**3 * rj, quarter_g - (c * rf + weight * c**3 * rj) / (1 + n)
     )
-    return sign_c * f, sign_c * g, jnp.arctan2(sign_c * sn, c)
+    return sign_c * f, sign_c * g, jnp.arctan2(sign_c * sn, c), quarter
 
 
 def _half_angles(momentum):
@@ -482,9 +487,9 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     # The precession angle phi. K, G(K) and the start's reduced phase depend on the body only (they
     # keep its shape when t has more axes: computed once per body, not per sample time).
     (sn0, cn0, dn0), (sn1, cn1, dn1) = parts["start"], parts["now"]
-    quarter_f, quarter_g = _quarter_integrals(jnp.where(p > 0, p, 1.0), n)
-    rho0, gamma0, am0 = _reduced_phase(sn0, cn0, dn0, p, n, quarter_f, quarter_g)
-    rho1, gamma1, am1 = _reduced_phase(sn1, cn1, dn1, p, n, quarter_f, quarter_g)
+    rho0, gamma0, am0, quarter = _reduced_phase(sn0, cn0, dn0, p, n)
+    rho1, gamma1, am1, _ = _reduced_phase(sn1, cn1, dn1, p, n, quarter)
+    quarter_f, quarter_g = quarter
     on_separatrix = p == 0
     quarter_f = jnp.where(on_separatrix, 1.0, quarter_f)
     turns = jnp.where(on_separatrix, 0.0, jnp.round((u + rho0 - rho1) / (2 * quarter_f)))
