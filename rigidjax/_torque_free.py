@@ -219,12 +219,11 @@ def _reduced_phase(sn, cn, dn, p, n, quarter=None):
     Returns ``rho``, ``gamma``, ``am(rho)`` and ``quarter = (K, G(K))`` (DLMF 19.25.1-2; pass them back
     for further points of the same body, or None to evaluate them in the same ``R_F``/``R_J`` call:
     one duplication loop fewer to compile and differentiate). Carlson forms (DLMF 19.25.5, 19.25.14)
-    on ``|sn| <= 1/sqrt 2``; above,
-    the same integrals measured back from ``K`` (substituting ``theta -> pi/2 - theta``), whose
-    ``R_F``/``R_J`` arguments are ``O(p)`` but never zero, so that the terms are positive and ``rho``,
-    ``gamma`` keep their accuracy as ``p = 1 - m -> 0``. One ``R_F``/``R_J`` evaluation per point: the
-    two forms' arguments are selected before it (both are positive, so gradients stay finite).
-    ``p = 0`` is handled by the caller.
+    on ``|sn| <= 1/sqrt 2``; above, the same integrals measured back from ``K`` (substituting
+    ``theta -> pi/2 - theta``), whose ``R_F``/``R_J`` arguments are ``O(p)`` but never zero, so that the
+    terms are positive and ``rho``, ``gamma`` keep their accuracy as ``p = 1 - m -> 0``. One
+    ``R_F``/``R_J`` evaluation per point: the two forms' arguments are selected before it (both are
+    positive, so gradients stay finite). ``p = 0`` is handled by the caller.
     """
     c = jnp.abs(cn)
     s = jnp.abs(sn)
