@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import jax
 
@@ -37,6 +35,7 @@ import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
+from rigidjax import _bench as B  # noqa: E402
 from rigidjax import _fit  # noqa: E402
 
 
@@ -63,17 +62,9 @@ def records():
 
 
 def timed(fn, repeats):
-    t0 = time.perf_counter()
-    result = fn()
-    jax.block_until_ready(result)
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    run = statistics.median(times)
-    return result, run, max(first - run, 0.0)
+    """(result, median run s, compile s): ``rigidjax._bench.timed_calls``."""
+    result, t = B.timed_calls(fn, repeats)
+    return result, t["run_s"], t["compile_s"]
 
 
 def methods_section(repeats):

@@ -30,10 +30,6 @@ import argparse
 import functools
 import json
 import os
-import platform
-import statistics
-import sys
-import time
 
 import jax
 
@@ -47,19 +43,6 @@ import rigidjax as rj  # noqa: E402
 from rigidjax import _bench as B  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-
-
-def timed(fn, repeats):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - t0)
-    run = statistics.median(runs)
-    return out, {"run_s": run, "runs_s": runs, "compile_s": max(first - run, 0.0), "first_call_s": first}
 
 
 def programs(accuracy, q0, ts):
@@ -119,30 +102,20 @@ def main(argv=None):
     weights = jnp.asarray(rng.standard_normal((a.n, 7)))
     d_inertia = jnp.asarray(rng.standard_normal((a.n, 3)) * 0.01)
     d_omega0 = jnp.asarray(rng.standard_normal((a.n, 3)) * 0.01)
-    meta = dict(
-        n=a.n,
-        repeats=a.repeats,
-        T=B.T_END,
-        jax=jax.__version__,
-        diffrax=diffrax.__version__,
-        devices=[str(d) for d in jax.devices()],
-        cpu_count=os.cpu_count(),
-        platform=platform.platform(),
-        python=sys.version.split()[0],
-        loadavg_start=os.getloadavg(),
-        command=" ".join(
-            ["python", "benchmarks/gradient_cost.py"] + list(sys.argv[1:] if argv is None else argv)
-        ),
+    meta = B.run_meta(
+        "benchmarks/gradient_cost.py", argv, n=a.n, repeats=a.repeats, T=B.T_END, diffrax=diffrax.__version__
     )
     print(f"N={a.n}, T={B.T_END} s, {meta['devices']}, load {meta['loadavg_start']}", flush=True)
     rows, jacobians = [], {}
     for accuracy in a.accuracies.split(","):
         forward, grad, jvp, jac_fwd, jac_rev = programs(accuracy, q0, ts)
-        _, t_fwd = timed(functools.partial(forward, inertia, omega0), a.repeats)
-        (g_i, g_w), t_grad = timed(functools.partial(grad, inertia, omega0, weights), a.repeats)
-        tangent, t_jvp = timed(functools.partial(jvp, inertia, omega0, d_inertia, d_omega0), a.repeats)
-        jf, t_jf = timed(functools.partial(jac_fwd, inertia, omega0), a.repeats)
-        jr, t_jr = timed(functools.partial(jac_rev, inertia, omega0), a.repeats)
+        _, t_fwd = B.timed_calls(functools.partial(forward, inertia, omega0), a.repeats)
+        (g_i, g_w), t_grad = B.timed_calls(functools.partial(grad, inertia, omega0, weights), a.repeats)
+        tangent, t_jvp = B.timed_calls(
+            functools.partial(jvp, inertia, omega0, d_inertia, d_omega0), a.repeats
+        )
+        jf, t_jf = B.timed_calls(functools.partial(jac_fwd, inertia, omega0), a.repeats)
+        jr, t_jr = B.timed_calls(functools.partial(jac_rev, inertia, omega0), a.repeats)
         jacobians[accuracy] = np.asarray(jf)
         # <grad, v> against the JVP contracted with the weights: reverse vs forward mode.
         lhs = float(jnp.sum(g_i * d_inertia) + jnp.sum(g_w * d_omega0))

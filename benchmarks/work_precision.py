@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 
@@ -349,21 +348,14 @@ def main(argv=None):
         return
 
     t_start = time.perf_counter()
-    meta = dict(
+    meta = B.run_meta(
+        "benchmarks/work_precision.py",
+        argv,
         n=a.n,
         quick=a.quick,
         repeats=a.repeats,
         T=B.T_END,
-        jax=jax.__version__,
         backend=jax.default_backend(),
-        devices=[str(d) for d in jax.devices()],
-        cpu_count=os.cpu_count(),
-        platform=platform.platform(),
-        python=sys.version.split()[0],
-        loadavg_start=os.getloadavg(),
-        command=" ".join(
-            ["python", "benchmarks/work_precision.py"] + list(sys.argv[1:] if argv is None else argv)
-        ),
     )
     print(f"N={a.n} on {meta['devices']}, {os.cpu_count()} CPUs, load {meta['loadavg_start']}", flush=True)
     scene = B.reference_scene(a.n)

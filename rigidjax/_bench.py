@@ -488,6 +488,36 @@ def _float32_methods(scene, quick: bool) -> list[Method]:
 # Running and timing.
 
 
+def run_meta(script: str, argv: Sequence[str] | None, **extra) -> dict:
+    """What a benchmark's JSON records about its run: ``extra`` first, then jax's version and devices,
+    the machine, the load at the start and the command line that reproduces it."""
+    import os
+    import platform
+    import sys
+
+    import jax
+
+    return dict(
+        **extra,
+        jax=jax.__version__,
+        devices=[str(d) for d in jax.devices()],
+        cpu_count=os.cpu_count(),
+        platform=platform.platform(),
+        python=sys.version.split()[0],
+        loadavg_start=os.getloadavg(),
+        command=" ".join(["python", script] + list(sys.argv[1:] if argv is None else argv)),
+    )
+
+
+def timed_calls(fn: Callable[[], object], repeats: int) -> tuple[object, dict]:
+    """``fn()``'s result and its timing: a first call (compile + run), then ``repeats`` calls, each
+    with ``block_until_ready``; ``run_s`` is their median, ``compile_s`` = first call - median."""
+    out, first = _call(fn)
+    runs = [_call(fn)[1] for _ in range(repeats)]
+    run = statistics.median(runs) if runs else first
+    return out, {"run_s": run, "runs_s": runs, "compile_s": max(first - run, 0.0), "first_call_s": first}
+
+
 def _call(fn):
     import jax
 
