@@ -95,14 +95,23 @@ def _checked(inertia, omega0, t, where):
     return inertia, omega0, t
 
 
+def _body_arrays(t, *arrays):
+    """The body's arrays broadcast against each other (last axis kept) and the batch shape with ``t``.
+
+    ``t`` stays apart: what depends on the body only (its elliptic parameters, K, G(K), the initial
+    phase) keeps the body's shape and is computed once per body, not per sample time.
+    """
+    body = jnp.broadcast_shapes(*(a.shape[:-1] for a in arrays))
+    return [jnp.broadcast_to(a, body + a.shape[-1:]) for a in arrays], jnp.broadcast_shapes(body, t.shape)
+
+
 def _broadcast_inputs(inertia, omega0, t):
     inertia, omega0, t = common_float(inertia, omega0, t, names=["inertia", "omega0", "t"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
     inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_omega")
-    body = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1])
-    batch = jnp.broadcast_shapes(body, t.shape)
-    return jnp.broadcast_to(inertia, body + (3,)), jnp.broadcast_to(omega0, body + (3,)), t, batch
+    (inertia, omega0), batch = _body_arrays(t, inertia, omega0)
+    return inertia, omega0, t, batch
 
 
 def _motion_parts(inertia, omega0, t):
@@ -398,17 +407,8 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
     check_last_axis(q0, 4, "q0")
     inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_motion")
     q0 = check_rotation_quaternion(q0, "q0", "torque_free_motion")
-    # The body's arrays broadcast together, t stays apart: what depends on the body only (its
-    # elliptic parameters, K, G(K), the initial phase) is computed once per body, not per time.
-    body = jnp.broadcast_shapes(inertia.shape[:-1], omega0.shape[:-1], q0.shape[:-1])
-    batch = jnp.broadcast_shapes(body, t.shape)
-    return (
-        jnp.broadcast_to(inertia, body + (3,)),
-        jnp.broadcast_to(omega0, body + (3,)),
-        jnp.broadcast_to(q0, body + (4,)),
-        t,
-        batch,
-    )
+    (inertia, omega0, q0), batch = _body_arrays(t, inertia, omega0, q0)
+    return inertia, omega0, q0, t, batch
 
 
 @eqx.filter_jit
