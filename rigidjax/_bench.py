@@ -120,8 +120,8 @@ def simulate_method(
 ) -> Method:
     """``rigidjax.simulate(FreeBody(I), State(omega0, q0), [0, T], **kwargs)``, state at t = T;
     on the bodies ``subset`` only if given; without the orientation if ``omega_only``."""
-    from ._models import FreeBody, State
-    from ._simulate import simulate
+    from ._dynamics.models import FreeBody, State
+    from ._integrate.simulate import simulate
 
     part = scene if subset is None else tuple(x[subset] for x in scene)
     inertia, omega0, q0, ts = _jnp_inputs(*part, dtype)
@@ -309,8 +309,8 @@ def standard_methods(scene, level: str = "full", include: Sequence[str] | None =
     vmapped diffrax). ``include``: keys of :data:`METHOD_KEYS` to keep (default: all of the level)."""
     import diffrax
 
-    from ._lie_group import RKMK
-    from ._splitting import LiePoissonSplitting
+    from ._integrate.solvers.rkmk import RKMK
+    from ._integrate.solvers.splitting import LiePoissonSplitting
 
     keys = set(CLI_KEYS if level == "cli" else METHOD_KEYS) if include is None else set(include)
     unknown = keys - set(METHOD_KEYS)
@@ -417,8 +417,8 @@ def _float32_methods(scene, quick: bool) -> list[Method]:
     import diffrax
     import jax.numpy as jnp
 
-    from ._lie_group import RKMK
-    from ._splitting import LiePoissonSplitting
+    from ._integrate.solvers.rkmk import RKMK
+    from ._integrate.solvers.splitting import LiePoissonSplitting
 
     f32 = "float32"
     inertia = scene[0]

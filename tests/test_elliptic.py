@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.special as sc
 
-from rigidjax._elliptic import ellipe, ellipeinc, ellipj, ellipj_m1, ellipk, ellipkinc, ellipkm1, elliprj
+from rigidjax._closed_form.elliptic import ellipe, ellipeinc, ellipj, ellipj_m1, ellipk, ellipkinc, ellipkm1, elliprj
 
 EPS64 = float(np.finfo(np.float64).eps)
 EPS32 = float(np.finfo(np.float32).eps)

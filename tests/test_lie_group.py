@@ -13,7 +13,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from rigidjax._lie_group import (
+from rigidjax._integrate.solvers.rkmk import (
     RKMK,
     _structure_preserving_traced,
     dexpinv,
@@ -22,10 +22,10 @@ from rigidjax._lie_group import (
     rkmk_step,
     simulate_structure_preserving,
 )
-from rigidjax._models import FreeBody, HeavyTop, RigidBody, State, ViscousDamping
-from rigidjax._quaternion import matrix_from_quat, quat_conjugate, quat_multiply, quat_normalize
-from rigidjax._splitting import HeavyTopSplitting, LiePoissonSplitting
-from rigidjax._torque_free import torque_free_omega
+from rigidjax._dynamics.models import FreeBody, HeavyTop, RigidBody, State, ViscousDamping
+from rigidjax._kinematics.quaternion import matrix_from_quat, quat_conjugate, quat_multiply, quat_normalize
+from rigidjax._integrate.solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
+from rigidjax._closed_form.torque_free import torque_free_omega
 
 # A heavy top written as a user torque, plus a time-dependent body-frame drive: the torque depends on
 # time and orientation.

@@ -9,14 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rigidjax._quaternion import matrix_from_quat, quat_multiply, quat_normalize, quat_rotate
-from rigidjax._splitting import (
+from rigidjax._kinematics.quaternion import matrix_from_quat, quat_multiply, quat_normalize, quat_rotate
+from rigidjax._integrate.solvers.splitting import (
     LiePoissonSplitting,
     free_body_vector_field,
     split_free_body,
     splitting_step,
 )
-from rigidjax._torque_free import torque_free_omega
+from rigidjax._closed_form.torque_free import torque_free_omega
 
 # Asymmetric body, well away from the separatrix (L^2 - 2 E I2 = 2.5 - ... clearly nonzero).
 INERTIA = jnp.array([1.0, 2.0, 3.0])
@@ -233,8 +233,8 @@ def test_float32(order):
 
 from scipy.integrate import solve_ivp  # noqa: E402
 
-from rigidjax._models import HeavyTop, State  # noqa: E402
-from rigidjax._splitting import (  # noqa: E402
+from rigidjax._dynamics.models import HeavyTop, State  # noqa: E402
+from rigidjax._integrate.solvers.splitting import (  # noqa: E402
     HeavyTopSplitting,
     _gravity_kick,
     _strang,

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import rigidjax as rj
-from rigidjax._stability import SleepingTop, SpinStability, sleeping_top, spin_stability
+from rigidjax._dynamics.stability import SleepingTop, SpinStability, sleeping_top, spin_stability
 
 G = 9.81
 # Jitted once per input signature: the many small calls below would otherwise run op by op.

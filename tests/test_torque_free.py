@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
-from rigidjax._torque_free import (
+from rigidjax._closed_form.torque_free import (
     _reduced_phase,
     torque_free_motion,
     torque_free_omega,

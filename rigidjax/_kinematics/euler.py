@@ -22,19 +22,17 @@ Rigidjax's own integrators call unchecked private cores (``_euler_from_quat``...
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._misc import (
+from .._checks import (
     check_finite,
     check_last_axis,
     check_last_two_axes,
     check_rotation_matrix,
     check_rotation_quaternion,
     common_float,
-    eps,
-    safe_atan2,
-    safe_hypot,
 )
-from ._quaternion import _quat_from_matrix, _quat_multiply
-from ._types import Angles, Matrix, MatrixOut, Quaternion, Vector, VectorOut
+from .._numerics import eps, safe_atan2, safe_hypot
+from .._types import Angles, Matrix, MatrixOut, Quaternion, Vector, VectorOut
+from .quaternion import _quat_from_matrix, _quat_multiply
 
 PROPER_SEQUENCES = ("zxz", "zyz", "xyx", "xzx", "yxy", "yzy")
 TAIT_BRYAN_SEQUENCES = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")

@@ -36,9 +36,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._inertia import check_inertia
-from ._misc import as_float_array, check_finite, check_last_axis, check_rotation_quaternion
-from ._quaternion import _quat_conjugate, _quat_multiply, _quat_rotate
+from ..._checks import as_float_array, check_finite, check_last_axis, check_rotation_quaternion
+from ..._dynamics.inertia import check_inertia
+from ..._kinematics.quaternion import _quat_conjugate, _quat_multiply, _quat_rotate
 
 _YOSHIDA_W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 _YOSHIDA_W0 = 1.0 - 2.0 * _YOSHIDA_W1

@@ -30,41 +30,21 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._inertia import principal_axes
-from ._misc import as_float_array, check_finite, check_last_axis, check_rotation_quaternion, common_float, eps
-from ._models import AbstractModel, HeavyTop, State
-from ._quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
-from ._splitting import (
+from ..._checks import check_finite, check_last_axis, check_rotation_quaternion, common_float
+from ..._dynamics.inertia import principal_axes
+from ..._dynamics.models import AbstractModel, HeavyTop, State
+from ..._kinematics.quaternion import _quat_conjugate, _quat_exp, _quat_from_matrix, _quat_multiply
+from ..trajectory import Trajectory
+from .splitting import (
     HeavyTopSplitting,
     LiePoissonSplitting,
     heavy_top_splitting_step,
     heavy_top_weight_com,
     splitting_step,
 )
-from ._trajectory import Trajectory
 
 # ---------------------------------------------------------------------------------------------
 # Lie-group pieces
-
-
-def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
-    """Unit quaternion of the rotation vector ``theta`` (rad): ``(cos(n/2), sin(n/2) theta / n)``,
-    ``n = |theta|``. NaN-free value and gradient at ``theta = 0`` (Taylor branch for small ``n``).
-    NaN/inf in ``theta`` is an error."""
-    theta = as_float_array(theta, "theta")
-    check_last_axis(theta, 3, "theta")
-    return _quat_exp(check_finite(theta, "theta", "quat_exp"))
-
-
-def _quat_exp(theta):
-    n2 = jnp.sum(theta * theta, axis=-1, keepdims=True)
-    small = n2 < math.sqrt(eps(theta.dtype))
-    n = jnp.sqrt(jnp.where(small, jnp.ones_like(n2), n2))  # safe input for the exact branch
-    half = 0.5 * n
-    # Taylor: cos(n/2) = 1 - n^2/8 + n^4/384; sin(n/2)/n = 1/2 - n^2/48 + n^4/3840.
-    w = jnp.where(small, 1.0 - n2 / 8.0 + n2 * n2 / 384.0, jnp.cos(half))
-    s = jnp.where(small, 0.5 - n2 / 48.0 + n2 * n2 / 3840.0, jnp.sin(half) / n)
-    return jnp.concatenate([w, s * theta], axis=-1)
 
 
 def dexpinv(theta: Float[ArrayLike, "... 3"], omega: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
@@ -501,7 +481,7 @@ def simulate_structure_preserving(
         dtypes.append(state0.orientation.dtype)
     dtype = np.result_type(*[np.dtype(d) for d in dtypes])  # numpy promotion: widen float32 + float64
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
-    from ._simulate import _check_inputs  # (_simulate imports this module)
+    from ..simulate import _check_inputs  # (_simulate imports this module
 
     model, _, _, _ = _check_inputs(
         model,

@@ -20,11 +20,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._elliptic import _carlson_rf_rj, _ellipj_checked, ellipkm1
-from ._inertia import check_inertia
-from ._misc import check_finite, check_last_axis, check_rotation_quaternion, common_float, safe_norm
-from ._quaternion import _quat_multiply
-from ._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
+from .._checks import check_finite, check_last_axis, check_rotation_quaternion, common_float
+from .._dynamics.inertia import check_inertia
+from .._kinematics.quaternion import _quat_multiply
+from .._numerics import safe_norm
+from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
+from .elliptic import _carlson_rf_rj, _ellipj_checked, ellipkm1
 
 
 def _sorted_frame(inertia, omega0):

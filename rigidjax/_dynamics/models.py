@@ -18,9 +18,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._dynamics import _euler_equations, _inertia_times, is_full_tensor
-from ._misc import as_float_array, check_last_axis
-from ._quaternion import _quat_conjugate, _quat_rotate
+from .._checks import as_float_array, check_last_axis
+from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
+from .equations import _euler_equations, _inertia_times, is_full_tensor
 
 _Z = (0.0, 0.0, 1.0)
 

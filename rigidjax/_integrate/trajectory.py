@@ -4,10 +4,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._dynamics import _inertia_times, _kinetic_energy
-from ._euler import _euler_from_quat
-from ._models import AbstractModel
-from ._quaternion import _quat_rotate
+from .._dynamics.equations import _inertia_times, _kinetic_energy
+from .._dynamics.models import AbstractModel
+from .._kinematics.euler import _euler_from_quat
+from .._kinematics.quaternion import _quat_rotate
 
 
 def _stable_norm(v):

@@ -18,9 +18,13 @@ any quaternions (e.g. ``q ⊗ (0, omega)``) and only check finiteness. Rigidjax'
 unchecked private cores (``_quat_multiply``...).
 """
 
-import jax.numpy as jnp
+import math
 
-from ._misc import (
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .._checks import (
+    as_float_array,
     check_finite,
     check_last_axis,
     check_last_two_axes,
@@ -28,7 +32,8 @@ from ._misc import (
     check_rotation_quaternion,
     common_float,
 )
-from ._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
+from .._numerics import eps, safe_norm
+from .._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
 
 
 def _quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
@@ -193,3 +198,31 @@ def quat_from_matrix(R: Matrix) -> QuaternionOut:
     (R,) = common_float(R, names=["R"])
     check_last_two_axes(R, "R")
     return _quat_from_matrix(check_rotation_matrix(R, "R", "quat_from_matrix"))
+
+
+def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
+    """Unit quaternion of the rotation vector ``theta`` (rad): ``(cos(n/2), sin(n/2) theta / n)``,
+    ``n = |theta|``. NaN-free value and gradient at ``theta = 0`` (Taylor branch for small ``n``).
+    NaN/inf in ``theta`` is an error."""
+    theta = as_float_array(theta, "theta")
+    check_last_axis(theta, 3, "theta")
+    return _quat_exp(check_finite(theta, "theta", "quat_exp"))
+
+
+def _quat_exp(theta):
+    n2 = jnp.sum(theta * theta, axis=-1, keepdims=True)
+    small = n2 < math.sqrt(eps(theta.dtype))
+    n = jnp.sqrt(jnp.where(small, jnp.ones_like(n2), n2))  # safe input for the exact branch
+    half = 0.5 * n
+    # Taylor: cos(n/2) = 1 - n^2/8 + n^4/384; sin(n/2)/n = 1/2 - n^2/48 + n^4/3840.
+    w = jnp.where(small, 1.0 - n2 / 8.0 + n2 * n2 / 384.0, jnp.cos(half))
+    s = jnp.where(small, 0.5 - n2 / 48.0 + n2 * n2 / 3840.0, jnp.sin(half) / n)
+    return jnp.concatenate([w, s * theta], axis=-1)
+
+
+def _quat_derivative(q, omega):
+    """``dq/dt = q ⊗ (0, omega) / 2`` plus ``|omega| (1 - |q|^2) q``, which leaves the rotation
+    unchanged but makes unit norm attracting, so the norm does not drift under an integrator."""
+    pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
+    speed = safe_norm(omega, keepdims=True)  # the gradient of |omega| at rest is 0, not NaN
+    return 0.5 * _quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q

@@ -13,10 +13,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._dynamics import is_full_tensor
-from ._inertia import check_inertia
-from ._misc import check_finite, check_last_axis, common_float
-from ._types import Inertia, Scalar, Vector
+from .._checks import check_finite, check_last_axis, common_float
+from .._types import Inertia, Scalar, Vector
+from .equations import is_full_tensor
+from .inertia import check_inertia
 
 # Default relative tolerance on ``I1 = I2`` and on the centre of mass lying on the symmetry axis in
 # :func:`sleeping_top`: well above the roundoff of moments from ``principal_axes`` (a few eps times

@@ -25,17 +25,17 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._misc import (
+from .._checks import (
     as_float_array,
     check_finite,
     check_last_axis,
     check_last_two_axes,
     check_rotation_matrix,
     common_float,
-    eps,
     is_full_tensor,
 )
-from ._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
+from .._numerics import eps
+from .._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
 
 # Two moments closer than this many eps (relative to the largest |moment|) count as degenerate in
 # the eigenvector derivative. Roundoff of a 3x3 ``eigh`` is a few eps, so 1e3 eps leaves a wide margin

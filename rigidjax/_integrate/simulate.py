@@ -22,25 +22,17 @@ import jax.numpy as jnp
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from ._dynamics import is_full_tensor
-from ._euler import _euler_from_quat, _euler_rates, _quat_from_euler, is_proper_sequence
-from ._inertia import check_inertia
-from ._lie_group import RKMK, simulate_structure_preserving
-from ._misc import safe_norm
-from ._models import AbstractModel, FreeBody, State
-from ._quaternion import _quat_multiply
-from ._splitting import HeavyTopSplitting, LiePoissonSplitting
-from ._torque_free import torque_free_motion, torque_free_omega
-from ._trajectory import Trajectory
-
-# Solver and rtol per preset, from benchmarks/batch_strategies.py (10^4 tennis-racket bodies, shared
-# step, max norm): Dopri8 needs 185 shared steps at rtol 1e-8 where Tsit5 needs 1048, and is faster
-# at every error below ~1e-5.
-PRESETS: dict[str, tuple[type, float]] = {
-    "fast": (diffrax.Tsit5, 1e-5),
-    "balanced": (diffrax.Dopri8, 1e-8),
-    "precise": (diffrax.Dopri8, 1e-11),
-}
+from .._closed_form.torque_free import torque_free_motion, torque_free_omega
+from .._dynamics.equations import is_full_tensor
+from .._dynamics.inertia import check_inertia
+from .._dynamics.models import AbstractModel, FreeBody, State
+from .._kinematics.euler import _euler_from_quat, _euler_rates, _quat_from_euler, is_proper_sequence
+from .._kinematics.quaternion import _quat_multiply
+from .._numerics import safe_norm
+from .presets import PRESETS
+from .solvers.rkmk import RKMK, simulate_structure_preserving
+from .solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
+from .trajectory import Trajectory
 
 
 def _max_norm(x):

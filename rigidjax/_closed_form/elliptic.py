@@ -48,8 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from ._misc import common_float
-from ._types import Scalar, ScalarOut
+from .._checks import common_float
+from .._types import Scalar, ScalarOut
 
 # Iteration counts, checked against mpmath for p = 1 - m down to 1e-300 (float64) / 1e-38 (float32).
 # AGM(1, sqrt(p)): the ratio b/a goes 1e-150 -> 2e-75 -> ... -> 1 - 4e-25 in 12 steps.

@@ -18,10 +18,10 @@ integrators call unchecked private cores (``_euler_equations``...).
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._misc import check_finite, check_last_axis, check_rotation_quaternion, common_float, eps
-from ._misc import is_full_tensor as is_full_tensor
-from ._quaternion import _quat_normalize, _quat_rotate
-from ._types import Inertia, Quaternion, Scalar, ScalarOut, Vector, VectorOut
+from .._checks import check_finite, check_last_axis, check_rotation_quaternion, common_float, is_full_tensor
+from .._kinematics.quaternion import _quat_normalize, _quat_rotate
+from .._numerics import eps
+from .._types import Inertia, Quaternion, Scalar, ScalarOut, Vector, VectorOut
 
 
 def _inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
