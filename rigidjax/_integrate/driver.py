@@ -1,0 +1,107 @@
+"""The one place rigidjax steps through time.
+
+Every integration in the package ends here: :func:`rigidjax.simulate` (each chunk of bodies, with
+any diffrax solver or rigidjax's structure-preserving ones), the known-torque windows of
+:func:`rigidjax.fit_inertia`, and whatever comes next. The driver knows nothing of rigid bodies: it
+takes a vector field, a solver, a step-size rule and sample times, and returns the states at those
+times with a result code. Callers own the state layout, the checks and the batching.
+"""
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import diffrax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int, PyTree
+
+
+class Solution(NamedTuple):
+    """States at the sample times and how the solve went."""
+
+    ys: PyTree
+    """The state at each sample time: every leaf gains a leading time axis ``(T, ...)``."""
+    result: Int[Array, ""]
+    """diffrax's result code: ``SUCCESSFUL``, ``MAX_STEPS_REACHED``, ``EVENT_OCCURRED``, ..."""
+    num_steps: Int[Array, ""]
+    """Steps taken, accepted and rejected."""
+
+
+SUCCESSFUL = diffrax.RESULTS.successful._value
+MAX_STEPS_REACHED = diffrax.RESULTS.max_steps_reached._value
+EVENT_OCCURRED = diffrax.RESULTS.event_occurred._value
+
+
+def fixed_step_grid(ts, dt: float):
+    """Step times for a fixed-step solver that land on every sample time: each interval
+    ``[ts[i], ts[i+1]]`` is cut into ``ceil((ts[i+1] - ts[i]) / dt)`` equal steps.
+
+    ``ts`` must be concrete (a NumPy array): the grid fixes the number of steps. Returns the grid
+    (float64 NumPy) and the number of steps.
+    """
+    import numpy as np
+
+    ts = np.asarray(ts, dtype=np.float64)
+    if ts.shape[0] < 2:
+        return ts, 0
+    gaps = np.diff(ts)
+    counts = np.maximum(1, np.ceil(gaps / dt * (1 - 1e-12))).astype(np.int64)
+    pieces = [ts[:1]]
+    for start, gap, count in zip(ts[:-1], gaps, counts, strict=True):
+        inner = start + gap * np.arange(1, count, dtype=np.float64) / count
+        pieces.extend([inner, [start + gap]])
+    grid = np.concatenate(pieces)
+    grid[np.cumsum(np.concatenate([[0], counts]))] = ts  # sample times exactly, not start + gap
+    return grid, int(counts.sum())
+
+
+def solve(
+    vector_field: Callable[[Any, PyTree, Any], PyTree],
+    solver: diffrax.AbstractSolver,
+    y0: PyTree,
+    ts: Float[Array, " T"],
+    *,
+    stepsize_controller: diffrax.AbstractStepSizeController,
+    dt0: Any = None,
+    t0: Any = None,
+    args: Any = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    max_steps: int = 100_000,
+    event: diffrax.Event | None = None,
+    throw: bool = False,
+) -> Solution:
+    """Integrates ``dy/dt = vector_field(t, y, args)`` from ``y0`` and samples it at ``ts``.
+
+    **Arguments:**
+
+    - `vector_field`: ``f(t, y, args)``, any pytree state.
+    - `solver`: any diffrax solver, including rigidjax's structure-preserving ones.
+    - `y0`: the state at ``t0``.
+    - `ts`: increasing sample times ``(T,)``; the solve ends at ``ts[-1]``.
+    - `stepsize_controller`: the step-size rule (``PIDController``, ``ConstantStepSize``,
+      ``StepTo`` for a fixed grid).
+    - `dt0`: the first step (None: the controller's choice).
+    - `t0`: the start time; ``ts[0]`` when None.
+    - `args`: passed to ``vector_field``.
+    - `adjoint`: how to differentiate; reverse-mode checkpointing when None.
+    - `max_steps`: the step limit; reaching it is the result ``MAX_STEPS_REACHED``.
+    - `event`: a diffrax ``Event`` that stops the solve (result ``EVENT_OCCURRED``).
+    - `throw`: raise on failure instead of returning the result code.
+
+    **Returns:** a :class:`Solution` with the states at ``ts``.
+    """
+    solution = diffrax.diffeqsolve(
+        diffrax.ODETerm(vector_field),
+        solver,
+        ts[0] if t0 is None else t0,
+        ts[-1],
+        dt0,
+        y0,
+        args=args,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=stepsize_controller,
+        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        max_steps=max_steps,
+        throw=throw,
+        event=event,
+    )
+    return Solution(solution.ys, jnp.asarray(solution.result._value), solution.stats["num_steps"])
