@@ -34,12 +34,12 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
-from ._closed_form.torque_free import torque_free_motion, torque_free_omega
-from ._dynamics.equations import _euler_equations
-from ._dynamics.models import RigidBody, State, _as_torque_tuple, _total_torque
-from ._integrate.simulate import _quat_derivative, simulate
-from ._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
-from ._kinematics.quaternion import _quat_exp as quat_exp
+from .._closed_form.torque_free import torque_free_motion, torque_free_omega
+from .._dynamics.equations import _euler_equations
+from .._dynamics.models import RigidBody, State, _as_torque_tuple, _total_torque
+from .._integrate.simulate import _quat_derivative, simulate
+from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
+from .._kinematics.quaternion import _quat_exp as quat_exp
 
 _LOSSES = ("squared", "huber", "soft_l1", "cauchy")
 _METHODS = ("levenberg-marquardt", "optax")
