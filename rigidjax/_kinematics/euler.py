@@ -35,8 +35,11 @@ from .._types import Angles, Matrix, MatrixOut, Quaternion, Vector, VectorOut
 from .quaternion import _quat_from_matrix, _quat_multiply
 
 PROPER_SEQUENCES = ("zxz", "zyz", "xyx", "xzx", "yxy", "yzy")
+"""The six proper Euler sequences (first axis = third axis), singular at ``sin(theta) = 0``."""
 TAIT_BRYAN_SEQUENCES = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
+"""The six Tait-Bryan sequences (three different axes), singular at ``cos(theta) = 0``."""
 SEQUENCES = PROPER_SEQUENCES + TAIT_BRYAN_SEQUENCES
+"""All twelve intrinsic sequences accepted as ``seq`` (lower case; the argument is case-insensitive)."""
 _AXIS = {"x": 0, "y": 1, "z": 2}
 
 
@@ -50,7 +53,15 @@ def _parse_seq(seq: str) -> tuple[int, int, int]:
 
 
 def is_proper_sequence(seq: str) -> bool:
-    """True for proper Euler sequences (``"zxz"``...), False for Tait-Bryan (``"xyz"``...)."""
+    """Whether an Euler sequence is proper (first axis = third axis) rather than Tait-Bryan.
+
+    **Arguments:**
+
+    - `seq`: one of the twelve sequences of ``SEQUENCES``, case-insensitive. Any other value raises
+      ``ValueError``.
+
+    **Returns:** True for proper sequences (``"zxz"``...), False for Tait-Bryan (``"xyz"``...).
+    """
     i, _, k = _parse_seq(seq)
     return i == k
 
@@ -236,17 +247,35 @@ def _checked_angles(angles, where):
 
 
 def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
-    """Rotation matrix ``R = R_a(phi) R_b(theta) R_c(psi)`` for ``seq = "abc"`` (body -> space).
+    """Rotation matrix ``R = R_a(phi) R_b(theta) R_c(psi)`` of Euler angles, for ``seq = "abc"``.
 
-    Equals scipy's ``Rotation.from_euler(seq.upper(), angles).as_matrix()``. NaN or inf raises."""
+    Equals scipy's ``Rotation.from_euler(seq.upper(), angles).as_matrix()``.
+
+    **Arguments:**
+
+    - `angles`: Euler angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``.
+    - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
+      case-insensitive; any other value raises ``ValueError``.
+
+    **Returns:** the rotation matrix ``(..., 3, 3)``, mapping body-frame to space-frame components.
+    NaN or inf raises at run time.
+    """
     _parse_seq(seq)
     return _matrix_from_euler(_checked_angles(angles, "matrix_from_euler"), seq)
 
 
 def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
-    """Unit quaternion ``(w, x, y, z)`` of the same rotation as :func:`matrix_from_euler`.
+    """Unit quaternion of Euler angles: the same rotation as :func:`matrix_from_euler`.
 
-    NaN or inf raises at run time."""
+    **Arguments:**
+
+    - `angles`: Euler angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``.
+    - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
+      case-insensitive; any other value raises ``ValueError``.
+
+    **Returns:** the unit quaternion ``(w, x, y, z)``, shape ``(..., 4)``, mapping body-frame to
+    space-frame components. NaN or inf raises at run time.
+    """
     _parse_seq(seq)
     return _quat_from_euler(_checked_angles(angles, "quat_from_euler"), seq)
 
@@ -254,11 +283,20 @@ def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
 def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     """Euler angles of a quaternion (Bernardes & Viollet 2022, as in scipy).
 
-    Ranges: ``phi, psi`` in ``[-pi, pi]``; ``theta`` in ``[0, pi]`` for proper sequences and
-    ``[-pi/2, pi/2]`` for Tait-Bryan. At gimbal lock (within roundoff of it) ``psi = 0`` and ``phi``
-    carries the whole rotation about the aligned axis; values and gradients are finite there.
-    ``q`` and ``-q`` give the same angles, and ``q`` is normalised first (as scipy's ``from_quat``);
-    a zero ``q`` or NaN/inf raises at run time.
+    At gimbal lock (within roundoff of it) ``psi = 0`` and ``phi`` carries the whole rotation about
+    the aligned axis; values and gradients are finite there.
+
+    **Arguments:**
+
+    - `q`: orientation, scalar first ``(w, x, y, z)``, shape ``(..., 4)``. It is normalised first
+      (as scipy's ``from_quat``), and ``q`` and ``-q`` give the same angles. A zero `q`, or NaN or
+      inf, raises at run time.
+    - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
+      case-insensitive; any other value raises ``ValueError``.
+
+    **Returns:** the angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``: ``phi, psi`` in
+    ``[-pi, pi]``; ``theta`` in ``[0, pi]`` for proper sequences and ``[-pi/2, pi/2]`` for
+    Tait-Bryan.
     """
     _parse_seq(seq)
     (q,) = common_float(q, names=["q"])
@@ -267,10 +305,19 @@ def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
 
 
 def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
-    """Euler angles of a rotation matrix; same ranges and gimbal-lock split as :func:`euler_from_quat`.
+    """Euler angles of a rotation matrix.
 
-    NaN/inf, ``max|R R^T - 1|`` beyond ``1e-6`` (float64) / ``1e-4`` (float32), or ``det R < 0``
-    raises at run time."""
+    **Arguments:**
+
+    - `R`: rotation matrix ``(..., 3, 3)``, mapping body-frame to space-frame components. NaN or
+      inf, ``max|R R^T - 1|`` beyond ``1e-6`` (float64) / ``1e-4`` (float32), or ``det R < 0`` raises
+      at run time; tiny non-orthogonality is accepted.
+    - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
+      case-insensitive; any other value raises ``ValueError``.
+
+    **Returns:** the angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``, with the same ranges
+    and gimbal-lock split as :func:`euler_from_quat`.
+    """
     _parse_seq(seq)
     (R,) = common_float(R, names=["R"])
     check_last_two_axes(R, "R")
@@ -278,11 +325,22 @@ def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
 
 
 def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
-    """Body-frame angular velocity from Euler angles and their time derivatives (rad/s).
+    """Body-frame angular velocity from Euler angles and their time derivatives.
 
     For ``"zxz"``: ``omega = (phi' sin(theta) sin(psi) + theta' cos(psi),
     phi' sin(theta) cos(psi) - theta' sin(psi), phi' cos(theta) + psi')``. Euler-angle rates are
-    not the components of omega. NaN or inf raises at run time.
+    not the components of omega. The map has no singularity (it is smooth at gimbal lock too).
+
+    **Arguments:**
+
+    - `angles`: Euler angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``.
+    - `rates`: their time derivatives ``(phi', theta', psi')`` (rad/s), shape ``(..., 3)``,
+      broadcast against `angles`.
+    - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
+      case-insensitive; any other value raises ``ValueError``.
+
+    **Returns:** ``omega`` in body-frame components (rad/s), shape ``(..., 3)``. NaN or inf raises at
+    run time.
     """
     _parse_seq(seq)
     angles, rates = common_float(angles, rates, names=["angles", "rates"])
@@ -295,9 +353,22 @@ def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> Ve
 
 
 def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
-    """Space-frame angular velocity ``R @ body_angular_velocity(angles, rates, seq)``.
+    """Space-frame angular velocity from Euler angles and their time derivatives.
 
-    NaN or inf raises at run time."""
+    This is ``R @ body_angular_velocity(angles, rates, seq)`` with ``R = matrix_from_euler(angles,
+    seq)``.
+
+    **Arguments:**
+
+    - `angles`: Euler angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``.
+    - `rates`: their time derivatives ``(phi', theta', psi')`` (rad/s), shape ``(..., 3)``,
+      broadcast against `angles`.
+    - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
+      case-insensitive; any other value raises ``ValueError``.
+
+    **Returns:** ``omega`` in space-frame components (rad/s), shape ``(..., 3)``. NaN or inf raises
+    at run time.
+    """
     _parse_seq(seq)
     angles, rates = common_float(angles, rates, names=["angles", "rates"])
     check_last_axis(angles, 3, "angles")
@@ -315,9 +386,20 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
     ``±cos(theta)`` (Tait-Bryan): near gimbal lock the rates grow like ``1/sin(theta)``, which is
     the truth, not an artefact. Within roundoff of the lock the rates are unbounded unless ``omega``
     lies in the plane the angles can follow; then the split ``psi' = 0`` is returned (matching the
-    angle split of :func:`euler_from_quat`). Otherwise the call fails with an error naming gimbal
-    lock (``throw=True``), or returns NaN rates (``throw=False``, for ``vmap`` users). NaN or inf in
-    the input raises with ``throw=True`` and propagates as NaN with ``throw=False``.
+    angle split of :func:`euler_from_quat`).
+
+    **Arguments:**
+
+    - `angles`: Euler angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``.
+    - `omega`: angular velocity in body-frame components (rad/s), shape ``(..., 3)``, broadcast
+      against `angles`.
+    - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
+      case-insensitive; any other value raises ``ValueError``.
+    - `throw`: at gimbal lock with an ``omega`` the angles cannot follow, True fails with an error
+      naming gimbal lock; False returns NaN rates instead (for ``vmap`` users). NaN or inf in the
+      input raises with ``throw=True`` and propagates as NaN with ``throw=False``.
+
+    **Returns:** the rates ``(phi', theta', psi')`` (rad/s), shape ``(..., 3)``.
     """
     _parse_seq(seq)
     angles, omega = common_float(angles, omega, names=["angles", "omega"])

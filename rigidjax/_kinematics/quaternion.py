@@ -140,9 +140,19 @@ def _quat_from_matrix(R: Matrix) -> QuaternionOut:
 
 
 def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
-    """Hamilton product ``p ⊗ q`` (apply ``q`` first, then ``p``, as with matrices ``P @ Q``).
+    """Hamilton product ``p ⊗ q`` of two quaternions.
 
-    Any quaternions (not only unit ones); NaN or inf raises at run time."""
+    The composition applies ``q`` first, then ``p``, as the matrix product ``P @ Q`` does. Any
+    quaternions are accepted, not only unit ones (e.g. ``q ⊗ (0, omega)``); the inputs broadcast
+    against each other.
+
+    **Arguments:**
+
+    - `p`: left factor, scalar first ``(w, x, y, z)``, shape ``(..., 4)``.
+    - `q`: right factor, shape ``(..., 4)``.
+
+    **Returns:** the product ``(..., 4)``. NaN or inf in either input raises at run time.
+    """
     p, q = common_float(p, q, names=["p", "q"])
     check_last_axis(p, 4, "p")
     check_last_axis(q, 4, "q")
@@ -150,16 +160,31 @@ def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
 
 
 def quat_conjugate(q: Quaternion) -> QuaternionOut:
-    """``(w, -x, -y, -z)``: the inverse rotation of a unit quaternion. NaN or inf raises at run time."""
+    """Conjugate ``(w, -x, -y, -z)`` of a quaternion: the inverse rotation of a unit quaternion.
+
+    **Arguments:**
+
+    - `q`: quaternion, scalar first ``(w, x, y, z)``, shape ``(..., 4)``.
+
+    **Returns:** the conjugate ``(..., 4)``. NaN or inf raises at run time.
+    """
     (q,) = common_float(q, names=["q"])
     check_last_axis(q, 4, "q")
     return _quat_conjugate(check_finite(q, "q", "quat_conjugate"))
 
 
 def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
-    """Rotates body-frame components ``v`` into space-frame components: ``q ⊗ (0, v) ⊗ q*``.
+    """Rotate body-frame components ``v`` into space-frame components: ``q ⊗ (0, v) ⊗ q*``.
 
-    ``q`` is normalised first (so ``v`` keeps its length); a zero ``q`` or NaN/inf raises."""
+    **Arguments:**
+
+    - `q`: orientation, scalar first ``(w, x, y, z)``, shape ``(..., 4)``, mapping body-frame to
+      space-frame components. It is normalised first, so ``v`` keeps its length.
+    - `v`: vector in body-frame components, shape ``(..., 3)``, any units; broadcast against `q`.
+
+    **Returns:** ``R v``, the same vector in space-frame components, shape ``(..., 3)``, in the units
+    of `v`. A zero `q`, or NaN or inf in either input, raises at run time.
+    """
     q, v = common_float(q, v, names=["q", "v"])
     check_last_axis(q, 4, "q")
     check_last_axis(v, 3, "v")
@@ -168,19 +193,32 @@ def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
 
 
 def quat_normalize(q: Quaternion) -> QuaternionOut:
-    """Scales ``q`` to unit norm. A zero quaternion (no rotation can be made of it) or NaN/inf raises
-    at run time, rather than returning NaN."""
+    """Scale a quaternion to unit norm.
+
+    **Arguments:**
+
+    - `q`: quaternion, shape ``(..., 4)``.
+
+    **Returns:** ``q / |q|``, shape ``(..., 4)``. A zero quaternion (no rotation can be made of it)
+    or NaN or inf raises at run time, rather than returning NaN.
+    """
     (q,) = common_float(q, names=["q"])
     check_last_axis(q, 4, "q")
     return _quat_normalize(check_rotation_quaternion(q, "q", "quat_normalize"))
 
 
 def matrix_from_quat(q: Quaternion) -> MatrixOut:
-    """Rotation matrix of ``q`` (``v_space = R @ v_body``).
+    """Rotation matrix of a quaternion, ``v_space = R @ v_body``.
 
-    Uses ``2 / |q|^2`` rather than 2, so the matrix is that of ``q / |q|`` and exactly orthogonal (up to
-    roundoff) even for a quaternion that drifted off unit norm. A zero ``q`` or NaN/inf raises at run
-    time.
+    The formula uses ``2 / |q|^2`` rather than 2, so the matrix is that of ``q / |q|`` and exactly
+    orthogonal (up to roundoff) even for a quaternion that drifted off unit norm.
+
+    **Arguments:**
+
+    - `q`: orientation, scalar first ``(w, x, y, z)``, shape ``(..., 4)``.
+
+    **Returns:** the rotation matrix ``R``, shape ``(..., 3, 3)``, mapping body-frame to space-frame
+    components. A zero `q`, or NaN or inf, raises at run time.
     """
     (q,) = common_float(q, names=["q"])
     check_last_axis(q, 4, "q")
@@ -190,10 +228,17 @@ def matrix_from_quat(q: Quaternion) -> MatrixOut:
 def quat_from_matrix(R: Matrix) -> QuaternionOut:
     """Unit quaternion of a rotation matrix, with ``w >= 0``.
 
-    Shepperd's method (accurate for every rotation, including 180 degrees) with finite gradients
-    everywhere. ``R`` must be a rotation: NaN/inf, ``max|R R^T - 1|`` beyond ``1e-6`` (float64) /
-    ``1e-4`` (float32), or a reflection raises at run time; tiny non-orthogonality is accepted and the
-    result is normalised.
+    Shepperd's method: accurate for every rotation, including 180 degrees, with finite gradients
+    everywhere.
+
+    **Arguments:**
+
+    - `R`: rotation matrix, shape ``(..., 3, 3)``, mapping body-frame to space-frame components.
+      NaN or inf, ``max|R R^T - 1|`` beyond ``1e-6`` (float64) / ``1e-4`` (float32), or a reflection
+      (``det R < 0``) raises at run time; tiny non-orthogonality is accepted.
+
+    **Returns:** the unit quaternion ``(w, x, y, z)``, shape ``(..., 4)``, normalised, with
+    ``w >= 0``.
     """
     (R,) = common_float(R, names=["R"])
     check_last_two_axes(R, "R")
@@ -201,9 +246,17 @@ def quat_from_matrix(R: Matrix) -> QuaternionOut:
 
 
 def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
-    """Unit quaternion of the rotation vector ``theta`` (rad): ``(cos(n/2), sin(n/2) theta / n)``,
-    ``n = |theta|``. NaN-free value and gradient at ``theta = 0`` (Taylor branch for small ``n``).
-    NaN/inf in ``theta`` is an error."""
+    """Unit quaternion of a rotation vector: ``(cos(n/2), sin(n/2) theta / n)`` with ``n = |theta|``.
+
+    Value and gradient are NaN-free at ``theta = 0`` (a Taylor branch is used for small ``n``).
+
+    **Arguments:**
+
+    - `theta`: rotation vector (axis times angle, rad), shape ``(..., 3)``.
+
+    **Returns:** the unit quaternion ``(w, x, y, z)``, shape ``(..., 4)``. NaN or inf in `theta`
+    raises at run time.
+    """
     theta = as_float_array(theta, "theta")
     check_last_axis(theta, 3, "theta")
     return _quat_exp(check_finite(theta, "theta", "quat_exp"))
