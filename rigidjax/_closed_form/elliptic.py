@@ -206,21 +206,36 @@ def _ellipk_jvp(primals, tangents):
 
 
 def ellipk(m: Scalar) -> ScalarOut:
-    """Complete elliptic integral of the first kind ``K(m)``, parameter ``m = k**2 <= 1``.
+    """Complete elliptic integral of the first kind ``K(m)``.
 
-    Same convention as ``scipy.special.ellipk``; ``K(1) = inf``. A float ``m`` cannot lie closer to 1
-    than ``eps / 2``; below that use ``ellipkm1(p)`` with ``p = 1 - m``. The derivative is
+    Same convention as ``scipy.special.ellipk``. A float ``m`` cannot lie closer to 1 than
+    ``eps / 2``; below that use ``ellipkm1(p)`` with ``p = 1 - m``. The derivative is
     ``dK/dm = R_D(0, 1, 1 - m) / 6`` (``pi/8`` at ``m = 0``).
+
+    **Arguments:**
+
+    - `m`: the parameter ``m = k**2 <= 1`` (not the modulus ``k``), any shape, float32 or float64.
+
+    **Returns:** ``K(m)``, the shape and dtype of `m`; ``K(1) = inf``, NaN for ``m > 1`` or NaN
+    input (nothing raises).
     """
     m, p = _as_pair(m, "m", complementary=False)
     return _ellipk(m, p)
 
 
 def ellipkm1(p: Scalar) -> ScalarOut:
-    """``K(1 - p)`` for the complementary parameter ``p = 1 - m >= 0``; as ``scipy.special.ellipkm1``.
+    """Complete elliptic integral of the first kind ``K(1 - p)`` of the complementary parameter.
 
-    Accurate for every ``p`` down to the smallest normal number (``K ~ log(4 / sqrt(p))``), also where
-    ``m = 1 - p`` would round to 1. The derivative is ``dK/dp = -R_D(0, 1, p) / 6``.
+    As ``scipy.special.ellipkm1``. Accurate for every ``p`` down to the smallest normal number
+    (``K ~ log(4 / sqrt(p))``), also where ``m = 1 - p`` would round to 1. The derivative is
+    ``dK/dp = -R_D(0, 1, p) / 6``.
+
+    **Arguments:**
+
+    - `p`: the complementary parameter ``p = 1 - m >= 0``, any shape, float32 or float64.
+
+    **Returns:** ``K(1 - p)``, the shape and dtype of `p`; ``inf`` at ``p = 0``, NaN for ``p < 0`` or
+    NaN input (nothing raises).
     """
     m, p = _as_pair(p, "p", complementary=True)
     return _ellipk(m, p)
@@ -250,7 +265,18 @@ def _ellipe_jvp(primals, tangents):
 
 
 def ellipe(m: Scalar) -> ScalarOut:
-    """Complete elliptic integral of the second kind ``E(m)``, ``m <= 1``; as ``scipy.special.ellipe``."""
+    """Complete elliptic integral of the second kind ``E(m)``.
+
+    As ``scipy.special.ellipe``. The derivative is the closed form ``dE/dm = (E - K) / (2 m)``,
+    evaluated without the division (finite at ``m = 0``).
+
+    **Arguments:**
+
+    - `m`: the parameter ``m = k**2 <= 1``, any shape, float32 or float64.
+
+    **Returns:** ``E(m)``, the shape and dtype of `m`; ``E(1) = 1``, NaN for ``m > 1`` or NaN input
+    (nothing raises).
+    """
     m, p = _as_pair(m, "m", complementary=False)
     return _ellipe(m, p)
 
@@ -362,10 +388,18 @@ def _legendre_jvp(primals, tangents):
 
 
 def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
-    """Incomplete elliptic integral of the first kind ``F(phi | m)``, ``m <= 1``.
+    """Incomplete elliptic integral of the first kind ``F(phi | m)``.
 
     As ``scipy.special.ellipkinc``, for any real ``phi``: ``F(phi + j pi) = F(phi) + 2 j K(m)``.
-    ``F(phi | 1) = atanh(sin(phi))`` for ``|phi| < pi/2`` and ``+-inf`` beyond.
+    Differentiable in both arguments (closed-form derivatives).
+
+    **Arguments:**
+
+    - `phi`: the amplitude (rad), any real value.
+    - `m`: the parameter ``m = k**2 <= 1``, broadcast against `phi`.
+
+    **Returns:** ``F(phi | m)``, the broadcast shape. ``F(phi | 1) = atanh(sin(phi))`` for
+    ``|phi| < pi/2`` and ``+-inf`` beyond; NaN for ``m > 1`` or NaN input (nothing raises).
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
@@ -373,10 +407,19 @@ def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
 
 
 def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
-    """Incomplete elliptic integral of the second kind ``E(phi | m)``, ``m <= 1``.
+    """Incomplete elliptic integral of the second kind ``E(phi | m)``.
 
     As ``scipy.special.ellipeinc``, for any real ``phi``: ``E(phi + j pi) = E(phi) + 2 j E(m)``.
     For ``m < 0`` the terms of the formula partly cancel: the relative error grows like ``|m| eps``.
+    Differentiable in both arguments (closed-form derivatives).
+
+    **Arguments:**
+
+    - `phi`: the amplitude (rad), any real value.
+    - `m`: the parameter ``m = k**2 <= 1``, broadcast against `phi`.
+
+    **Returns:** ``E(phi | m)``, the broadcast shape; NaN for ``m > 1`` or NaN input (nothing
+    raises).
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
@@ -491,13 +534,21 @@ def _ellipj_dm(u, m, p, sn, cn, dn, am):
 
 
 def ellipj(u: Scalar, m: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, ScalarOut]:
-    """Jacobi elliptic functions ``(sn, cn, dn, am)`` of ``u`` for ``0 <= m <= 1``.
+    """Jacobi elliptic functions ``(sn, cn, dn, am)`` of ``u``.
 
-    As ``scipy.special.ellipj`` (NaN outside ``0 <= m <= 1``), but accurate up to ``m = 1``:
-    ``m = 0`` gives ``(sin u, cos u, 1, u)``, ``m = 1`` gives ``(tanh u, sech u, sech u, gd u)``. The
-    error is a few ulp of ``|f| + |u df/du|``, i.e. of the conditioning in ``u``. Differentiable in
-    ``u`` and ``m`` (closed-form derivatives, finite at ``m = 0`` and ``m = 1``). A float ``m`` cannot
-    lie closer to 1 than ``eps / 2``; below that use ``ellipj_m1(u, p)`` with ``p = 1 - m``.
+    As ``scipy.special.ellipj``, but accurate up to ``m = 1``: ``m = 0`` gives
+    ``(sin u, cos u, 1, u)``, ``m = 1`` gives ``(tanh u, sech u, sech u, gd u)``. The error is a few
+    ulp of ``|f| + |u df/du|``, i.e. of the conditioning in ``u``. Differentiable in ``u`` and ``m``
+    (closed-form derivatives, finite at ``m = 0`` and ``m = 1``). A float ``m`` cannot lie closer to
+    1 than ``eps / 2``; below that use ``ellipj_m1(u, p)`` with ``p = 1 - m``.
+
+    **Arguments:**
+
+    - `u`: the argument, any real value.
+    - `m`: the parameter, ``0 <= m <= 1``, broadcast against `u`.
+
+    **Returns:** the tuple ``(sn, cn, dn, am)``, each of the broadcast shape; all NaN outside
+    ``0 <= m <= 1`` or for NaN input (nothing raises).
     """
     u, m = common_float(u, m, names=["u", "m"])
     u, m = _broadcast((u, m), ("u", "m"))
@@ -505,10 +556,18 @@ def ellipj(u: Scalar, m: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Scala
 
 
 def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, ScalarOut]:
-    """``ellipj(u, 1 - p)`` with the complementary parameter ``p = 1 - m`` given directly.
+    """Jacobi elliptic functions ``ellipj(u, 1 - p)`` of the complementary parameter ``p = 1 - m``.
 
     Accurate for ``p`` down to the smallest normal number, where ``m = 1 - p`` would round to 1.
     Derivatives are with respect to ``p`` (``d/dp = -d/dm``).
+
+    **Arguments:**
+
+    - `u`: the argument, any real value.
+    - `p`: the complementary parameter, ``0 <= p <= 1``, broadcast against `u`.
+
+    **Returns:** the tuple ``(sn, cn, dn, am)``, each of the broadcast shape; all NaN outside
+    ``0 <= p <= 1`` or for NaN input (nothing raises).
     """
     u, p = common_float(u, p, names=["u", "p"])
     u, p = _broadcast((u, p), ("u", "p"))
@@ -584,13 +643,20 @@ def _carlson_rf_rj(x, y, z, p):
 
 
 def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
-    """Carlson's symmetric integral of the third kind, as ``scipy.special.elliprj`` for real arguments::
+    """Carlson's symmetric elliptic integral of the third kind ``R_J(x, y, z, p)``.
 
-        R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t + p) sqrt((t + x) (t + y) (t + z))).
+    As ``scipy.special.elliprj`` for real arguments:
+    ``R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t + p) sqrt((t + x) (t + y) (t + z)))``. Gradients by
+    automatic differentiation through the duplication, finite wherever all arguments are positive.
 
-    Needs ``x, y, z >= 0`` (at most one of them zero) and ``p > 0``; NaN otherwise (the principal
-    value for ``p < 0`` is not implemented). Gradients by automatic differentiation through the
-    duplication, finite wherever all arguments are positive.
+    **Arguments:**
+
+    - `x`, `y`, `z`: ``>= 0``, at most one of them zero.
+    - `p`: ``> 0`` (the principal value for ``p < 0`` is not implemented). The four arguments
+      broadcast against each other.
+
+    **Returns:** ``R_J``, the broadcast shape; NaN outside the domain above or for NaN input
+    (nothing raises).
     """
     x, y, z, p = common_float(x, y, z, p, names=["x", "y", "z", "p"])
     x, y, z, p = _broadcast((x, y, z, p), ("x", "y", "z", "p"))

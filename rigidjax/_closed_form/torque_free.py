@@ -167,11 +167,10 @@ def _motion_parts(inertia, omega0, t):
 # failed value check raises as an EquinoxRuntimeError with its message.
 @eqx.filter_jit
 def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
-    """Body-frame angular velocity of a torque-free body at time ``t`` (s) after ``omega0`` (rad/s).
+    """Body-frame angular velocity of a torque-free body at time ``t``, in closed form.
 
-    ``inertia`` are principal moments ``(..., 3)`` in any order (kg m^2); ``t`` broadcasts against
-    the batch axes (for a batch of bodies at T times use ``inertia[:, None]``, ``omega0[:, None]``,
-    ``ts[None, :]``). Exact up to roundoff: no integration, so the cost does not grow with ``t``.
+    Jacobi elliptic functions (Landau & Lifshitz, section 37), on both sides of the separatrix.
+    Exact up to roundoff: no integration, so the cost does not grow with ``t``.
 
     Derivatives (forward and reverse) are those of the flow and finite everywhere, steady rotations
     included (spin about any principal axis, a sphere: there ``d omega(t) / d omega0 = exp(J t)`` grows
@@ -180,7 +179,18 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     two moments; measured 6e-3 at ``gap = 1e-15``, 1e-8 at 1e-9, 7e-12 at 1e-6,
     ``tests/test_extremes_bodies.py``): the parametrisation's ``1 / (I_j - I_k)`` terms cancel. Exactly
     equal moments are exact; for gaps below ~1e-9 differentiate ``simulate`` instead.
-    Non-physical moments (beyond the flat plate, non-positive) and NaN/inf inputs are errors.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` in any order (kg m^2). Non-physical moments (beyond
+      the flat plate, non-positive) are an error at run time.
+    - `omega0`: angular velocity at ``t = 0`` in body-frame components (rad/s), ``(..., 3)``.
+    - `t`: time (s), broadcast against the batch axes of `inertia` and `omega0`: for a batch of
+      bodies at T times use ``inertia[:, None]``, ``omega0[:, None]``, ``ts[None, :]``.
+
+    **Returns:** ``omega(t)`` in body-frame components (rad/s), shape ``batch + (3,)`` with ``batch``
+    the broadcast of the bodies' batch axes with ``t``'s shape. NaN or inf in any input raises at run
+    time.
     """
     inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t)
     steady = _steady(inertia, omega0)
@@ -195,10 +205,20 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
 
 @eqx.filter_jit
 def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
-    """Period of the body-frame angular velocity of a torque-free body, ``4 K(m) / lambda`` (s).
+    """Period ``4 K(m) / lambda`` of the body-frame angular velocity of a torque-free body.
 
-    Half of it is the time between two tennis-racket flips (omega_b changes sign every ``2K/lambda``).
-    Infinite on the separatrix and for steady rotation (``lambda = 0``).
+    Half of it is the time between two tennis-racket flips (``omega_b`` changes sign every
+    ``2K/lambda``).
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` in any order (kg m^2). Non-physical moments are an
+      error at run time.
+    - `omega0`: angular velocity in body-frame components (rad/s), ``(..., 3)``, broadcast against
+      `inertia`.
+
+    **Returns:** the period (s), shape ``(...)``: infinite on the separatrix and for steady rotation
+    (``lambda = 0``). NaN or inf in any input raises at run time.
     """
     inertia, omega0 = common_float(inertia, omega0, names=["inertia", "omega0"])
     check_last_axis(inertia, 3, "inertia")
@@ -416,11 +436,7 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
 def torque_free_motion(
     inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar
 ) -> tuple[VectorOut, QuaternionOut]:
-    """Body-frame angular velocity and orientation of a torque-free body at time ``t`` (s).
-
-    ``q0`` is the unit quaternion at ``t = 0`` (scalar first, body -> space); the other arguments and
-    the broadcasting are as in :func:`torque_free_omega`. Returns ``(omega, q)``; ``q`` is continuous
-    in ``t`` with ``q(0) = q0`` (the same sign as integrating ``dq/dt = q (0, omega) / 2``).
+    """Body-frame angular velocity and orientation of a torque-free body at time ``t``, in closed form.
 
     Method (Landau & Lifshitz section 37, with the space axes along the conserved ``L``): with ``c`` the
     axis that ``omega`` circles, ``R(t) = R_L Rz(phi(t)) Rx(theta(t)) Rz(psi(t)) P``, where ``P`` relabels
@@ -453,6 +469,20 @@ def torque_free_motion(
     (finite, but not the sensitivity to a perturbation that starts a wobble), while that of ``omega`` is
     the flow's, as in :func:`torque_free_omega`.
     Elsewhere values and gradients (forward and reverse) are finite.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` in any order (kg m^2), as in
+      :func:`torque_free_omega`.
+    - `omega0`: angular velocity at ``t = 0`` in body-frame components (rad/s), ``(..., 3)``.
+    - `q0`: orientation at ``t = 0``, a unit quaternion ``(w, x, y, z)`` mapping body-frame to
+      space-frame components, ``(..., 4)``. A zero quaternion raises at run time.
+    - `t`: time (s), broadcast against the bodies' batch axes as in :func:`torque_free_omega`.
+
+    **Returns:** ``(omega, q)``: ``omega(t)`` (rad/s, body frame), shape ``batch + (3,)``, and the
+    unit quaternion ``q(t)``, shape ``batch + (4,)``. ``q`` is continuous in ``t`` with
+    ``q(0) = q0`` (the same sign as integrating ``dq/dt = q (0, omega) / 2``). Non-physical moments
+    and NaN or inf inputs raise at run time.
     """
     inertia, omega0, q0, t, batch = _broadcast_motion_inputs(inertia, omega0, q0, t)
     dtype = inertia.dtype
@@ -530,8 +560,9 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
 
 @eqx.filter_jit
 def torque_free_orientation(inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar) -> QuaternionOut:
-    """Orientation (unit quaternion, scalar first, body -> space) of a torque-free body at time ``t``.
+    """Orientation of a torque-free body at time ``t``: ``torque_free_motion(...)[1]``.
 
-    The closed form of :func:`torque_free_motion`, which also returns ``omega(t)``.
+    Not re-exported: the public function is :func:`torque_free_motion`, which returns the
+    orientation together with ``omega(t)``.
     """
     return torque_free_motion(inertia, omega0, q0, t)[1]
