@@ -117,19 +117,25 @@ def _checked(inertia, omega, where, extra=(), invertible=False):
     return inertia, omega, rest
 
 
-def inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
-    """``I @ omega`` for principal moments or a full tensor. NaN or inf raises at run time."""
-    inertia, omega, _ = _checked(inertia, omega, "inertia_times")
-    return _inertia_times(inertia, omega)
-
-
 def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = None) -> VectorOut:
-    """Angular acceleration ``d(omega)/dt`` in the body frame (rad/s^2).
+    """Euler's equations: the angular acceleration ``d(omega)/dt`` in the body frame.
 
     Principal moments: ``I1 w1' = (I2 - I3) w2 w3 + tau1`` and cyclic. Full tensor:
-    ``I w' = tau - w x (I w)``, solved for ``w'``. ``torque`` is in body-frame components (N m).
-    NaN/inf or a singular inertia raises at run time (the moments are not
-    checked for physical validity here; see the module docstring).
+    ``I w' = tau - w x (I w)``, solved for ``w'``. This is a pointwise formula: the moments are not
+    checked for physical validity here (see the module docstring).
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` or a full symmetric tensor ``(..., 3, 3)`` in body
+      axes (kg m^2); a trailing ``(3, 3)`` is always read as a tensor.
+      A zero principal moment or a singular tensor (it is divided by) raises at run time.
+    - `omega`: angular velocity in body-frame components (rad/s), shape ``(..., 3)``, broadcast
+      against the batch axes of `inertia`.
+    - `torque`: applied torque in body-frame components (N m), shape ``(..., 3)``; None (the
+      default) for a torque-free body.
+
+    **Returns:** ``d(omega)/dt`` in body-frame components (rad/s^2), shape ``(..., 3)``. NaN or inf
+    in any input raises at run time.
     """
     if torque is None:
         inertia, omega, _ = _checked(inertia, omega, "euler_equations", invertible=True)
@@ -142,7 +148,18 @@ def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = Non
 
 
 def angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
-    """Angular momentum ``L = I omega`` in body-frame components (kg m^2/s)."""
+    """Angular momentum ``L = I omega`` in body-frame components.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` or a full symmetric tensor ``(..., 3, 3)`` in body
+      axes (kg m^2); a trailing ``(3, 3)`` is always read as a tensor.
+    - `omega`: angular velocity in body-frame components (rad/s), shape ``(..., 3)``, broadcast
+      against the batch axes of `inertia`.
+
+    **Returns:** ``L`` in body-frame components (kg m^2/s), shape ``(..., 3)``. NaN or inf raises at
+    run time.
+    """
     inertia, omega, _ = _checked(inertia, omega, "angular_momentum")
     return _inertia_times(inertia, omega)
 
@@ -150,7 +167,18 @@ def angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
 def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quaternion) -> VectorOut:
     """Angular momentum in space-frame components, ``R L_body``; conserved when torque-free.
 
-    ``orientation`` is normalised first; a zero quaternion raises."""
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` or a full symmetric tensor ``(..., 3, 3)`` in body
+      axes (kg m^2); a trailing ``(3, 3)`` is always read as a tensor.
+    - `omega`: angular velocity in body-frame components (rad/s), shape ``(..., 3)``, broadcast
+      against the batch axes of `inertia`.
+    - `orientation`: unit quaternion ``(w, x, y, z)`` mapping body-frame to space-frame components,
+      shape ``(..., 4)``. It is normalised first; a zero quaternion raises at run time.
+
+    **Returns:** ``L`` in space-frame components (kg m^2/s), shape ``(..., 3)``. NaN or inf raises at
+    run time.
+    """
     where = "space_angular_momentum"
     inertia, omega, (orientation,) = _checked(inertia, omega, where, [("orientation", orientation)])
     check_last_axis(orientation, 4, "orientation")
@@ -159,19 +187,38 @@ def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quatern
 
 
 def kinetic_energy(inertia: Inertia, omega: Vector) -> ScalarOut:
-    """Rotational kinetic energy ``omega . (I omega) / 2`` (J)."""
+    """Rotational kinetic energy ``omega . (I omega) / 2``.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` or a full symmetric tensor ``(..., 3, 3)`` in body
+      axes (kg m^2); a trailing ``(3, 3)`` is always read as a tensor.
+    - `omega`: angular velocity in body-frame components (rad/s), shape ``(..., 3)``, broadcast
+      against the batch axes of `inertia`.
+
+    **Returns:** the energy (J), shape ``(...)``. NaN or inf raises at run time.
+    """
     inertia, omega, _ = _checked(inertia, omega, "kinetic_energy")
     return _kinetic_energy(inertia, omega)
 
 
 def free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
-    """Body-frame free precession rate ``(I3 - I1) / I1 * omega3`` of a torque-free symmetric top.
+    """Free precession rate ``Omega = (I3 - I1) / I1 * omega3`` of a torque-free symmetric top.
 
-    ``I1 = I2`` are the transverse moments and ``I3`` the symmetry-axis moment. The transverse
-    angular velocity turns about the body symmetry axis as ``w1 + i w2 = A exp(i Omega t)``, so a
-    prolate body (``I3 < I1``) precesses backwards. For the Earth this is the Euler wobble rate.
-    NaN/inf or ``I1 = 0`` (it is divided by) raises at run time; like Euler's equations this is a
-    pointwise formula and does not check the moments for physical validity.
+    ``Omega`` is a body-frame rate: the transverse angular velocity turns about the body symmetry
+    axis as ``w1 + i w2 = A exp(i Omega t)``, so a prolate body (``I3 < I1``) precesses backwards.
+    For the Earth this is the Euler wobble rate. Like Euler's equations this is a pointwise formula
+    and does not check the moments for physical validity.
+
+    **Arguments:**
+
+    - `I1`: the transverse moment ``I1 = I2`` (kg m^2), shape ``(...)``. ``I1 = 0`` (it is divided
+      by) raises at run time.
+    - `I3`: the moment about the symmetry axis (kg m^2), shape ``(...)``.
+    - `omega3`: the spin, the body-frame angular velocity about the symmetry axis (rad/s), shape
+      ``(...)``. The three arguments broadcast against each other.
+
+    **Returns:** ``Omega`` (rad/s), shape ``(...)``. NaN or inf in any input raises at run time.
     """
     where = "free_precession_rate"
     I1, I3, omega3 = common_float(I1, I3, omega3, names=["I1", "I3", "omega3"])

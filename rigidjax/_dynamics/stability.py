@@ -63,21 +63,23 @@ def _principal_moments(inertia, function: str):
 class SpinStability(eqx.Module):
     """Linear stability of steady torque-free spin about each principal axis.
 
+    Returned by :func:`spin_stability`. An axis is exponentially unstable where neither ``stable``
+    nor ``marginal`` holds (``growth_rate > 0``); :attr:`unstable` says so.
+
+    **Attributes:**
+
     Every field has shape ``(..., 3)``; entry ``i`` is about spin about principal axis ``i``.
 
-    - ``growth_rate``: the real part of ``lambda`` (1/s), ``> 0`` only for the axis of the
+    - `growth_rate`: the real part of ``lambda`` (1/s), ``> 0`` only for the axis of the
       intermediate moment: a perturbation grows as ``exp(growth_rate * t)`` (the tennis-racket /
       Dzhanibekov instability). 0 elsewhere.
-    - ``frequency``: the imaginary part of ``lambda`` (rad/s), ``> 0`` for the axes of the largest
+    - `frequency`: the imaginary part of ``lambda`` (rad/s), ``> 0`` for the axes of the largest
       and smallest moments: the transverse body-frame angular velocity circles the spin axis (on an
       ellipse) at this angular frequency. 0 elsewhere.
-    - ``stable``: ``lambda^2 < 0``: bounded oscillation about the axis.
-    - ``marginal``: ``lambda^2 == 0``: no exponential growth and no oscillation. This happens for
+    - `stable`: ``lambda^2 < 0``: bounded oscillation about the axis.
+    - `marginal`: ``lambda^2 == 0``: no exponential growth and no oscillation. This happens for
       spin about an axis whose moment equals another's (see :func:`spin_stability`) and at zero
       spin rate.
-
-    An axis is exponentially unstable where neither ``stable`` nor ``marginal`` holds
-    (``growth_rate > 0``); :attr:`unstable` says so.
     """
 
     growth_rate: Float[Array, "*batch 3"]
@@ -96,9 +98,7 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
 
     For spin at rate ``Omega`` about principal axis ``i`` (the other two being ``j``, ``k``), Euler's
     equations linearised in the small transverse components give ``d^2 dw_j / dt^2 = lambda^2 dw_j``
-    with
-
-        ``lambda^2 = Omega^2 (I_i - I_j) (I_k - I_i) / (I_j I_k)``.
+    with ``lambda^2 = Omega^2 (I_i - I_j) (I_k - I_i) / (I_j I_k)``.
 
     ``lambda^2 > 0`` only when ``I_i`` lies strictly between ``I_j`` and ``I_k``: spin about the
     intermediate axis is unstable with growth rate ``|lambda|`` (the tennis-racket theorem). About the
@@ -146,20 +146,26 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
 
 
 class SleepingTop(eqx.Module):
-    """Linear stability of a heavy symmetric top spinning upright ("sleeping"); fields ``(...)``.
+    """Linear stability of a heavy symmetric top spinning upright ("sleeping").
 
-    - ``margin``: ``(I3 w3)^2 - 4 I1 m g l`` (kg^2 m^4 / s^2); positive means stable.
-    - ``critical_spin``: ``w_crit = 2 sqrt(I1 m g l) / I3`` (rad/s), the spin below which the upright
+    Returned by :func:`sleeping_top`.
+
+    **Attributes:**
+
+    Every field has the batch shape ``(...)``.
+
+    - `margin`: ``(I3 w3)^2 - 4 I1 m g l`` (kg^2 m^4 / s^2); positive means stable.
+    - `critical_spin`: ``w_crit = 2 sqrt(I1 m g l) / I3`` (rad/s), the spin below which the upright
       top falls; 0 when ``l <= 0`` (centre of mass at or below the pivot: stable at any spin).
-    - ``stable``: ``margin > 0`` (at ``margin == 0`` the two modes merge and the tilt grows linearly).
-    - ``slow_rate``, ``fast_rate``: the two roots ``lambda`` of ``I1 lambda^2 - I3 w3 lambda + m g l
+    - `stable`: ``margin > 0`` (at ``margin == 0`` the two modes merge and the tilt grows linearly).
+    - `slow_rate`, `fast_rate`: the two roots ``lambda`` of ``I1 lambda^2 - I3 w3 lambda + m g l
       = 0`` (rad/s): the tilt of the symmetry axis, as the complex number ``X + iY`` of its space
       -frame direction, is a sum of two circular modes ``exp(i lambda t)``: the slow precession
       (``~ m g l / (I3 w3)`` for a fast top) and the fast nutation (``~ I3 w3 / I1``); positive in
       the sense of the spin. ``fast_rate`` is the root of larger magnitude. Below ``w_crit`` the
       roots are complex conjugates: both fields are then their common real part ``I3 w3 / (2 I1)``,
       the rate at which the growing tilt turns about the vertical.
-    - ``growth_rate``: the imaginary part of the roots (1/s): 0 when stable, else
+    - `growth_rate`: the imaginary part of the roots (1/s): 0 when stable, else
       ``sqrt(4 I1 m g l - (I3 w3)^2) / (2 I1)``: the tilt grows as ``exp(growth_rate * t)``.
     """
 
@@ -186,8 +192,7 @@ def sleeping_top(
     the body z axis (the symmetry axis) vertical and spinning at ``w3``. Linearising in the tilt
     gives the characteristic equation ``I1 lambda^2 - I3 w3 lambda + m g l = 0`` for circular modes
     ``exp(i lambda t)`` of the tilt, so the upright top is stable when
-
-        ``(I3 w3)^2 > 4 I1 m g l``,  i.e.  ``|w3| > w_crit = 2 sqrt(I1 m g l) / I3``.
+    ``(I3 w3)^2 > 4 I1 m g l``, i.e. ``|w3| > w_crit = 2 sqrt(I1 m g l) / I3``.
 
     **Assumptions.** A symmetric top: ``I1 = I2`` (the transverse moments about the PIVOT) and the
     centre of mass on the symmetry axis. The moments are checked to within `symmetry_rtol`
