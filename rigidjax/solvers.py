@@ -7,8 +7,13 @@
 - :class:`HeavyTopSplitting`: the heavy top's splitting (vertical ``L`` kept to roundoff).
 
 Each is a diffrax solver: pass it to ``rigidjax.simulate(..., solver=..., dt0=...)`` (the scene's
-parameters then come from the model) or to ``diffrax.diffeqsolve`` with the vector fields below.
-``PRESETS`` maps each ``accuracy`` name to its diffrax solver class and relative tolerance.
+parameters then come from the model) or to ``diffrax.diffeqsolve`` with the vector fields of this
+module (:func:`rigid_body_vector_field`, :func:`free_body_vector_field`,
+:func:`heavy_top_vector_field`). The steps behind them are here too (:func:`rkmk_step` with
+:func:`dexpinv`, :func:`splitting_step`, :func:`heavy_top_splitting_step`), and so are runs of
+``n_steps`` fixed steps without diffrax (:func:`split_free_body`, :func:`split_heavy_top`).
+``PRESETS`` maps each ``accuracy`` name of ``simulate`` to its diffrax solver class and relative
+tolerance.
 """
 
 from ._integrate.presets import PRESETS as PRESETS
