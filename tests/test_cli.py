@@ -239,70 +239,81 @@ def test_help_and_version():
     assert code == 0 and out.strip() == f"rigidjax {rigidjax.__version__}"
     code, out, _ = _run(["simulate", "--help"])
     assert code == 0 and "--save-every" in out and "--dtype" in out
+    code, out, _ = _run(["bench", "--help"])
+    assert code == 0 and "--methods" in out and "block_until_ready" in out
 
 
-def test_numpy_quaternion_matches_rigidjax():
-    from rigidjax._cli import _quat_from_zxz
+def test_heavy_top_orientation_is_rigidjax_quat_from_euler():
+    """The tops' initial orientation is rigidjax's own zxz quaternion, in float64."""
+    from rigidjax._cli.scenes import SCENE_BUILDERS
 
-    angles = np.random.default_rng(0).uniform(-3.0, 3.0, (20, 3))
-    np.testing.assert_allclose(
-        _quat_from_zxz(angles), np.asarray(rigidjax.quat_from_euler(angles)), atol=1e-12
-    )
+    scene = SCENE_BUILDERS["heavy-top"](20, np.random.default_rng(0))
+    euler0 = scene.params["euler0"]
+    assert scene.orientation0.dtype == np.float64 and scene.orientation0.shape == (20, 4)
+    np.testing.assert_allclose(scene.orientation0, np.asarray(rigidjax.quat_from_euler(euler0)), atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(scene.orientation0, axis=-1), 1.0, atol=1e-15)
+    back = np.asarray(rigidjax.euler_from_quat(scene.orientation0))
+    np.testing.assert_allclose(back[:, 1], euler0[:, 1], atol=1e-12)  # the tilt survives the round trip
 
 
 # ---------------------------------------------------------------------------------------------
 # rigidjax bench
 
 
+def _bench_table_row(out, accuracy):
+    line = next(x for x in out.splitlines() if x.startswith(f"| {accuracy} |"))
+    return [cell.strip() for cell in line.strip("|").split("|")]
+
+
+@pytest.mark.slow
 def test_bench_small_run(tmp_path):
-    """Closed form and hand RK4 on 8 bodies: the table, the JSON, and the physics in them."""
+    """A preset and the closed form on 8 bodies: the progress line, the JSON, the table, the physics."""
     path = tmp_path / "bench.json"
-    argv = [
-        "bench",
-        "-n",
-        "8",
-        "--methods",
-        "exact,rk4",
-        "--repeats",
-        "1",
-        "--taylor",
-        "8",
-        "--json",
-        str(path),
-    ]
+    argv = ["bench", "-n", "8", "--methods", "fast,exact", "--repeats", "1", "--json", str(path)]
     code, out, err = _run(argv)
     assert code == 0, err
-    assert "bench [" in err and "8/8 calls" in err  # progress: 4 methods x (first call + 1 repeat)
+    assert "bench [" in err and "4/4 calls" in err  # 2 settings x (first call + 1 repeat)
     data = json.loads(path.read_text())
-    ref = data["reference"]
-    assert ref["checked_bodies"] == 8  # every body's reference redone in extended precision
-    # The float64 closed form agrees with the 80-bit Taylor integration to near roundoff.
-    assert ref["closed_form_vs_taylor_max_rel_omega"] < 1e-11
-    assert ref["closed_form_vs_taylor_max_angle"] < 1e-11
-    rows = {(r["family"], r["setting"]): r for r in data["rows"]}
-    exact = rows[("simulate 'exact' (closed form)", "-")]
-    assert exact["errors_on"] == "8 checked bodies" and exact["max_rel_omega"] < 1e-11
-    rk4 = [rows[("hand RK4 (7,N)", f"dt={dt}")] for dt in ("0.02", "0.01", "0.005")]
-    # Fourth order: halving the step divides the error by ~16 (omega and orientation).
-    for coarse, fine in zip(rk4, rk4[1:], strict=False):
-        assert 8 < coarse["max_rel_omega"] / fine["max_rel_omega"] < 32
-        assert 8 < coarse["max_angle"] / fine["max_angle"] < 32
-        assert 8 < coarse["max_energy"] / fine["max_energy"] < 32
-    assert rk4[0]["new_compile"] and not rk4[1]["new_compile"]  # one program for every step
-    assert all(r["run_s"] > 0 and len(r["run_s_all"]) == 1 for r in data["rows"])
+    assert data["bodies"] == 8 and data["dtype"] == "float64" and data["repeats"] == 1
+    rows = {r["accuracy"]: r for r in data["rows"]}
+    assert list(rows) == ["fast", "exact"]
+    fast, exact = rows["fast"], rows["exact"]
+    # The float64 closed form is the reference: its own error is zero and the table says so.
+    assert exact["max_rel_omega"] == 0.0 and exact["max_angle"] < 1e-15 and exact["steps"] is None
+    assert _bench_table_row(out, "exact")[5:] == ["(reference)"] * 3
+    # The "fast" preset (Tsit5, rtol 1e-5) through the flips: small but nonzero error, steps counted.
+    assert 0 < fast["max_rel_omega"] < 1e-3 and 0 < fast["max_angle"] < 1e-1
+    assert fast["median_rel_omega"] <= fast["max_rel_omega"] and fast["steps"] > 10
+    assert fast["solver"] == "Tsit5, rtol 1e-05"
+    for r in data["rows"]:
+        assert r["run_s"] > 0 and len(r["runs_s"]) == 1 and r["run_s"] == r["runs_s"][0]
+        assert r["compile_s"] == pytest.approx(r["first_call_s"] - r["run_s"])
     # The printed table carries the numbers of the JSON.
-    line = next(x for x in out.splitlines() if x.startswith("| hand RK4 (7,N) | dt=0.01 |"))
-    assert float(line.split("|")[6]) == pytest.approx(rk4[1]["max_rel_omega"], rel=0.06)
-    # The closed-form target is evaluated (met or not) against the fastest integrator.
-    target = next(t for t in data["targets"] if t["target"].startswith("exact"))
-    fastest = min(r["run_s"] for r in rk4)
-    assert target["value"] == pytest.approx(fastest / exact["run_s"])
-    assert "Targets of issue 6" in out and target["target"] in out
+    cells = _bench_table_row(out, "fast")
+    assert float(cells[5]) == pytest.approx(fast["max_rel_omega"], rel=0.06)
+    assert int(cells[4].replace(",", "")) == fast["steps"]
+    assert "8 torque-free bodies" in out and "T = 20 s" in out
+
+
+@pytest.mark.slow
+def test_bench_float32_against_the_float64_closed_form(tmp_path):
+    """In float32 the closed form is measured against the float64 one (computed apart)."""
+    path = tmp_path / "bench32.json"
+    argv = ["bench", "-n", "8", "--methods", "exact", "--dtype", "float32", "--repeats", "1"]
+    code, out, err = _run(argv + ["--duration", "2", "--json", str(path)])
+    assert code == 0, err
+    assert "3/3 calls" in err  # the float64 reference, then the first call and one repeat
+    (row,) = json.loads(path.read_text())["rows"]
+    assert row["dtype"] == "float32"
+    assert 1e-9 < row["max_rel_omega"] < 1e-3
+    assert "(reference)" not in out
 
 
 def test_bench_rejects_unknown_method():
-    code, out, err = _run(["bench", "--methods", "rk4,euler"])
+    code, out, err = _run(["bench", "--methods", "fast,euler"])
     assert code == 2 and "unknown --methods ['euler']" in err
+    code, out, err = _run(["bench", "-n", "0"])
+    assert code == 2 and "must be a positive integer, got 0" in err and "usage: rigidjax bench" in err
 
 
 def test_time_at_error_interpolates_on_the_pareto_front():

@@ -16,7 +16,12 @@ import sys
 import time
 import warnings
 
+import jax
 import numpy as np
+
+import rigidjax as rj
+
+from .common import bar
 
 OMEGA_COLUMNS = ("t", "wx", "wy", "wz")
 QUATERNION_COLUMNS = ("t", "qw", "qx", "qy", "qz")
@@ -80,11 +85,9 @@ class _Progress:
         if not self.enabled:
             return
         iteration = int(iteration)
-        width = 30
-        filled = int(width * min(iteration, self.steps) / self.steps)
-        bar = "#" * filled + "." * (width - filled)
+        filled = bar(min(iteration, self.steps), self.steps)
         elapsed = time.perf_counter() - self.start
-        self.stream.write(f"\r  iteration {iteration:4d} [{bar}] loss {float(loss):.3e}  {elapsed:5.1f} s")
+        self.stream.write(f"\r  iteration {iteration:4d} [{filled}] loss {float(loss):.3e}  {elapsed:5.1f} s")
         self.stream.flush()
 
     def close(self) -> None:
@@ -156,10 +159,8 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    import jax
-
+    """The ``fit`` command: read the record, fit, print, write the JSON and the figure."""
     jax.config.update("jax_enable_x64", True)
-    from ._fit import fit_inertia
 
     try:
         ts, omega = read_record(args.data)
@@ -195,7 +196,7 @@ def run(args) -> int:
     progress = _Progress(steps, stream, not args.quiet)
     t0 = time.perf_counter()
     try:
-        fit = fit_inertia(
+        fit = rj.fit_inertia(
             ts,
             omega,
             segments=segments,

@@ -1,0 +1,188 @@
+"""How ``rigidjax simulate`` runs a scene: in blocks of identical shape, so that it compiles once.
+
+The bodies are ordered by initial |omega| (fastest first, so that bodies of similar speed share a
+block and the step size of its chunks); the last block is padded with copies of the last body. Each
+block is one :func:`rigidjax.simulate` call, timed with ``block_until_ready``, then analysed (Euler
+angles, invariants, the scene's own checks) at the simulation dtype, before the stored samples are
+thinned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import rigidjax as rj
+
+from .common import StatusLine, bar
+from .scenes import SCENE_BUILDERS, SCENE_DEFAULTS, Scene, block_params
+
+SAVE_BUDGET_BYTES = 32 * 2**20
+
+
+@dataclasses.dataclass
+class Plan:
+    """What one run integrates and stores: the scene, the sample times, the blocks, the stride."""
+
+    scene: Scene
+    n: int
+    duration: float
+    samples: int
+    blocks: int
+    block_size: int
+    order: np.ndarray  # (blocks * block_size,) body of each slot, padded with copies of the last
+    ts: np.ndarray  # (samples,) float64
+    dtype: np.dtype
+    save_every: int
+    keep: np.ndarray  # indices of the stored samples
+
+    @property
+    def has_q(self) -> bool:
+        return self.scene.orientation0 is not None
+
+    @property
+    def padded(self) -> int:
+        return self.blocks * self.block_size
+
+
+@dataclasses.dataclass
+class Batch:
+    """What the block loop gathers: stored samples, per-body results, figure traces, counts, times."""
+
+    store: dict[str, np.ndarray]
+    results: dict[str, np.ndarray]
+    traces: dict[str, np.ndarray]
+    steps_total: int = 0
+    body_steps: int = 0
+    chunk_size: int = 0
+    sim_time: float = 0.0
+    loop_time: float = 0.0
+
+
+def plan_run(args) -> Plan:
+    n_default, duration_default, samples_default = SCENE_DEFAULTS[args.scene]
+    n = args.bodies if args.bodies is not None else n_default
+    duration = args.duration if args.duration is not None else duration_default
+    samples = args.samples if args.samples is not None else samples_default
+    scene = SCENE_BUILDERS[args.scene](n, np.random.default_rng(args.seed))
+    blocks = args.blocks if args.blocks is not None else min(10, max(1, math.ceil(n / 100)))
+    block_size = math.ceil(n / min(blocks, n))
+    blocks = math.ceil(n / block_size)
+    # Fastest bodies first, so that bodies of similar speed share a block (and its step size).
+    order = np.argsort(-np.linalg.norm(scene.omega0, axis=-1), kind="stable")
+    order = np.concatenate([order, np.full(blocks * block_size - n, order[-1])])
+    has_q = scene.orientation0 is not None
+    per_sample = n * (3 + (7 if has_q else 0)) * np.dtype(args.save_dtype).itemsize
+    if args.save_every is None:
+        save_every = max(1, math.ceil(samples * per_sample / SAVE_BUDGET_BYTES))
+    else:
+        save_every = args.save_every
+    return Plan(
+        scene,
+        n,
+        duration,
+        samples,
+        blocks,
+        block_size,
+        order,
+        np.linspace(0.0, duration, samples),
+        np.dtype(args.dtype),
+        save_every,
+        np.arange(0, samples, save_every),
+    )
+
+
+def run_block(plan: Plan, args, b: int, times):
+    """``rigidjax.simulate`` on block ``b`` at ``times``; returns the block's bodies and trajectory."""
+    index = plan.order[b * plan.block_size : (b + 1) * plan.block_size]
+    model = plan.scene.make_model(block_params(plan.scene.params, index, plan.n), plan.dtype)
+    q0 = jnp.asarray(plan.scene.orientation0[index], plan.dtype) if plan.has_q else None
+    state0 = rj.State(jnp.asarray(plan.scene.omega0[index], plan.dtype), q0)
+    traj = rj.simulate(model, state0, times, accuracy=args.accuracy, chunk_size=args.chunk_size, throw=False)
+    jax.block_until_ready(traj)
+    return index, traj
+
+
+def _empty_batch(plan: Plan, save_dtype) -> Batch:
+    stored, traced = len(plan.keep), len(plan.scene.plot_indices)
+    store = {"omega": np.empty((plan.n, stored, 3), save_dtype)}
+    traces = {"omega": np.empty((traced, plan.samples, 3))}
+    if plan.has_q:
+        store["orientation"] = np.empty((plan.n, stored, 4), save_dtype)
+        store["euler_angles"] = np.empty((plan.n, stored, 3), save_dtype)
+        traces["euler"] = np.empty((traced, plan.samples, 3))
+    return Batch(store, {}, traces)
+
+
+def _collect(plan: Plan, batch: Batch, b: int, index, traj, derived) -> None:
+    """Counts, per-body results, stored samples and figure traces of block ``b``."""
+    real = slice(0, min(plan.block_size, plan.n - b * plan.block_size))  # padding copies dropped
+    index = index[real]
+    steps = np.asarray(traj.stats["num_steps"]).astype(np.int64)
+    batch.chunk_size = int(traj.stats["chunk_size"])
+    per_chunk = np.minimum(batch.chunk_size, plan.block_size - batch.chunk_size * np.arange(len(steps)))
+    batch.steps_total += int(steps.sum())
+    batch.body_steps += int(np.sum(steps * per_chunk))
+
+    euler, invariants = derived(traj)
+    omega = np.asarray(traj.omega)[real]
+    euler = np.asarray(euler)[real] if plan.has_q else None
+    res = plan.scene.analyze(
+        plan.ts,
+        omega.astype(np.float64),
+        None if euler is None else euler.astype(np.float64),
+        block_params(plan.scene.params, index, plan.n),
+    )
+    res["success"] = np.asarray(traj.success)[real]
+    for key, value in invariants.items():
+        res["drift_" + key] = np.asarray(value, np.float64)[real]
+    for key, value in res.items():
+        if key not in batch.results:
+            batch.results[key] = np.empty((plan.n,) + np.shape(value)[1:], np.asarray(value).dtype)
+        batch.results[key][index] = value
+
+    batch.store["omega"][index] = omega[:, plan.keep]
+    if plan.has_q:
+        batch.store["orientation"][index] = np.asarray(traj.orientation)[real][:, plan.keep]
+        batch.store["euler_angles"][index] = euler[:, plan.keep]
+    plot_pos = {int(i): k for k, i in enumerate(plan.scene.plot_indices)}
+    for row, i in enumerate(index):
+        if int(i) in plot_pos:
+            batch.traces["omega"][plot_pos[int(i)]] = omega[row]
+            if plan.has_q:
+                batch.traces["euler"][plot_pos[int(i)]] = euler[row]
+
+
+def simulate_blocks(plan: Plan, args) -> Batch:
+    """Every block in turn: simulate (timed), then analyse; a progress line on stderr."""
+    batch = _empty_batch(plan, np.dtype(args.save_dtype))
+    ts = jnp.asarray(plan.ts, plan.dtype)
+    # Euler angles and invariants of a block, in one compiled call (the same shapes for every block).
+    derived = eqx.filter_jit(lambda tr: (tr.euler_angles("zxz") if plan.has_q else None, tr.invariants()))
+    status = StatusLine(sys.stderr, not args.quiet)
+
+    def show(done: int, elapsed: float) -> None:
+        left = f", ~{elapsed / done * (plan.blocks - done):.1f} s left" if 0 < done < plan.blocks else ""
+        status.show(
+            f"simulating [{bar(done, plan.blocks)}] {done}/{plan.blocks} blocks, "
+            f"{min(plan.n, done * plan.block_size):,}/{plan.n:,} bodies, {elapsed:.1f} s{left}",
+            last=done == plan.blocks,
+        )
+
+    show(0, 0.0)
+    t_loop = time.perf_counter()
+    for b in range(plan.blocks):
+        t0 = time.perf_counter()
+        index, traj = run_block(plan, args, b, ts)
+        batch.sim_time += time.perf_counter() - t0
+        _collect(plan, batch, b, index, traj, derived)
+        show(b + 1, time.perf_counter() - t_loop)
+    batch.loop_time = time.perf_counter() - t_loop
+    return batch

@@ -1,0 +1,36 @@
+"""The ``rigidjax`` command: its parser (one subcommand per module of this package) and ``main``."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+
+import rigidjax as rj
+
+from . import bench, fit, simulate
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``rigidjax``: subcommands ``fit``, ``bench`` and ``simulate``."""
+    parser = argparse.ArgumentParser(
+        prog="rigidjax", description="Rotational dynamics of rigid bodies in JAX: command-line tools."
+    )
+    parser.add_argument("--version", action="version", version=f"rigidjax {rj.__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    fit.add_parser(sub)
+    bench.add_parser(sub)
+    simulate.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``rigidjax`` command; returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error (already printed)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    return args.func(args)
