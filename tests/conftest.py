@@ -1,8 +1,19 @@
-"""Test configuration: float64 and strict dtype promotion for every test.
+"""Test configuration: float64 and strict dtype promotion for every test, and JAX's persistent
+compilation cache.
 
 Float32 tests opt in explicitly by building float32 inputs; with strict promotion an accidental
 float32/float64 mix is an error rather than a silent upcast.
+
+Compiling is most of the suite's time on a CPU, so every compiled program is kept on disk, in
+``.jax_cache/`` at the repository root or in ``$JAX_COMPILATION_CACHE_DIR``: a second run of a file
+loads its programs instead of compiling them. The cache is keyed on the program, the jax/jaxlib
+versions and the XLA flags, so a changed function simply compiles again; delete the directory to
+reclaim the space. The settings are exported to the environment too, so that the notebooks' kernels
+and other subprocesses started by the tests share the cache.
 """
+
+import os
+import pathlib
 
 import jax
 import jaxtyping
@@ -10,6 +21,17 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+_CACHE_SETTINGS = {  # environment variable: (default, type)
+    "JAX_COMPILATION_CACHE_DIR": (str(pathlib.Path(__file__).resolve().parent.parent / ".jax_cache"), str),
+    # Keep every program, however quick to compile or small: the suite compiles thousands of small
+    # ones (eager op-by-op dispatch), and together they are most of a run's compile time.
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": ("0", float),
+    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": ("-1", int),
+}
+for _name, (_default, _type) in _CACHE_SETTINGS.items():
+    os.environ.setdefault(_name, _default)  # an exported setting wins
+    jax.config.update(_name.lower(), _type(os.environ[_name]))
 
 
 @pytest.fixture
@@ -23,10 +45,11 @@ def without_runtime_typecheck():
         jaxtyping.config.update("jaxtyping_disable", old)
 
 
-# --- the published table of extremes (issue 8) ---------------------------------------------------
-# Tests in tests/test_extremes_*.py call `extreme(...)` with what they measured. The assertion in
-# the test is the check; the record is what `python benchmarks/extremes_table.py` turns into the
-# README table (it runs those tests with RIGIDJAX_EXTREMES_REPORT set to a JSON path).
+# --- the published table of extremes -------------------------------------------------------------
+# Tests in the files listed in benchmarks/extremes_table.py (gimbal lock, bad input, extreme bodies,
+# long horizons) call `extreme(...)` with what they measured. The assertion in the test is the
+# check; the record is what `python benchmarks/extremes_table.py` turns into the README table (it
+# runs those tests with RIGIDJAX_EXTREMES_REPORT set to a JSON path).
 _EXTREME_ROWS: list[dict] = []
 
 
