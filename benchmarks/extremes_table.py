@@ -1,7 +1,8 @@
-"""The published table of numerical extremes (issue 8), regenerated from the test suite.
+"""The published table of numerical extremes, regenerated from the test suite.
 
-Runs ``tests/test_extremes_*.py`` with ``RIGIDJAX_EXTREMES_REPORT`` set: every check records what it
-measured (``extreme(...)`` in tests/conftest.py) next to the bound it asserts. Writes
+Runs the test files of ``FILES`` (extreme bodies, long horizons, bad input, gimbal lock) with
+``RIGIDJAX_EXTREMES_REPORT`` set: every check records what it measured (``extreme(...)`` in
+tests/conftest.py) next to the bound it asserts. Writes
 ``benchmarks/results/extremes.json`` and ``benchmarks/results/extremes.md`` and replaces the table
 between the ``<!-- extremes-table -->`` markers in README.md.
 
@@ -20,6 +21,14 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 BEGIN, END = "<!-- extremes-table -->", "<!-- /extremes-table -->"
+# The test files that record rows. They run in this order, and the table's sections follow the order
+# in which their rows are recorded.
+FILES = [
+    "tests/test_extreme_bodies.py",
+    "tests/test_long_horizons.py",
+    "tests/test_bad_input.py",
+    "tests/test_gimbal_lock.py",
+]
 
 
 def _number(x):
@@ -50,10 +59,9 @@ def main():
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     report = RESULTS / "extremes.json"
-    tests = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "tests").glob("test_extremes_*.py"))
     env = dict(os.environ, RIGIDJAX_EXTREMES_REPORT=str(report))
     result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", *tests], cwd=ROOT, env=env
+        [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", *FILES], cwd=ROOT, env=env
     )
     if result.returncode != 0:
         sys.exit(f"the extremes tests failed (exit {result.returncode}); the table was not updated")
