@@ -9,6 +9,10 @@ Two kinds of error, as everywhere in rigidjax: shape and dtype problems raise ``
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool
+
+from ._numerics import _SYMMETRY_EPS, _TRIANGLE_EPS, _eigh3, _swap, eps
+from ._types import Inertia
 
 
 def as_float_array(x, name: str = "array"):
@@ -106,3 +110,169 @@ def check_rotation_matrix(R, name: str, where: str):
         jnp.any(jnp.linalg.det(R) <= 0),
         f"{where}: {name} has determinant -1: it is a reflection, not a rotation.",
     )
+
+
+# --- inertia ---------------------------------------------------------------------------------
+
+def _check_inertia_shape(inertia, name: str) -> bool:
+    return is_full_tensor(inertia, name)
+
+
+# Failure codes, in increasing order of how fundamental the problem is: across a batch the largest
+# code present is reported.
+_OK, _TRIANGLE, _NOT_POSITIVE, _NOT_SYMMETRIC, _NOT_FINITE = 0, 1, 2, 3, 4
+
+
+def _inertia_failure(inertia):
+    """Per-body failure code (0 = physical) of principal moments or a tensor, shape ``(...)``."""
+    inertia = as_float_array(inertia)
+    tol_eps = eps(inertia.dtype)
+    if _check_inertia_shape(inertia, "inertia"):
+        finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
+        safe = jnp.where(finite[..., None, None], inertia, jnp.eye(3, dtype=inertia.dtype))
+        scale = jnp.max(jnp.abs(safe), axis=(-2, -1))
+        asym = jnp.max(jnp.abs(safe - _swap(safe)), axis=(-2, -1))
+        symmetric = asym <= _SYMMETRY_EPS * tol_eps * scale
+        moments, _ = _eigh3(0.5 * (safe + _swap(safe)))
+        trace = jnp.trace(safe, axis1=-2, axis2=-1)
+        # Eigenvalues carry roundoff of order eps * trace: one within it of zero counts as zero.
+        positive = jnp.all(moments > _TRIANGLE_EPS * tol_eps * jnp.abs(trace)[..., None], axis=-1)
+    else:
+        finite = jnp.all(jnp.isfinite(inertia), axis=-1)
+        moments = jnp.where(finite[..., None], inertia, jnp.ones_like(inertia))
+        symmetric = jnp.ones_like(finite)
+        positive = jnp.all(moments > 0, axis=-1)
+        trace = jnp.sum(moments, axis=-1)
+    tol = _TRIANGLE_EPS * tol_eps * jnp.abs(trace)
+    # I1 + I2 - I3 and its cyclic permutations: trace - 2 I_k >= 0.
+    triangle = jnp.all(trace[..., None] - 2.0 * moments >= -tol[..., None], axis=-1)
+    code = jnp.where(triangle, _OK, _TRIANGLE)
+    code = jnp.where(positive, code, _NOT_POSITIVE)
+    code = jnp.where(symmetric, code, _NOT_SYMMETRIC)
+    return jnp.where(finite, code, _NOT_FINITE)
+
+
+def is_physical_inertia(inertia: Inertia) -> Bool[Array, "..."]:
+    """Whether ``inertia`` can be the inertia of a rigid body, per body: shape ``(...)``.
+
+    ``inertia`` is principal moments ``(..., 3)`` or a tensor ``(..., 3, 3)`` (kg m^2); a trailing
+    ``(3, 3)`` is read as a tensor. Physical means: all entries finite; for a tensor, symmetric to a
+    relative tolerance of ``1e3 eps`` (of its largest entry); all principal moments positive (for a
+    tensor, larger than the eigenvalue roundoff ``1e2 eps trace``); and the triangle inequality
+    ``I1 + I2 >= I3`` and its cyclic permutations, with the flat-plate equality ``I1 + I2 = I3``
+    allowed up to ``1e2 eps trace``. A tensor is checked through its eigenvalues.
+
+    Raises ``ValueError`` (while tracing) for shapes other than ``(..., 3)`` and ``(..., 3, 3)``.
+    See :func:`check_inertia` for the raising version, which names the problem.
+    """
+    return _inertia_failure(inertia) == _OK
+
+
+def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
+    """Returns ``inertia`` (as a JAX float array) with a run-time check that it is physical.
+
+    The checks are those of :func:`is_physical_inertia`. The returned array is wrapped in
+    ``equinox.error_if``, so this works inside ``jax.jit``; the check only runs if the returned value
+    is used. On failure the error message names ``name`` and the problem (non-finite entries, a
+    non-symmetric tensor, non-positive moments, or a violated triangle inequality); across a batch the
+    most fundamental problem present is reported. Raises ``ValueError`` while tracing for shapes other
+    than ``(..., 3)`` and ``(..., 3, 3)``.
+    """
+    inertia = as_float_array(inertia, name)
+    tensor = _check_inertia_shape(inertia, name)
+    code = _inertia_failure(inertia)
+    what = "tensor" if tensor else "principal moments"
+    msgs = [
+        "",
+        f"{name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "
+        "moments: no distribution of mass has these moments. Each moment must be at most the sum of "
+        "the other two (equality is a flat plate).",
+        f"{name} has a non-positive principal moment: every moment of inertia of a rigid body must "
+        "be > 0 kg m^2. (A thin rod has a zero moment about its axis: it is only valid as a part of "
+        "a composite body.)",
+        f"{name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its "
+        "transpose. If you meant a batch of three bodies' principal moments, note that a trailing "
+        "(3, 3) shape is always read as a tensor: pass them as shape (3, 1, 3), e.g. "
+        "inertia[:, None, :].",
+        f"{name} ({what}) contains NaN or infinite values.",
+    ]
+    return eqx.branched_error_if(inertia, code != _OK, jnp.max(code), msgs)
+
+
+# --- the dtype rule, sample times, states and scenes ---------------------------------------------
+
+
+def float_dtype(*xs):
+    """The one dtype rule of rigidjax's entry points: the widest floating dtype among the inputs'
+    (NumPy promotion: float32 with float64 is float64, whatever ``jax_numpy_dtype_promotion`` says);
+    the default float when no input is floating (Python numbers, integers)."""
+    dtypes = [np.dtype(jnp.asarray(x).dtype) for x in xs if x is not None]
+    dtypes = [d for d in dtypes if np.issubdtype(d, np.floating)]
+    return np.result_type(*dtypes) if dtypes else np.dtype(jnp.result_type(float))
+
+
+def check_times_shape(ts, name: str = "ts"):
+    """``ts`` as an array, with a trace-time ``ValueError`` unless it is 1-D with at least one time."""
+    ts = jnp.asarray(ts)
+    if ts.ndim != 1 or ts.shape[0] < 1:
+        raise ValueError(f"{name} must be a 1-D array of at least one time, got shape {tuple(ts.shape)}.")
+    return ts
+
+
+def check_times(ts, where: str, name: str = "ts"):
+    """``ts`` wrapped in run-time checks: finite and strictly increasing (``ts[0]`` is the initial
+    time)."""
+    ts = check_finite(ts, name, where)
+    if ts.shape[0] > 1:
+        ts = eqx.error_if(
+            ts,
+            jnp.any(jnp.diff(ts) <= 0),
+            f"{where}: {name} must be strictly increasing (found a decreasing or repeated time); "
+            f"{name}[0] is the initial time.",
+        )
+    return ts
+
+
+def check_unit_quaternion(q, name: str, where: str):
+    """``q`` wrapped in run-time checks (finite, ``| |q| - 1 |`` within :func:`unit_tolerance`) and
+    divided by its norm, so that roundoff in a user's quaternion does not enter the motion."""
+    q = check_finite(q, name, where)
+    tol = unit_tolerance(q.dtype)
+    norm = jnp.linalg.norm(q, axis=-1, keepdims=True)
+    q = eqx.error_if(
+        q,
+        jnp.any(jnp.abs(norm - 1.0) > tol),
+        f"{where}: {name} is not a unit quaternion (| |q| - 1 | > {tol:g}); normalise it "
+        "(rigidjax.quat_normalize) or build it with quat_from_euler / quat_from_matrix.",
+    )
+    return q / norm
+
+
+def check_state(omega0, q0, where: str):
+    """The initial state's run-time checks: finite ``omega``, unit ``orientation`` (or None)."""
+    omega0 = check_finite(omega0, "state0.omega", where)
+    if q0 is not None:
+        q0 = check_unit_quaternion(q0, "state0.orientation", where)
+    return omega0, q0
+
+
+def check_model_field(label: str, value, where: str):
+    """Run-time checks of one per-body array of a scene: a physical ``inertia``, finite values,
+    positive masses."""
+    if label == "inertia":
+        return check_inertia(value, name=f"{where}: inertia")
+    value = eqx.error_if(
+        value, ~jnp.all(jnp.isfinite(value)), f"{where}: model field {label!r} contains NaN or inf."
+    )
+    if label.split(".")[-1] == "mass":
+        value = eqx.error_if(
+            value, jnp.any(value <= 0), f"{where}: model field {label!r} must be positive (kg)."
+        )
+    return value
+
+
+def check_model(model, where: str):
+    """``model`` with every per-body array run-time checked (:func:`check_model_field`)."""
+    leaves = model.body_leaves()
+    checked = [check_model_field(leaf.label, leaf.get(model), where) for leaf in leaves]
+    return model.replace_body_leaves(leaves, checked)

@@ -1,5 +1,7 @@
-"""NaN-safe numerical primitives: norms and angles whose value and gradient stay finite at 0."""
+"""NaN-safe numerical primitives: norms and angles whose value and gradient stay finite at 0, and
+the symmetric 3x3 eigendecomposition whose derivative stays finite at degenerate moments."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -25,3 +27,53 @@ def safe_norm(v, axis=-1, keepdims=False):
 
 def safe_hypot(a, b):
     return safe_norm(jnp.stack([a, b], axis=-1))
+
+
+# Two moments closer than this many eps (relative to the largest |moment|) count as degenerate in
+# the eigenvector derivative. Roundoff of a 3x3 ``eigh`` is a few eps, so 1e3 eps leaves a wide margin
+# while still resolving physically distinct moments (1e-13 relative in float64, 1e-4 in float32).
+_DEGENERACY_EPS = 1e3
+# Relative tolerance (times eps times the largest |entry|) for a tensor to count as symmetric.
+_SYMMETRY_EPS = 1e3
+# Roundoff allowance (times eps times the trace) for the triangle inequality, which is an equality
+# for a flat plate, and for the positivity of eigenvalues of a tensor.
+_TRIANGLE_EPS = 1e2
+
+
+def _swap(a):
+    return jnp.swapaxes(a, -1, -2)
+
+
+def _eigh3_impl(a):
+    w, v = jnp.linalg.eigh(a, symmetrize_input=False)
+    # Right-handed axes: flip the last column where the basis came out left-handed.
+    sign = jnp.where(jnp.linalg.det(v) < 0, -1.0, 1.0).astype(v.dtype)
+    v = jnp.concatenate([v[..., :2], v[..., 2:] * sign[..., None, None]], axis=-1)
+    return w, v
+
+
+_eigh3 = jax.custom_jvp(_eigh3_impl)
+"""Ascending eigenvalues and right-handed eigenvectors (columns) of symmetric ``(..., 3, 3)`` input.
+
+The JVP is the textbook one (``dw_i = v_i^T dA v_i``, ``dV = V (F o E)`` with ``F = V^T dA V`` and
+``E_ij = 1 / (w_j - w_i)``), except that ``E_ij`` is set to 0 where ``|w_j - w_i|`` is below
+``_DEGENERACY_EPS * eps * max|w|``: inside a degenerate eigenspace the eigenvectors are arbitrary and
+the derivative of any basis-invariant (spectral) function does not depend on that choice.
+"""
+
+
+@_eigh3.defjvp
+def _eigh3_jvp(primals, tangents):
+    (a,) = primals
+    (da,) = tangents
+    w, v = _eigh3(a)  # the custom rule again, so higher derivatives are also safe
+    da = 0.5 * (da + _swap(da))
+    f = _swap(v) @ da @ v
+    dw = jnp.diagonal(f, axis1=-2, axis2=-1)
+    gap = w[..., None, :] - w[..., :, None]  # gap[i, j] = w_j - w_i
+    scale = jnp.max(jnp.abs(w), axis=-1)
+    tol = _DEGENERACY_EPS * eps(w.dtype) * scale
+    keep = jnp.abs(gap) > tol[..., None, None]  # the diagonal (gap 0) is never kept
+    inv_gap = jnp.where(keep, 1.0 / jnp.where(keep, gap, jnp.ones_like(gap)), jnp.zeros_like(gap))
+    dv = v @ (f * inv_gap)
+    return (w, v), (dw, dv)

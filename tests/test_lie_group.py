@@ -13,19 +13,35 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from rigidjax._integrate.solvers.rkmk import (
+import rigidjax as rj
+from rigidjax import (
+    FreeBody,
+    HeavyTop,
+    RigidBody,
+    State,
+    ViscousDamping,
+    matrix_from_quat,
+    quat_conjugate,
+    quat_multiply,
+    quat_normalize,
+    torque_free_omega,
+)
+from rigidjax._integrate.chunked import _integrate_traced
+from rigidjax.kinematics import quat_exp
+from rigidjax.solvers import (
     RKMK,
-    _structure_preserving_traced,
+    HeavyTopSplitting,
+    LiePoissonSplitting,
     dexpinv,
-    quat_exp,
     rigid_body_vector_field,
     rkmk_step,
-    simulate_structure_preserving,
 )
-from rigidjax._dynamics.models import FreeBody, HeavyTop, RigidBody, State, ViscousDamping
-from rigidjax._kinematics.quaternion import matrix_from_quat, quat_conjugate, quat_multiply, quat_normalize
-from rigidjax._integrate.solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
-from rigidjax._closed_form.torque_free import torque_free_omega
+
+
+def simulate_structure_preserving(model, state0, ts, solver, dt, *, args=None):
+    """A scene at the fixed step ``dt`` with a structure-preserving solver, through ``simulate``."""
+    return rj.simulate(model, state0, ts, solver=solver, dt0=dt, args=args)
+
 
 # A heavy top written as a user torque, plus a time-dependent body-frame drive: the torque depends on
 # time and orientation.
@@ -293,7 +309,7 @@ def test_simulate_heavy_top_splitting_tensor_inertia():
     w_ref, R_ref = ref.y[:3].T, matrix_from_quat(jnp.asarray(ref.y[3:].T))
     traj = simulate_structure_preserving(model, state0, ts, HeavyTopSplitting.from_model(TOP, order=4), 0.01)
     assert traj.omega.shape == (2, 6, 3) and traj.orientation.shape == (2, 6, 4)
-    assert int(traj.stats["num_steps"]) == 100 and bool(jnp.all(traj.success))
+    assert int(traj.stats["num_steps"][0]) == 100 and bool(jnp.all(traj.success))
     R = matrix_from_quat(traj.orientation)
     # Body 1 is body 0 seen in other axes: omega_body = P omega, R_body = R P^T.
     err_w = [float(jnp.max(jnp.abs(traj.omega[b] - w_ref @ M.T))) for b, M in ((0, jnp.eye(3)), (1, P))]
@@ -319,13 +335,13 @@ def test_simulate_free_body_splitting_vs_closed_form():
     err = float(jnp.max(jnp.abs(traj.omega - exact)))
     print(f"free body, Yoshida dt <= 0.02: max omega error {err:.2e}")
     assert err < 1e-6
-    assert int(traj.stats["num_steps"]) == 18 + 33 + 60
+    assert int(traj.stats["num_steps"][0]) == 18 + 33 + 60
     # New values of the same shapes (and the same largest per-interval step count) do not retrace.
-    traces = eqx.debug.get_num_traces(_structure_preserving_traced)
+    traces = eqx.debug.get_num_traces(_integrate_traced)
     again = simulate_structure_preserving(
         FreeBody(1.1 * inertia), State(-omega0), ts + 0.01, LiePoissonSplitting(inertia[0], 4), 0.02
     )
-    assert eqx.debug.get_num_traces(_structure_preserving_traced) == traces
+    assert eqx.debug.get_num_traces(_integrate_traced) == traces
     assert not jnp.allclose(again.omega, traj.omega)
 
 
@@ -378,5 +394,12 @@ def test_simulate_errors():
         simulate_structure_preserving(TOP, state, ts[::-1], RKMK(), 0.1)
     with pytest.raises(ValueError, match="orientation"):
         simulate_structure_preserving(TOP, State(OMEGA0), ts, RKMK(), 0.1)
-    with pytest.raises(TypeError, match="solver"):
-        simulate_structure_preserving(TOP, state, ts, diffrax.Tsit5(), 0.1)
+
+
+def test_deprecated_simulate_structure_preserving_is_simulate():
+    """The earlier entry point warns and runs the same fixed-step path as simulate(solver=, dt0=)."""
+    ts = jnp.linspace(0.0, 1.0, 3)
+    with pytest.warns(DeprecationWarning, match="simulate"):
+        old = rj.simulate_structure_preserving(TOP, State(OMEGA0, Q0), ts, RKMK("bosh3"), 0.1)
+    new = simulate_structure_preserving(TOP, State(OMEGA0, Q0), ts, RKMK("bosh3"), 0.1)
+    np.testing.assert_array_equal(old.omega, new.omega)

@@ -558,7 +558,7 @@ def test_user_torque_subclass_and_public_types():
     np.testing.assert_allclose(
         np.asarray(traj.omega[:, 2]), np.asarray(1.0 + 0.3 * ts**2 / (2 * I)), rtol=1e-10
     )
-    assert set(rj.PRESETS) == {"fast", "balanced", "precise"}
+    assert set(rj.solvers.PRESETS) == {"fast", "balanced", "precise"}
 
 
 def test_simulate_routes_structure_preserving_solvers():
@@ -569,8 +569,9 @@ def test_simulate_routes_structure_preserving_solvers():
     state0 = rj.State(jnp.array([0.0, 0.0, 12.0]), q0)
     ts = jnp.linspace(0.0, 1.0, 5)
     reference = rj.simulate(top, state0, ts, accuracy="precise")
-    split = rj.simulate(top, state0, ts, solver=rj.HeavyTopSplitting.from_model(top, order=4), dt0=2e-3)
+    splitting = rj.solvers.HeavyTopSplitting.from_model(top, order=4)
+    split = rj.simulate(top, state0, ts, solver=splitting, dt0=2e-3)
     np.testing.assert_allclose(split.omega, reference.omega, atol=1e-6)
     assert float(jnp.max(jnp.abs(jnp.linalg.norm(split.orientation, axis=-1) - 1.0))) < 1e-13
     with pytest.raises(ValueError, match="fixed step: pass dt0"):
-        rj.simulate(top, state0, ts, solver=rj.RKMK())
+        rj.simulate(top, state0, ts, solver=rj.solvers.RKMK())

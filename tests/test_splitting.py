@@ -9,14 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rigidjax._kinematics.quaternion import matrix_from_quat, quat_multiply, quat_normalize, quat_rotate
-from rigidjax._integrate.solvers.splitting import (
-    LiePoissonSplitting,
-    free_body_vector_field,
-    split_free_body,
-    splitting_step,
-)
-from rigidjax._closed_form.torque_free import torque_free_omega
+from rigidjax import matrix_from_quat, quat_multiply, quat_normalize, quat_rotate, torque_free_omega
+from rigidjax.solvers import LiePoissonSplitting, free_body_vector_field, split_free_body, splitting_step
 
 # Asymmetric body, well away from the separatrix (L^2 - 2 E I2 = 2.5 - ... clearly nonzero).
 INERTIA = jnp.array([1.0, 2.0, 3.0])
@@ -233,7 +227,7 @@ def test_float32(order):
 
 from scipy.integrate import solve_ivp  # noqa: E402
 
-from rigidjax._dynamics.models import HeavyTop, State  # noqa: E402
+from rigidjax import HeavyTop, State  # noqa: E402
 from rigidjax._integrate.solvers.splitting import (  # noqa: E402
     HeavyTopSplitting,
     _gravity_kick,

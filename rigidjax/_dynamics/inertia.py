@@ -21,70 +21,23 @@ moments are valid parts of a composite, and :func:`check_inertia` rejects them f
 """
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import ArrayLike, Float
 
-from .._checks import (
+from .._checks import (  # noqa: F401 (re-exported)
+    _check_inertia_shape,
     as_float_array,
     check_finite,
+    check_inertia,
     check_last_axis,
     check_last_two_axes,
     check_rotation_matrix,
     common_float,
     is_full_tensor,
+    is_physical_inertia,
 )
-from .._numerics import eps
+from .._numerics import _eigh3, _swap
 from .._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
-
-# Two moments closer than this many eps (relative to the largest |moment|) count as degenerate in
-# the eigenvector derivative. Roundoff of a 3x3 ``eigh`` is a few eps, so 1e3 eps leaves a wide margin
-# while still resolving physically distinct moments (1e-13 relative in float64, 1e-4 in float32).
-_DEGENERACY_EPS = 1e3
-# Relative tolerance (times eps times the largest |entry|) for a tensor to count as symmetric.
-_SYMMETRY_EPS = 1e3
-# Roundoff allowance (times eps times the trace) for the triangle inequality, which is an equality
-# for a flat plate, and for the positivity of eigenvalues of a tensor.
-_TRIANGLE_EPS = 1e2
-
-
-def _swap(a):
-    return jnp.swapaxes(a, -1, -2)
-
-
-def _eigh3_impl(a):
-    w, v = jnp.linalg.eigh(a, symmetrize_input=False)
-    # Right-handed axes: flip the last column where the basis came out left-handed.
-    sign = jnp.where(jnp.linalg.det(v) < 0, -1.0, 1.0).astype(v.dtype)
-    v = jnp.concatenate([v[..., :2], v[..., 2:] * sign[..., None, None]], axis=-1)
-    return w, v
-
-
-_eigh3 = jax.custom_jvp(_eigh3_impl)
-"""Ascending eigenvalues and right-handed eigenvectors (columns) of symmetric ``(..., 3, 3)`` input.
-
-The JVP is the textbook one (``dw_i = v_i^T dA v_i``, ``dV = V (F o E)`` with ``F = V^T dA V`` and
-``E_ij = 1 / (w_j - w_i)``), except that ``E_ij`` is set to 0 where ``|w_j - w_i|`` is below
-``_DEGENERACY_EPS * eps * max|w|``: inside a degenerate eigenspace the eigenvectors are arbitrary and
-the derivative of any basis-invariant (spectral) function does not depend on that choice.
-"""
-
-
-@_eigh3.defjvp
-def _eigh3_jvp(primals, tangents):
-    (a,) = primals
-    (da,) = tangents
-    w, v = _eigh3(a)  # the custom rule again, so higher derivatives are also safe
-    da = 0.5 * (da + _swap(da))
-    f = _swap(v) @ da @ v
-    dw = jnp.diagonal(f, axis1=-2, axis2=-1)
-    gap = w[..., None, :] - w[..., :, None]  # gap[i, j] = w_j - w_i
-    scale = jnp.max(jnp.abs(w), axis=-1)
-    tol = _DEGENERACY_EPS * eps(w.dtype) * scale
-    keep = jnp.abs(gap) > tol[..., None, None]  # the diagonal (gap 0) is never kept
-    inv_gap = jnp.where(keep, 1.0 / jnp.where(keep, gap, jnp.ones_like(gap)), jnp.zeros_like(gap))
-    dv = v @ (f * inv_gap)
-    return (w, v), (dw, dv)
 
 
 def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
@@ -115,91 +68,6 @@ def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
     check_last_two_axes(tensor, "tensor")
     tensor = check_finite(tensor, "tensor", "principal_axes")
     return _eigh3(0.5 * (tensor + _swap(tensor)))
-
-
-def _check_inertia_shape(inertia, name: str) -> bool:
-    return is_full_tensor(inertia, name)
-
-
-# Failure codes, in increasing order of how fundamental the problem is: across a batch the largest
-# code present is reported.
-_OK, _TRIANGLE, _NOT_POSITIVE, _NOT_SYMMETRIC, _NOT_FINITE = 0, 1, 2, 3, 4
-
-
-def _inertia_failure(inertia):
-    """Per-body failure code (0 = physical) of principal moments or a tensor, shape ``(...)``."""
-    inertia = as_float_array(inertia)
-    tol_eps = eps(inertia.dtype)
-    if _check_inertia_shape(inertia, "inertia"):
-        finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
-        safe = jnp.where(finite[..., None, None], inertia, jnp.eye(3, dtype=inertia.dtype))
-        scale = jnp.max(jnp.abs(safe), axis=(-2, -1))
-        asym = jnp.max(jnp.abs(safe - _swap(safe)), axis=(-2, -1))
-        symmetric = asym <= _SYMMETRY_EPS * tol_eps * scale
-        moments, _ = _eigh3(0.5 * (safe + _swap(safe)))
-        trace = jnp.trace(safe, axis1=-2, axis2=-1)
-        # Eigenvalues carry roundoff of order eps * trace: one within it of zero counts as zero.
-        positive = jnp.all(moments > _TRIANGLE_EPS * tol_eps * jnp.abs(trace)[..., None], axis=-1)
-    else:
-        finite = jnp.all(jnp.isfinite(inertia), axis=-1)
-        moments = jnp.where(finite[..., None], inertia, jnp.ones_like(inertia))
-        symmetric = jnp.ones_like(finite)
-        positive = jnp.all(moments > 0, axis=-1)
-        trace = jnp.sum(moments, axis=-1)
-    tol = _TRIANGLE_EPS * tol_eps * jnp.abs(trace)
-    # I1 + I2 - I3 and its cyclic permutations: trace - 2 I_k >= 0.
-    triangle = jnp.all(trace[..., None] - 2.0 * moments >= -tol[..., None], axis=-1)
-    code = jnp.where(triangle, _OK, _TRIANGLE)
-    code = jnp.where(positive, code, _NOT_POSITIVE)
-    code = jnp.where(symmetric, code, _NOT_SYMMETRIC)
-    return jnp.where(finite, code, _NOT_FINITE)
-
-
-def is_physical_inertia(inertia: Inertia) -> Bool[Array, "..."]:
-    """Whether ``inertia`` can be the inertia of a rigid body, per body: shape ``(...)``.
-
-    ``inertia`` is principal moments ``(..., 3)`` or a tensor ``(..., 3, 3)`` (kg m^2); a trailing
-    ``(3, 3)`` is read as a tensor. Physical means: all entries finite; for a tensor, symmetric to a
-    relative tolerance of ``1e3 eps`` (of its largest entry); all principal moments positive (for a
-    tensor, larger than the eigenvalue roundoff ``1e2 eps trace``); and the triangle inequality
-    ``I1 + I2 >= I3`` and its cyclic permutations, with the flat-plate equality ``I1 + I2 = I3``
-    allowed up to ``1e2 eps trace``. A tensor is checked through its eigenvalues.
-
-    Raises ``ValueError`` (while tracing) for shapes other than ``(..., 3)`` and ``(..., 3, 3)``.
-    See :func:`check_inertia` for the raising version, which names the problem.
-    """
-    return _inertia_failure(inertia) == _OK
-
-
-def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
-    """Returns ``inertia`` (as a JAX float array) with a run-time check that it is physical.
-
-    The checks are those of :func:`is_physical_inertia`. The returned array is wrapped in
-    ``equinox.error_if``, so this works inside ``jax.jit``; the check only runs if the returned value
-    is used. On failure the error message names ``name`` and the problem (non-finite entries, a
-    non-symmetric tensor, non-positive moments, or a violated triangle inequality); across a batch the
-    most fundamental problem present is reported. Raises ``ValueError`` while tracing for shapes other
-    than ``(..., 3)`` and ``(..., 3, 3)``.
-    """
-    inertia = as_float_array(inertia, name)
-    tensor = _check_inertia_shape(inertia, name)
-    code = _inertia_failure(inertia)
-    what = "tensor" if tensor else "principal moments"
-    msgs = [
-        "",
-        f"{name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "
-        "moments: no distribution of mass has these moments. Each moment must be at most the sum of "
-        "the other two (equality is a flat plate).",
-        f"{name} has a non-positive principal moment: every moment of inertia of a rigid body must "
-        "be > 0 kg m^2. (A thin rod has a zero moment about its axis: it is only valid as a part of "
-        "a composite body.)",
-        f"{name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its "
-        "transpose. If you meant a batch of three bodies' principal moments, note that a trailing "
-        "(3, 3) shape is always read as a tensor: pass them as shape (3, 1, 3), e.g. "
-        "inertia[:, None, :].",
-        f"{name} ({what}) contains NaN or infinite values.",
-    ]
-    return eqx.branched_error_if(inertia, code != _OK, jnp.max(code), msgs)
 
 
 def _as_tensor(inertia):

@@ -25,10 +25,26 @@ from .equations import _euler_equations, _inertia_times, is_full_tensor
 _Z = (0.0, 0.0, 1.0)
 
 
+def gravity_torque(orientation, weight_com):
+    """Body-frame torque (N m) of uniform gravity along space -Z on a body held at a fixed point:
+    ``(R^T Z) x (m g com)``, with ``weight_com = m g com`` the weight times the body-frame position of
+    the centre of mass relative to the fixed point. The one formula behind :class:`HeavyTop`,
+    :class:`GravityTorque` and the heavy-top splitting's gravity kick."""
+    up_body = _quat_rotate(_quat_conjugate(orientation), jnp.array(_Z, orientation.dtype))
+    return jnp.cross(up_body, weight_com)
+
+
 class State(eqx.Module):
-    """Body-frame angular velocity ``omega`` (rad/s) and, optionally, a unit quaternion
-    ``orientation`` (scalar first, body -> space). With ``orientation=None`` a scene that does not
-    need the orientation integrates only Euler's equations."""
+    """The state of one body or a batch: angular velocity and, optionally, orientation.
+
+    **Arguments:**
+
+    - `omega`: body-frame angular velocity ``(..., 3)`` (rad/s).
+    - `orientation`: a unit quaternion ``(..., 4)`` (scalar first, body -> space), or None. With
+      None a scene that does not need the orientation integrates only Euler's equations.
+
+    Both are converted to one floating dtype (the wider of the two).
+    """
 
     omega: Float[Array, "*batch 3"]
     orientation: Float[Array, "*batch 4"] | None = None
@@ -66,9 +82,13 @@ class AbstractTorque(eqx.Module):
 
 
 class ConstantTorque(AbstractTorque):
-    """A constant torque, given in body-frame (``frame="body"``) or space-frame components.
+    """A constant torque, given in body-frame or space-frame components.
 
-    A space-frame torque is fixed in space and is rotated into the body frame with the orientation.
+    **Arguments:**
+
+    - `torque`: the torque ``(..., 3)`` (N m); leading axes are per-body batch axes.
+    - `frame`: ``"body"`` (default) or ``"space"``. A space-frame torque is fixed in space and is
+      rotated into the body frame with the orientation (so the scene needs one).
     """
 
     torque: Float[ArrayLike, "*batch 3"] = eqx.field(converter=lambda x: as_float_array(x, "torque"))
@@ -94,8 +114,13 @@ class ConstantTorque(AbstractTorque):
 
 
 class ViscousDamping(AbstractTorque):
-    """Linear viscous damping ``tau = -coefficient * omega`` (coefficient in N m s): a scalar, or
-    ``(..., 3)`` per body axis. For a batch of per-body scalars use shape ``(N, 1)``."""
+    """Linear viscous damping ``tau = -coefficient * omega``.
+
+    **Arguments:**
+
+    - `coefficient`: N m s; a scalar, or ``(..., 3)`` per body axis. For a batch of per-body
+      scalars use shape ``(N, 1)``.
+    """
 
     coefficient: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 3"] = eqx.field(
         converter=lambda x: as_float_array(x, "coefficient")
@@ -112,12 +137,16 @@ class ViscousDamping(AbstractTorque):
 
 
 class Torque(AbstractTorque):
-    """A user torque: any callable ``fn(t, state, args) -> (3,)`` body-frame torque in N m.
+    """A user torque: any callable returning a body-frame torque (N m).
 
-    ``fn`` sees one body (``state.omega`` of shape ``(3,)``); batching is done for you. Set
-    ``needs_orientation=False`` when ``fn`` ignores ``state.orientation``, so that scenes without an
-    orientation can integrate only Euler's equations. Numbers ``fn`` closes over are constants; put
-    numbers you want gradients for in ``params`` and read them as ``fn(t, state, params)``.
+    **Arguments:**
+
+    - `fn`: ``fn(t, state, args) -> (3,)``. It sees one body (``state.omega`` of shape ``(3,)``);
+      batching is done for you. Numbers ``fn`` closes over are constants.
+    - `params`: numbers you want gradients for; ``fn`` then receives them as its third argument,
+      ``fn(t, state, params)``, instead of ``simulate``'s ``args``.
+    - `needs_orientation`: set False when ``fn`` ignores ``state.orientation``, so that scenes
+      without an orientation can integrate only Euler's equations.
     """
 
     fn: Callable = eqx.field(static=True)
@@ -130,11 +159,17 @@ class Torque(AbstractTorque):
 
 
 class GravityTorque(AbstractTorque):
-    """Uniform gravity on a body held at a fixed point (a pivot, a gimbal, a bearing): the torque
-    ``com x (m g R^T (-Z))`` in body axes (N m), with gravity ``gravity`` (m/s^2) along space -Z,
-    ``mass`` in kg and ``com`` the body-frame position (m) of the centre of mass relative to the fixed
-    point. ``RigidBody(I, torque=GravityTorque(m, com))`` is ``HeavyTop(I, m, com)``; as a known
-    torque it gives :func:`rigidjax.fit_inertia_to_orientation` the scale (a heavy top's m g l).
+    """Uniform gravity on a body held at a fixed point (a pivot, a gimbal, a bearing).
+
+    The torque is ``com x (m g R^T (-Z))`` in body axes (N m), gravity along space -Z.
+    ``RigidBody(I, torque=GravityTorque(m, com))`` is ``HeavyTop(I, m, com)``; as a known torque it
+    gives :func:`rigidjax.fit_inertia_to_orientation` the scale (a heavy top's m g l).
+
+    **Arguments:**
+
+    - `mass`: kg, ``(...)``.
+    - `com`: body-frame position (m) of the centre of mass relative to the fixed point, ``(..., 3)``.
+    - `gravity`: gravitational acceleration (m/s^2), default 9.81.
     """
 
     mass: Float[ArrayLike, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "mass"))
@@ -153,9 +188,8 @@ class GravityTorque(AbstractTorque):
 
     def __call__(self, t, state, args):
         dtype = state.omega.dtype
-        up_body = _quat_rotate(_quat_conjugate(state.orientation), jnp.array(_Z, dtype))
         weight = jnp.asarray(self.mass, dtype) * jnp.asarray(self.gravity, dtype)
-        return weight[..., None] * jnp.cross(up_body, jnp.asarray(self.com, dtype))
+        return gravity_torque(state.orientation, weight[..., None] * jnp.asarray(self.com, dtype))
 
 
 def _total_torque(torques, t, state, args):
@@ -271,8 +305,13 @@ def _inertia_field(inertia):
 
 
 class FreeBody(AbstractModel):
-    """A torque-free rigid body. ``inertia``: principal moments ``(..., 3)`` or a tensor
-    ``(..., 3, 3)`` in body axes (kg m^2). Energy, ``|L|`` and space-frame ``L`` are conserved."""
+    """A torque-free rigid body. Energy, ``|L|`` and space-frame ``L`` are conserved.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` or a tensor ``(..., 3, 3)`` in body axes (kg m^2);
+      leading axes are batch axes.
+    """
 
     inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(
         converter=_inertia_field
@@ -303,8 +342,14 @@ class FreeBody(AbstractModel):
 
 
 class RigidBody(AbstractModel):
-    """A rigid body under user torques (body frame, N m): ``torque`` is an :class:`AbstractTorque`,
-    a callable ``fn(t, state, args)``, or a tuple of them (summed)."""
+    """A rigid body under user torques.
+
+    **Arguments:**
+
+    - `inertia`: principal moments ``(..., 3)`` or a tensor ``(..., 3, 3)`` in body axes (kg m^2).
+    - `torque`: an :class:`AbstractTorque` (body frame, N m), a callable ``fn(t, state, args)``, or
+      a tuple of them (summed); None for a torque-free body.
+    """
 
     inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(
         converter=_inertia_field
@@ -342,10 +387,17 @@ class RigidBody(AbstractModel):
 class HeavyTop(AbstractModel):
     """A rigid body on a fixed pivot in uniform gravity (the heavy top, the gyroscope).
 
-    ``inertia`` is about the PIVOT, in body axes (kg m^2); ``mass`` in kg; ``com`` is the body-frame
-    position of the centre of mass relative to the pivot (m); gravity ``gravity`` (m/s^2) points
-    along space -Z. Extra torques (e.g. friction) may be added with ``torque``. Total energy and the
-    vertical component of the space-frame angular momentum are conserved without extra torques.
+    Total energy and the vertical component of the space-frame angular momentum are conserved
+    without extra torques.
+
+    **Arguments:**
+
+    - `inertia`: about the PIVOT, in body axes (kg m^2): moments ``(..., 3)`` or a tensor
+      ``(..., 3, 3)``.
+    - `mass`: kg, ``(...)``.
+    - `com`: body-frame position of the centre of mass relative to the pivot (m), ``(..., 3)``.
+    - `gravity`: m/s^2 along space -Z, default 9.81.
+    - `torque`: extra torques (e.g. friction), as for :class:`RigidBody`.
     """
 
     inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(
@@ -380,9 +432,8 @@ class HeavyTop(AbstractModel):
     def gravity_torque(self, orientation):
         """Body-frame gravity torque ``com x (m g R^T (-Z))`` (N m)."""
         dtype = orientation.dtype
-        up_body = _quat_rotate(_quat_conjugate(orientation), jnp.array(_Z, dtype))
         weight = (self.mass * self.gravity).astype(dtype)
-        return weight[..., None] * jnp.cross(up_body, self.com.astype(dtype))
+        return gravity_torque(orientation, weight[..., None] * self.com.astype(dtype))
 
     def angular_acceleration(self, t, state, args):
         tau = self.gravity_torque(state.orientation) + _total_torque(self.torques, t, state, args)

@@ -8,6 +8,7 @@ from .._dynamics.equations import _inertia_times, _kinetic_energy
 from .._dynamics.models import AbstractModel
 from .._kinematics.euler import _euler_from_quat
 from .._kinematics.quaternion import _quat_rotate
+from .batching import model_per_time
 
 
 def _stable_norm(v):
@@ -40,15 +41,7 @@ class Trajectory(eqx.Module):
 
     def _model_per_time(self) -> AbstractModel:
         """The model with a length-1 time axis inserted after its batch axes, to broadcast over T."""
-        model = self.model
-        nb = len(self.batch_shape)
-        leaves = model.body_leaves()
-        values = []
-        for leaf in leaves:
-            value = jnp.asarray(leaf.get(model))
-            value = jnp.broadcast_to(value, self.batch_shape + value.shape[value.ndim - leaf.core :])
-            values.append(jnp.expand_dims(value, nb))
-        return model.replace_body_leaves(leaves, values)
+        return model_per_time(self.model, self.batch_shape)
 
     def euler_angles(self, seq: str = "zxz") -> Float[Array, "*batch T 3"]:
         """Euler angles ``(phi, theta, psi)`` along the trajectory, unwrapped in time so that angles

@@ -273,9 +273,14 @@ def _quat_exp(theta):
     return jnp.concatenate([w, s * theta], axis=-1)
 
 
+def _quat_kinematics(q, omega):
+    """``dq/dt = q ⊗ (0, omega) / 2`` for body-frame ``omega``."""
+    pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
+    return 0.5 * _quat_multiply(q, pure)
+
+
 def _quat_derivative(q, omega):
     """``dq/dt = q ⊗ (0, omega) / 2`` plus ``|omega| (1 - |q|^2) q``, which leaves the rotation
     unchanged but makes unit norm attracting, so the norm does not drift under an integrator."""
-    pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
     speed = safe_norm(omega, keepdims=True)  # the gradient of |omega| at rest is 0, not NaN
-    return 0.5 * _quat_multiply(q, pure) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
+    return _quat_kinematics(q, omega) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q

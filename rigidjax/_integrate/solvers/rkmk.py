@@ -15,11 +15,10 @@ Tableaux: ``"dopri5"`` (Dormand–Prince 5(4), 7 stages, FSAL) and ``"bosh3"`` (
 3(2), 4 stages, FSAL). The embedded lower-order solution gives the error estimate, so
 :class:`RKMK` is a diffrax ``AbstractAdaptiveSolver`` usable with ``PIDController``.
 
-:func:`simulate_structure_preserving` runs a rigidjax scene at a fixed step with these solvers or
-the Lie–Poisson splittings of :mod:`rigidjax._splitting` and returns a :class:`rigidjax.Trajectory`.
+:func:`rigidjax.simulate` runs a scene with it (``solver=RKMK(), dt0=...``) through the same driver
+as every other solver.
 """
 
-import math
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -27,21 +26,10 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..._checks import check_finite, check_last_axis, check_rotation_quaternion, common_float
-from ..._dynamics.inertia import principal_axes
-from ..._dynamics.models import AbstractModel, HeavyTop, State
-from ..._kinematics.quaternion import _quat_conjugate, _quat_exp, _quat_from_matrix, _quat_multiply
-from ..trajectory import Trajectory
-from .splitting import (
-    HeavyTopSplitting,
-    LiePoissonSplitting,
-    heavy_top_splitting_step,
-    heavy_top_weight_com,
-    splitting_step,
-)
+from ..._kinematics.quaternion import _quat_exp, _quat_kinematics, _quat_multiply
 
 # ---------------------------------------------------------------------------------------------
 # Lie-group pieces
@@ -156,9 +144,20 @@ def rkmk_step(
 ) -> tuple[Float[Array, "... 3"], Float[Array, "... 4"]]:
     """One RKMK step of length ``h`` (s) from ``(omega, q)`` at time ``t``.
 
-    ``angular_acceleration(t, omega, q, args)`` returns body-frame ``d(omega)/dt`` (rad/s^2) for
-    arrays of the shapes given here (it may use leading batch axes). Returns ``(omega, q)`` at
-    ``t + h``; ``q`` is ``q ⊗ Exp(theta)`` and so unit to roundoff.
+    **Arguments:**
+
+    - `angular_acceleration`: ``f(t, omega, q, args)`` returning body-frame ``d(omega)/dt``
+      (rad/s^2) for arrays of the shapes given here (it may use leading batch axes).
+    - `t`: the time at the start of the step (s).
+    - `omega`: body angular velocity ``(..., 3)`` (rad/s).
+    - `q`: unit quaternion ``(..., 4)``, scalar first, body to space.
+    - `h`: the step (s).
+    - `args`: passed to ``angular_acceleration``.
+    - `tableau`: ``"dopri5"`` (order 5) or ``"bosh3"`` (order 3).
+
+    **Returns:**
+
+    ``(omega, q)`` at ``t + h``; ``q`` is ``q ⊗ Exp(theta)`` and so unit to roundoff.
     """
     _check_tableau(tableau)
     omega, q = jnp.asarray(omega), jnp.asarray(q)
@@ -180,8 +179,7 @@ def rigid_body_vector_field(angular_acceleration: Callable) -> Callable:
 
     def vf(t, y, args):
         omega, q = y
-        pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
-        return angular_acceleration(t, omega, q, args), 0.5 * _quat_multiply(q, pure)
+        return angular_acceleration(t, omega, q, args), _quat_kinematics(q, omega)
 
     return vf
 
@@ -267,263 +265,3 @@ class RKMK(diffrax.AbstractAdaptiveSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
-
-
-# ---------------------------------------------------------------------------------------------
-# A rigidjax scene at a fixed step with a structure-preserving solver.
-
-
-def _sample_grid(ts, dt):
-    """Per-interval step counts ``n_i = ceil(dt_i / dt)`` (concrete) and their maximum."""
-    ts_np = np.asarray(ts, dtype=np.float64)
-    gaps = np.diff(ts_np)
-    counts = (
-        np.maximum(1, np.ceil(gaps / dt * (1 - 1e-12))).astype(np.int64) if gaps.size else np.zeros(0, int)
-    )
-    return counts, int(counts.max()) if counts.size else 0
-
-
-def _flatten_model(model, batch, dtype):
-    leaves = model.body_leaves()
-    n = math.prod(batch)
-    flat = []
-    for leaf in leaves:
-        value = jnp.asarray(leaf.get(model))
-        core_shape = value.shape[value.ndim - leaf.core :]
-        flat.append(jnp.broadcast_to(value, batch + core_shape).reshape((n,) + core_shape).astype(dtype))
-    return leaves, flat
-
-
-@eqx.debug.assert_max_traces(max_traces=None)  # counts traces, for the no-recompile test
-def _structure_preserving_traced(model, omega0, q0, ts, counts, args, solver, n_max, has_orientation):
-    dtype = omega0.dtype
-    batch = jnp.broadcast_shapes(model.batch_shape(), omega0.shape[:-1], q0.shape[:-1])
-    n = math.prod(batch)
-    leaves, flat = _flatten_model(model, batch, dtype)
-    omega0 = jnp.broadcast_to(omega0, batch + (3,)).reshape(n, 3)
-    q0 = jnp.broadcast_to(q0, batch + (4,)).reshape(n, 4)
-    values = dict(zip([leaf.label for leaf in leaves], flat, strict=True))
-
-    if isinstance(solver, RKMK):
-
-        def accel_one(body_values, t, w, q, a):
-            body = model.replace_body_leaves(leaves, body_values)
-            return body.angular_acceleration(t, State(w, q), a)
-
-        def accel(t, w, q, a):
-            return jax.vmap(accel_one, in_axes=(0, None, 0, 0, None))(flat, t, w, q, a).astype(dtype)
-
-        # The state carries d(omega)/dt at its own time: FSAL, one evaluation fewer per step.
-        def to_y(w, q):
-            return w, q, accel(ts[0], w, q, args)
-
-        def from_y(y):
-            return y[0], y[1]
-
-        def step(t, y, h):
-            w, q, _, _, _, f1 = _rkmk(accel, t, y[0], y[1], h, args, solver.tableau, y[2])
-            return w, q, f1
-
-    else:
-        inertia = values["inertia"]
-        if inertia.ndim == 3:  # (n, 3, 3) tensors: integrate in each body's principal axes
-            inertia, axes = principal_axes(inertia)  # axes: principal -> body components
-            axes_q = _quat_from_matrix(axes)
-        else:
-            axes = axes_q = None
-
-        def to_principal(v):
-            return v if axes is None else jnp.einsum("nji,nj->ni", axes, v)
-
-        if isinstance(solver, HeavyTopSplitting):
-            weight_com = to_principal(
-                heavy_top_weight_com(values["mass"], values["com"], values["gravity"], dtype)
-            )
-
-            def step(t, y, h):
-                return heavy_top_splitting_step(inertia, weight_com, *y, h, solver.splitting_order)
-
-        else:
-
-            def step(t, y, h):
-                return splitting_step(inertia, *y, h, solver.splitting_order)
-
-        def to_y(w, q):
-            if axes is not None:
-                w, q = to_principal(w), _quat_multiply(q, axes_q)
-            return inertia * w, q
-
-        def from_y(y):
-            w, q = y[0] / inertia, y[1]
-            if axes is not None:
-                w, q = jnp.einsum("nij,nj->ni", axes, w), _quat_multiply(q, _quat_conjugate(axes_q))
-            return w, q
-
-    def interval(y, xs):
-        t_start, gap, count = xs
-        h = gap / count.astype(dtype)
-
-        def body(k, y):
-            y_new = step(t_start + k.astype(dtype) * h, y, h)
-            keep = k < count
-            return jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), y_new, y)
-
-        y = jax.lax.fori_loop(0, n_max, body, y)
-        return y, from_y(y)
-
-    y0 = to_y(omega0, q0)
-    xs = (ts[:-1], jnp.diff(ts), counts)
-    _, (omegas, qs) = jax.lax.scan(interval, y0, xs)
-    omega = jnp.concatenate([omega0[None], omegas], axis=0)  # (T, n, 3)
-    q = jnp.concatenate([q0[None], qs], axis=0)
-    finite = jnp.all(jnp.isfinite(omega), axis=(0, 2)) & jnp.all(jnp.isfinite(q), axis=(0, 2))
-    q_norm = jnp.linalg.norm(q, axis=-1)
-    q_norm_error = jnp.max(jnp.abs(q_norm - 1.0), axis=0).reshape(batch)
-    n_times = ts.shape[0]
-    omega = jnp.moveaxis(omega, 0, 1).reshape(batch + (n_times, 3))
-    q = jnp.moveaxis(q / q_norm[..., None], 0, 1).reshape(batch + (n_times, 4))
-    stats = {
-        "num_steps": jnp.sum(counts),
-        "chunk_size": n,
-        "quaternion_norm_error": q_norm_error if has_orientation else None,
-    }
-    model_b = model.replace_body_leaves(leaves, [v.reshape(batch + v.shape[1:]) for v in flat])
-    return Trajectory(
-        ts=ts,
-        omega=omega,
-        orientation=q if has_orientation else None,
-        model=model_b,
-        success=finite.reshape(batch),
-        stats=stats,
-    )
-
-
-_structure_preserving_impl = eqx.filter_jit(_structure_preserving_traced)
-
-
-def simulate_structure_preserving(
-    model: AbstractModel,
-    state0: State,
-    ts: Float[ArrayLike, " T"],
-    solver: "HeavyTopSplitting | LiePoissonSplitting | RKMK",
-    dt: float,
-    *,
-    args: Any = None,
-) -> Trajectory:
-    """Integrates a scene at a fixed step with a structure-preserving solver; samples it at ``ts``.
-
-    Args:
-        model: :class:`FreeBody`, :class:`RigidBody` or :class:`HeavyTop`, possibly batched (leading
-            axes on its array fields, as in :func:`rigidjax.simulate`).
-        state0: initial :class:`State`; batch axes broadcast against the model's. Without an
-            orientation (scenes that do not need one) the output orientation is None.
-        ts: strictly increasing sample times (s), ``(T,)``, concrete (not traced): they fix the
-            number of steps. ``ts[0]`` is the initial time.
-        solver: chooses the method; the physical parameters always come from ``model`` (the
-            solver's own numeric fields are not used). :class:`HeavyTopSplitting` for a
-            :class:`HeavyTop` without extra torques, :class:`LiePoissonSplitting` for a torque-free
-            body (a ``(..., 3, 3)`` inertia tensor is diagonalised once per body and the motion
-            integrated in its principal axes); :class:`RKMK` for any scene.
-        dt: largest step (s), a Python float. Each interval ``[ts[i], ts[i+1]]`` is cut into
-            ``ceil((ts[i+1] - ts[i]) / dt)`` equal steps, so samples fall on steps (no interpolation).
-        args: passed to user torques.
-
-    Returns:
-        A :class:`Trajectory` (``success`` is False for a body whose state became non-finite;
-        there is no other failure mode at a fixed step); ``stats["num_steps"]`` is the number of
-        steps per body and ``stats["quaternion_norm_error"]`` the largest ``| |q| - 1 |`` before
-        the output was normalised. Differentiable (forward and reverse mode) with respect to the
-        model and the state.
-    """
-    if not isinstance(model, AbstractModel):
-        raise TypeError(f"model must be a rigidjax scene such as HeavyTop, got {type(model).__name__}.")
-    if not isinstance(state0, State):
-        raise TypeError(f"state0 must be a rigidjax.State, got {type(state0).__name__}.")
-    if isinstance(solver, HeavyTopSplitting):
-        if not isinstance(model, HeavyTop) or model.torques:
-            raise ValueError(
-                "HeavyTopSplitting integrates a HeavyTop under gravity alone; for extra torques or "
-                f"other scenes use RKMK (got {type(model).__name__})."
-            )
-    elif isinstance(solver, LiePoissonSplitting):
-        if not model.torque_free:
-            raise ValueError(
-                "LiePoissonSplitting integrates torque-free bodies only; use HeavyTopSplitting for a "
-                f"HeavyTop or RKMK for torques (got {type(model).__name__})."
-            )
-    elif not isinstance(solver, RKMK):
-        raise TypeError(
-            f"solver must be HeavyTopSplitting, LiePoissonSplitting or RKMK, got {type(solver).__name__}."
-        )
-    if state0.orientation is None and model.needs_orientation:
-        raise ValueError(
-            f"{type(model).__name__} needs an orientation: pass State(omega, orientation=q) with a unit "
-            "quaternion q."
-        )
-    try:
-        ts_np = np.asarray(ts, dtype=np.float64)
-    except jax.errors.TracerArrayConversionError as err:
-        raise ValueError(
-            "simulate_structure_preserving: ts must be concrete (they fix the number of steps); "
-            "do not trace them under jit."
-        ) from err
-    if ts_np.ndim != 1 or ts_np.shape[0] < 1:
-        raise ValueError(f"ts must be a 1-D array of at least one time, got shape {ts_np.shape}.")
-    if np.any(np.diff(ts_np) <= 0) or not np.all(np.isfinite(ts_np)):
-        raise ValueError("ts must be finite and strictly increasing; ts[0] is the initial time.")
-    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive Python float (it fixes the number of steps), got {dt!r}.")
-    counts, n_max = _sample_grid(ts_np, dt)
-    dtypes = [state0.omega.dtype] + [
-        x.dtype for x in jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_inexact_array))
-    ]
-    if state0.orientation is not None:
-        dtypes.append(state0.orientation.dtype)
-    dtype = np.result_type(*[np.dtype(d) for d in dtypes])  # numpy promotion: widen float32 + float64
-    model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
-    from ..simulate import _check_inputs  # (_simulate imports this module
-
-    model, _, _, _ = _check_inputs(
-        model,
-        model.body_leaves(),
-        state0.omega.astype(dtype),
-        None,
-        jnp.asarray(ts_np, dtype),
-        dtype,
-        where="simulate_structure_preserving",
-    )
-    omega0 = state0.omega.astype(dtype)
-    omega0 = eqx.error_if(
-        omega0,
-        ~jnp.all(jnp.isfinite(omega0)),
-        "simulate_structure_preserving: state0.omega contains NaN or inf.",
-    )
-    has_orientation = state0.orientation is not None
-    if has_orientation:
-        q0 = state0.orientation.astype(dtype)
-        q0 = eqx.error_if(
-            q0,
-            ~jnp.all(jnp.isfinite(q0)),
-            "simulate_structure_preserving: state0.orientation contains NaN or inf.",
-        )
-        norm = jnp.linalg.norm(q0, axis=-1, keepdims=True)
-        tol = 1e-6 if dtype == jnp.float64 else 1e-4
-        q0 = eqx.error_if(
-            q0,
-            jnp.any(jnp.abs(norm - 1.0) > tol),
-            "simulate_structure_preserving: state0.orientation is not a unit quaternion; normalise it.",
-        )
-        q0 = q0 / norm
-    else:
-        q0 = jnp.array([1.0, 0.0, 0.0, 0.0], dtype)
-    return _structure_preserving_impl(
-        model,
-        omega0,
-        q0,
-        jnp.asarray(ts_np, dtype),
-        jnp.asarray(counts, jnp.int32),
-        args,
-        solver,
-        n_max,
-        has_orientation,
-    )

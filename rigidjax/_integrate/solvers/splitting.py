@@ -38,7 +38,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..._checks import as_float_array, check_finite, check_last_axis, check_rotation_quaternion
 from ..._dynamics.inertia import check_inertia
-from ..._kinematics.quaternion import _quat_conjugate, _quat_multiply, _quat_rotate
+from ..._dynamics.models import gravity_torque
+from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
 
 _YOSHIDA_W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 _YOSHIDA_W0 = 1.0 - 2.0 * _YOSHIDA_W1
@@ -94,7 +95,7 @@ def _check_principal(inertia, who: str):
         raise ValueError(
             f"{who} needs principal moments (..., 3), got a (..., 3, 3) inertia tensor: diagonalise it "
             "with rigidjax.principal_axes and express the state (and com) in those axes, or use "
-            "simulate_structure_preserving, which does that for you."
+            "rigidjax.simulate(..., solver=..., dt0=...), which does that for you."
         )
 
 
@@ -144,17 +145,19 @@ def split_free_body(
 ) -> tuple[Float[Array, "... 3"], Float[Array, "... 4"]]:
     """Integrates a free rigid body for ``n_steps`` steps of ``dt`` with the Lie–Poisson splitting.
 
-    Args:
-        inertia: principal moments ``(..., 3)``.
-        L0: body-frame angular momentum ``(..., 3)`` (``L = I omega``).
-        q0: unit quaternion ``(..., 4)``, scalar first, body to space.
-        dt: step (a scalar).
-        n_steps: number of steps (a Python int).
-        order: 2 (Strang) or 4 (Yoshida triple jump of Strang).
+    **Arguments:**
 
-    Returns:
-        ``(L, q)`` at ``t = n_steps * dt``, batch shape the broadcast of the inputs'. The dtype is
-        the inputs' (float32 inputs stay float32).
+    - `inertia`: principal moments ``(..., 3)``.
+    - `L0`: body-frame angular momentum ``(..., 3)`` (``L = I omega``).
+    - `q0`: unit quaternion ``(..., 4)``, scalar first, body to space.
+    - `dt`: step (a scalar).
+    - `n_steps`: number of steps (a Python int).
+    - `order`: 2 (Strang) or 4 (Yoshida triple jump of Strang).
+
+    **Returns:**
+
+    ``(L, q)`` at ``t = n_steps * dt``, batch shape the broadcast of the inputs'. The dtype is
+    the inputs' (float32 inputs stay float32).
     """
     if order not in (2, 4):
         raise ValueError(f"order must be 2 or 4, got {order!r}.")
@@ -232,8 +235,7 @@ def free_body_vector_field(inertia):
     def vf(t, y, args):
         L, q = y
         omega = L / inertia.astype(L.dtype)
-        pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
-        return jnp.cross(L, omega), 0.5 * _quat_multiply(q, pure)
+        return jnp.cross(L, omega), _quat_kinematics(q, omega)
 
     return vf
 
@@ -242,18 +244,13 @@ def free_body_vector_field(inertia):
 # The heavy top: free-body splitting plus the exact gravity kick.
 
 
-def _up_body(q):
-    """Body-frame components of the space vertical ``R(q)^T Z``."""
-    return _quat_rotate(_quat_conjugate(q), jnp.array([0.0, 0.0, 1.0], q.dtype))
-
-
 def _gravity_kick(weight_com, L, q, h):
     """Exact flow of ``V(q)`` for a time ``h``: ``L <- L + h m g (R^T Z) x com`` (``q`` fixed).
 
     ``weight_com`` is ``m g com`` (N m, body frame); the torque matches
     :meth:`rigidjax.HeavyTop.gravity_torque`.
     """
-    return L + h * jnp.cross(_up_body(q), weight_com)
+    return L + h * gravity_torque(q, weight_com)
 
 
 def _heavy_top_strang(inertia, weight_com, L, q, h):
@@ -314,20 +311,22 @@ def split_heavy_top(
 ) -> tuple[Float[Array, "... 3"], Float[Array, "... 4"]]:
     """Integrates a heavy top for ``n_steps`` steps of ``dt`` with the Lie–Poisson splitting.
 
-    Args:
-        inertia: principal moments about the pivot ``(..., 3)`` (kg m^2); body axes are principal.
-        mass: mass (kg), ``(...)``.
-        com: body-frame centre of mass relative to the pivot ``(..., 3)`` (m).
-        gravity: gravitational acceleration (m/s^2) along space -Z, ``(...)``.
-        L0: body-frame angular momentum about the pivot ``(..., 3)`` (``L = I omega``).
-        q0: unit quaternion ``(..., 4)``, scalar first, body to space.
-        dt: step (s, a scalar).
-        n_steps: number of steps (a Python int).
-        order: 2 (Strang) or 4 (Yoshida triple jump of Strang).
+    **Arguments:**
 
-    Returns:
-        ``(L, q)`` at ``t = n_steps * dt``, batch shape the broadcast of the inputs'. Energy error
-        bounded, ``L_Z = (R L) . Z`` and ``|q|`` conserved to roundoff.
+    - `inertia`: principal moments about the pivot ``(..., 3)`` (kg m^2); body axes are principal.
+    - `mass`: mass (kg), ``(...)``.
+    - `com`: body-frame centre of mass relative to the pivot ``(..., 3)`` (m).
+    - `gravity`: gravitational acceleration (m/s^2) along space -Z, ``(...)``.
+    - `L0`: body-frame angular momentum about the pivot ``(..., 3)`` (``L = I omega``).
+    - `q0`: unit quaternion ``(..., 4)``, scalar first, body to space.
+    - `dt`: step (s, a scalar).
+    - `n_steps`: number of steps (a Python int).
+    - `order`: 2 (Strang) or 4 (Yoshida triple jump of Strang).
+
+    **Returns:**
+
+    ``(L, q)`` at ``t = n_steps * dt``, batch shape the broadcast of the inputs'. Energy error
+    bounded, ``L_Z = (R L) . Z`` and ``|q|`` conserved to roundoff.
     """
     if order not in (2, 4):
         raise ValueError(f"order must be 2 or 4, got {order!r}.")
@@ -351,7 +350,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     quaternion ``(..., 4)``); the parameters come from the fields (principal moments ``inertia``,
     ``mass``, ``com``, ``gravity`` as in :class:`rigidjax.HeavyTop`), not from the term, which is only
     used by ``func``. In diffrax the inertia must be principal moments ``(..., 3)``; with
-    ``simulate_structure_preserving`` (which takes the parameters from the model) a tensor works too.
+    ``rigidjax.simulate`` (which takes the parameters from the model) a tensor works too.
     :func:`heavy_top_vector_field` gives a matching term::
 
         diffrax.diffeqsolve(diffrax.ODETerm(heavy_top_vector_field(I, m, com, g)),
@@ -377,7 +376,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         if order not in (2, 4):
             raise ValueError(f"order must be 2 or 4, got {order!r}.")
         if inertia is None and mass is None and com is None:
-            # The scene's parameters come from the model (simulate / simulate_structure_preserving).
+            # The scene's parameters come from the model (rigidjax.simulate).
             self.inertia = self.mass = self.com = self.gravity = None
             self.splitting_order = order
             return
@@ -439,6 +438,6 @@ def heavy_top_vector_field(inertia, mass, com, gravity=9.81):
         L, q = y
         dL, dq = free(t, y, args)
         weight_com = heavy_top_weight_com(mass, com, gravity, L.dtype)
-        return dL + jnp.cross(_up_body(q), weight_com), dq
+        return dL + gravity_torque(q, weight_com), dq
 
     return vf

@@ -1,0 +1,127 @@
+"""Per-body batching: a scene and a state with leading batch axes become flat per-body arrays
+``(n, ...)``, are cut into chunks of bounded size, and are put back into the user's shape.
+
+Every per-body array of a scene is described by its ``BodyLeaf`` (``model.body_leaves()``): its
+trailing ``core`` axes belong to one body, the leading axes are batch axes that broadcast against
+the state's. The integrator, the closed forms and :class:`rigidjax.Trajectory` all batch through
+this module.
+
+Chunks: bodies sorted by a speed key are cut into ``n_chunks`` chunks of ``chunk`` bodies (the last
+one padded with copies of a real body, dropped again by :func:`from_chunks`); chunks run one after
+another with ``lax.map`` (bounded memory for 10^6 bodies) and, with several devices, are sharded
+across them.
+"""
+
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.sharding import AxisType, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+
+def batch_shape(model, *state_arrays) -> tuple[int, ...]:
+    """The broadcast batch shape of a scene and state arrays (each ``(..., k)``: one core axis)."""
+    shapes = [model.batch_shape()] + [x.shape[:-1] for x in state_arrays if x is not None]
+    return jnp.broadcast_shapes(*shapes)
+
+
+def flatten(x, batch: tuple[int, ...], core_ndim: int = 1):
+    """``x`` broadcast to ``batch + core`` and reshaped to ``(n, *core)``."""
+    core = x.shape[x.ndim - core_ndim :]
+    return jnp.broadcast_to(x, batch + core).reshape((math.prod(batch),) + core)
+
+
+def flatten_model(model, batch: tuple[int, ...], dtype=None):
+    """The scene's per-body arrays as a list of ``(n, *core)`` arrays, in ``model.body_leaves()``
+    order; cast to ``dtype`` when given."""
+    leaves = model.body_leaves()
+    flat = []
+    for leaf in leaves:
+        value = flatten(jnp.asarray(leaf.get(model)), batch, leaf.core)
+        flat.append(value if dtype is None else value.astype(dtype))
+    return leaves, flat
+
+
+def unflatten_model(model, leaves, flat, batch: tuple[int, ...]):
+    """The scene with its per-body arrays replaced by ``flat`` reshaped to ``batch + core``."""
+    return model.replace_body_leaves(leaves, [v.reshape(batch + v.shape[1:]) for v in flat])
+
+
+def body_model(model, leaves, values):
+    """The scene of one body (or one chunk), from its per-body arrays."""
+    return model.replace_body_leaves(leaves, values)
+
+
+def model_per_time(model, batch: tuple[int, ...]):
+    """The scene with a length-1 time axis after its batch axes, to broadcast over ``(..., T, ...)``
+    samples."""
+    leaves = model.body_leaves()
+    values = []
+    for leaf in leaves:
+        value = jnp.asarray(leaf.get(model))
+        value = jnp.broadcast_to(value, batch + value.shape[value.ndim - leaf.core :])
+        values.append(jnp.expand_dims(value, len(batch)))
+    return model.replace_body_leaves(leaves, values)
+
+
+class ChunkPlan(NamedTuple):
+    """How ``n`` bodies are cut into ``n_chunks`` chunks of ``chunk`` bodies."""
+
+    n: int
+    chunk: int
+    n_chunks: int
+    order: Any  # body index in chunk order (fastest first when sorted)
+    shard: bool  # chunks are spread over several devices
+
+
+def plan_chunks(n: int, chunk_size: int, sort_key=None, *, shardable: bool = True) -> ChunkPlan:
+    """Plans chunks of at most ``chunk_size`` bodies; with ``sort_key`` (n,) the bodies are ordered
+    by decreasing key so that bodies of similar speed share a chunk and its step size. With several
+    devices the chunk count is a multiple of the device count (whole chunks per device)."""
+    chunk = min(chunk_size, n)
+    n_chunks = -(-n // chunk)
+    n_devices = jax.device_count()
+    shard = shardable and n_devices > 1 and n_chunks > 1
+    if shard:
+        n_chunks = -(-n_chunks // n_devices) * n_devices
+    if sort_key is not None and n_chunks > 1:
+        order = jnp.argsort(-sort_key)
+    else:
+        order = jnp.arange(n)
+    return ChunkPlan(n, chunk, n_chunks, order, shard)
+
+
+def to_chunks(plan: ChunkPlan, x):
+    """``(n, ...)`` -> ``(n_chunks, chunk, ...)`` in chunk order, padding with copies of a body."""
+    if x is None:
+        return None
+    take = plan.order[jnp.minimum(jnp.arange(plan.n_chunks * plan.chunk), plan.n - 1)]
+    return x[take].reshape((plan.n_chunks, plan.chunk) + x.shape[1:])
+
+
+def from_chunks(plan: ChunkPlan, x):
+    """``(n_chunks, chunk, ...)`` -> ``(n, ...)`` in the user's body order, padding dropped."""
+    if x is None:
+        return None
+    x = x.reshape((plan.n_chunks * plan.chunk,) + x.shape[2:])[: plan.n]
+    return x[jnp.argsort(plan.order)]
+
+
+def map_chunks(fn: Callable, chunks, shared, plan: ChunkPlan):
+    """``fn(chunk, shared)`` for every chunk: one after another with ``lax.map``, and across devices
+    with ``shard_map`` when the plan shards. ``shared`` (arrays only) is passed explicitly, not
+    closed over, so that the same function runs under both."""
+
+    def run(chunks, shared):
+        return jax.lax.map(lambda c: fn(c, shared), chunks)
+
+    if plan.shard:
+        mesh = jax.make_mesh((jax.device_count(),), ("bodies",), axis_types=(AxisType.Auto,))
+        chunks = jax.lax.with_sharding_constraint(chunks, NamedSharding(mesh, P("bodies")))
+        run = jax.shard_map(
+            run, mesh=mesh, in_specs=(P("bodies"), P()), out_specs=P("bodies"), check_vma=False
+        )
+    return run(chunks, shared)

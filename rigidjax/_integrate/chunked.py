@@ -1,0 +1,185 @@
+"""A batch of bodies through the driver, chunk by chunk, and back into a :class:`Trajectory`.
+
+Bodies are flattened and cut into chunks (:mod:`.batching`); each chunk is one ODE (its layout
+chosen by a formulation, :mod:`.formulations`) solved by :func:`.driver.solve` with one shared step
+size, accepted only when EVERY body in it meets the tolerance (a max norm over the chunk, so a fast
+body cannot hide among slow ones).
+
+Tolerances are dimensionless: under :class:`.formulations.ScaledODE` each body's angular velocity is
+divided by a per-component scale (``model.omega_scale``: for a torque-free body, the largest value
+each component reaches; otherwise |omega0|), and the quaternion is O(1), so ``rtol`` and ``atol``
+mean the same thing for the Earth in SI units and for a 1e5 rad/s rotor.
+"""
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._checks import check_model, check_state, check_times
+from .._dynamics.models import State
+from .._kinematics.euler import _euler_from_quat
+from . import batching, driver
+from .formulations import ScaledODE, lock_distance
+from .trajectory import Trajectory
+
+
+def max_norm(x):
+    """Max norm of the scaled error over the chunk. NaN counts as infinitely large: a trial step so
+    long that it overflows (the first step of a 1e4 rad/s body) is rejected and shortened, instead
+    of turning the step size into NaN for good."""
+    norm = jnp.max(jnp.abs(jnp.concatenate([jnp.ravel(leaf) for leaf in jax.tree_util.tree_leaves(x)])))
+    return jnp.where(jnp.isnan(norm), jnp.inf, norm)
+
+
+def _omega_scales(model, leaves, flat, omega0, q0, duration, args):
+    """Per-body, per-component angular-velocity scales (n, 3), never below 10 eps of the largest."""
+
+    def scale_one(body_values, w, q):
+        body = batching.body_model(model, leaves, body_values)
+        return body.omega_scale(State(w, q), duration, args)
+
+    sigma = jax.vmap(scale_one, in_axes=(0, 0, None if q0 is None else 0))(flat, omega0, q0)
+    sigma = jax.lax.stop_gradient(sigma)
+    peak = jnp.max(sigma, axis=-1, keepdims=True)
+    floor = 10 * jnp.finfo(omega0.dtype).eps * peak
+    return jnp.where(peak > 0, jnp.maximum(sigma, floor), jnp.ones_like(sigma))
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces, for the no-recompile tests
+def _integrate_traced(
+    model,
+    omega0,
+    q0,
+    ts,
+    args,
+    controller,
+    solver,
+    adjoint,
+    dt0,
+    *,
+    formulation,
+    max_steps,
+    chunk_size,
+    sort,
+    throw,
+):
+    model = check_model(model, "simulate")
+    omega0, q0 = check_state(omega0, q0, "simulate")
+    ts = check_times(ts, "simulate")
+    dtype = omega0.dtype
+    batch = batching.batch_shape(model, omega0, q0)
+    n = math.prod(batch)
+    leaves, flat = batching.flatten_model(model, batch, dtype)
+    omega0 = batching.flatten(omega0, batch)
+    q0 = None if q0 is None else batching.flatten(q0, batch)
+    has_orientation = q0 is not None
+    n_times = ts.shape[0]
+    euler_seq = formulation.euler_seq if isinstance(formulation, ScaledODE) else None
+    if euler_seq is not None:
+        tolerance = formulation.lock_tolerance
+        q0 = eqx.error_if(
+            q0,
+            jnp.any(lock_distance(_euler_from_quat(q0, euler_seq), euler_seq) < tolerance),
+            f"simulate: the initial orientation is within {tolerance:g} of gimbal lock for the "
+            f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
+        )
+    if formulation.uses_scale:
+        sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
+    else:
+        sigma = jnp.ones_like(omega0)
+    plan = batching.plan_chunks(
+        n, chunk_size, jnp.max(sigma, axis=-1) if sort else None, shardable=n_times > 1
+    )
+
+    if n_times == 1:
+        omega_all = omega0[:, None, :]
+        q_all = None if q0 is None else q0[:, None, :]
+        codes = jnp.zeros((plan.n_chunks,), jnp.int32)
+        steps = jnp.zeros((plan.n_chunks,), jnp.int32)
+        ok_chunk = jnp.ones((plan.n_chunks,), bool)
+        ok = jnp.ones((n,), bool)
+    else:
+        chunks = tuple(batching.to_chunks(plan, x) for x in (omega0, q0, sigma))
+        chunks = ([batching.to_chunks(plan, v) for v in flat], *chunks)
+        shell = model.replace_body_leaves(leaves, [None] * len(leaves))
+        shared, static = eqx.partition((shell, args, ts, controller, solver, adjoint, dt0), eqx.is_array)
+
+        def solve_chunk(chunk, shared):
+            values, w0, cq0, s = chunk
+            shell, args, ts, controller, solver, adjoint, dt0 = eqx.combine(shared, static)
+            y0 = formulation.initial_state(values, leaves, w0, cq0, s)
+            vector_field = formulation.vector_field(shell, leaves, values, s)
+            first_step = dt0
+            adaptive = not isinstance(controller, diffrax.ConstantStepSize | diffrax.StepTo)
+            if first_step is None and adaptive and formulation.uses_scale:
+                first_step = formulation.first_step(vector_field, y0, s, ts, args)
+            solution = driver.solve(
+                vector_field,
+                formulation.chunk_solver(solver, values, leaves),
+                y0,
+                ts,
+                stepsize_controller=controller,
+                dt0=first_step,
+                args=args,
+                adjoint=adjoint,
+                max_steps=max_steps,
+                event=formulation.event(),
+            )
+            omega, q = formulation.outputs(solution.ys, values, leaves, s)
+            return omega, q, solution.result, solution.num_steps
+
+        omega_all, q_all, codes, steps = batching.map_chunks(solve_chunk, chunks, shared, plan)
+        ok_chunk = codes == driver.SUCCESSFUL
+        ok = batching.from_chunks(plan, jnp.broadcast_to(ok_chunk[:, None], (plan.n_chunks, plan.chunk)))
+        omega_all = batching.from_chunks(plan, omega_all)
+        q_all = batching.from_chunks(plan, q_all) if has_orientation else None
+
+    finite = jnp.all(jnp.isfinite(omega_all), axis=(-2, -1))
+    if q_all is not None:
+        finite = finite & jnp.all(jnp.isfinite(q_all), axis=(-2, -1))
+    if throw:
+        if euler_seq is not None:
+            omega_all = eqx.error_if(
+                omega_all,
+                jnp.any(codes == driver.EVENT_OCCURRED),
+                f"simulate: the Euler-angle state (seq={euler_seq!r}) came within "
+                f"{formulation.lock_tolerance:g} of gimbal lock (first and third axes aligned), where "
+                "Euler-angle rates are unbounded. Use representation='quaternion' (the default), or "
+                "throw=False for NaN rows.",
+            )
+        omega_all = eqx.error_if(
+            omega_all,
+            jnp.any(codes == driver.MAX_STEPS_REACHED),
+            f"simulate: the integrator reached max_steps={max_steps} before the last time in ts. "
+            "Increase max_steps, choose a lower accuracy, or shorten ts.",
+        )
+        omega_all = eqx.error_if(
+            omega_all,
+            jnp.any(~ok_chunk) | jnp.any(~finite),
+            "simulate: the integration failed (step size underflow or a non-finite state, e.g. a "
+            "singular scene or too long a fixed step). Check the inputs, or pass throw=False to get "
+            "NaN rows and a success flag.",
+        )
+    ok = ok & finite
+    omega = jnp.where(ok[:, None, None], omega_all, jnp.nan)
+    out_q = q_norm_error = None
+    if q_all is not None:
+        q_norm = jnp.linalg.norm(q_all, axis=-1, keepdims=True)
+        q_norm_error = jnp.max(jnp.abs(q_norm[..., 0] - 1.0), axis=-1).reshape(batch)
+        out_q = jnp.where(ok[:, None, None], q_all / q_norm, jnp.nan).reshape(batch + (n_times, 4))
+    return Trajectory(
+        ts=ts,
+        omega=omega.reshape(batch + (n_times, 3)),
+        orientation=out_q,
+        model=batching.unflatten_model(model, leaves, flat, batch),
+        success=ok.reshape(batch),
+        stats={"num_steps": steps, "chunk_size": plan.chunk, "quaternion_norm_error": q_norm_error},
+    )
+
+
+integrate = eqx.filter_jit(_integrate_traced)
+"""The compiled batch integration: ``integrate(model, omega0, q0, ts, args, controller, solver,
+adjoint, dt0, *, formulation, max_steps, chunk_size, sort, throw) -> Trajectory``."""
