@@ -29,13 +29,13 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import _harness as B  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
-from rigidjax import _bench as B  # noqa: E402
 from rigidjax import _fit  # noqa: E402
 
 
@@ -62,7 +62,7 @@ def records():
 
 
 def timed(fn, repeats):
-    """(result, median run s, compile s): ``rigidjax._bench.timed_calls``."""
+    """(result, median run s, compile s): ``_harness.timed_calls``."""
     result, t = B.timed_calls(fn, repeats)
     return result, t["run_s"], t["compile_s"]
 
@@ -78,7 +78,7 @@ def methods_section(repeats):
         for label, kwargs in configs.items():
 
             def run(kwargs=kwargs, ts=ts, obs=obs, extra=extra):
-                return _fit.fit_inertia(ts, obs, **kwargs, **extra)
+                return rj.fit_inertia(ts, obs, **kwargs, **extra)
 
             fit, seconds, compile_s = timed(run, repeats)
             z = (np.asarray(fit.inertia) - truth) / np.asarray(fit.inertia_stderr)

@@ -1,6 +1,7 @@
 """Gradient cost: reverse and forward mode through ``simulate`` relative to the forward simulation.
 
-The issue-6 scene (``rigidjax._bench.reference_scene``: N tennis-racket bodies, T = 20 s, float64).
+The tennis-racket scene (``_harness.reference_scene``: N bodies near the intermediate axis, T = 20 s,
+float64).
 Per method (``accuracy`` preset or closed form), each timed as the median of ``--repeats`` calls
 after a first call (compile = first call - median), ``block_until_ready`` on each:
 
@@ -35,12 +36,12 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import _harness as B  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
-from rigidjax import _bench as B  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

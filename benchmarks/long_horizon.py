@@ -81,9 +81,9 @@ def run_splitting(scene, order, dt, n_steps, n_save):
         def chunk(state, _):
             L, q = state
             if scene == "free":
-                L, q = rj.split_free_body(FREE_I, L, q, dt, per, order)
+                L, q = rj.solvers.split_free_body(FREE_I, L, q, dt, per, order)
             else:
-                L, q = rj.split_heavy_top(
+                L, q = rj.solvers.split_heavy_top(
                     TOP["inertia"], TOP["mass"], TOP["com"], TOP["gravity"], L, q, dt, per, order
                 )
             return (L, q), (L, q)
@@ -107,7 +107,7 @@ def run_rkmk(scene, dt, n_steps, n_save):
         def chunk(state, _):
             def body(i, s):
                 w, q = s
-                w, q = rj.rkmk_step(accel, 0.0, w, q, dt, None)[:2]
+                w, q = rj.solvers.rkmk_step(accel, 0.0, w, q, dt, None)[:2]
                 return w, q
 
             state = jax.lax.fori_loop(0, per, body, state)

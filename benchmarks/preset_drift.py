@@ -1,4 +1,4 @@
-"""Drift of the ``simulate`` accuracy presets over 10^4 wobble periods (issue 8, long horizons).
+"""Drift of the ``simulate`` accuracy presets over 10^4 wobble periods (long horizons).
 
 The free-body scene of ``benchmarks/long_horizon.py`` (I = (1, 2, 2.5), omega0 = (0.3, 0.05, 1.0),
 q0 = identity), integrated by ``simulate`` with each preset over 10^4 wobble periods (~3.0e4 s, the

@@ -1,7 +1,7 @@
 """How ``rigidjax.simulate`` scales: bodies, horizon, float32 vs float64, and sharding over devices.
 
-Scene (issue 6 reference, the same as ``batch_strategies.py``): N torque-free bodies with principal
-moments I_k = (1, 2, 2.5) * (1 + 0.05 u_k), u_k ~ U(-1, 1)^3, then
+Scene (the tennis-racket scene of ``_harness.py``, the same as ``batch_strategies.py``): N
+torque-free bodies with principal moments I_k = (1, 2, 2.5) * (1 + 0.05 u_k), u_k ~ U(-1, 1)^3, then
 omega0_k = (0.05, 4.0, 0.05) + 0.01 n_k, n_k ~ N(0, 1)^3, both from numpy default_rng(0); identity
 orientation (1, 0, 0, 0); ts = [0, T]; ``rj.simulate(rj.FreeBody(I), rj.State(omega0, q0), ts,
 accuracy=...)``; float64 (jax_enable_x64) unless stated. The bodies spin near the intermediate axis
@@ -97,7 +97,7 @@ def worker(spec: dict) -> dict:
     if spec.get("rtol") is not None:
         kwargs["rtol"] = float(spec["rtol"])
 
-    from rigidjax._bench import reference_scene  # the issue-6 scene, one definition
+    from _harness import reference_scene  # the tennis-racket scene, one definition
 
     inertia_np, omega_np, q_np = reference_scene(n)
     inertia = jnp.asarray(inertia_np, dtype)
@@ -329,7 +329,7 @@ def main():
             "jax": jax.__version__,
             "cpu_count": os.cpu_count(),
             "loadavg_start": os.getloadavg(),
-            "scene": "issue 6 reference: I=(1,2,2.5)(1+0.05u), omega0=(0.05,4,0.05)+0.01n, rng(0), "
+            "scene": "tennis-racket scene: I=(1,2,2.5)(1+0.05u), omega0=(0.05,4,0.05)+0.01n, rng(0), "
             "q0=identity",
             "notes": "medians of the timed repeats; compile_s = first call - median run; "
             "memory in bytes; body_steps counts padding bodies of the last chunk",

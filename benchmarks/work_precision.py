@@ -1,6 +1,6 @@
-"""Work-precision benchmark: wall time against error for every way of integrating the issue-6 scene.
+"""Work-precision benchmark: wall time against error for every way of integrating the tennis-racket scene.
 
-Scene (issue 6): N torque-free bodies, principal moments I_k = (1, 2, 2.5) (1 + 0.05 u_k),
+Scene: N torque-free bodies, principal moments I_k = (1, 2, 2.5) (1 + 0.05 u_k),
 u_k ~ U(-1, 1)^3, then omega0_k = (0.05, 4, 0.05) + 0.01 n_k, n_k ~ N(0, 1)^3, both from
 numpy default_rng(0); identity orientation; T = 20 s (several tennis-racket flips).
 
@@ -38,9 +38,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import _harness as B  # noqa: E402  (benchmarks/ is on sys.path when run as a script)
 import numpy as np  # noqa: E402
-
-from rigidjax import _bench as B  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_PREFIX = os.path.join(HERE, "results", "work_precision")
@@ -221,13 +220,16 @@ def write_reports(meta, rows, targets, prefix, no_plot=False):
     load = f"load {meta['loadavg_start'][0]:.1f} -> {meta['loadavg_end'][0]:.1f} on {meta['cpu_count']} CPUs"
     with open(prefix + ".md", "w") as fh:
         fh.write(
-            f"Work-precision, issue-6 scene, N = {meta['n']}, T = {meta['T']:g} s, {meta['devices'][0]}, "
-            f"jax {meta['jax']} (`{meta['command']}`; {load})\n\n" + B.format_table(rows) + "\n\nTargets:\n\n"
+            f"Work-precision, tennis-racket scene, N = {meta['n']}, T = {meta['T']:g} s, "
+            f"{meta['devices'][0]}, jax {meta['jax']} (`{meta['command']}`; {load})\n\n"
+            + B.format_table(rows)
+            + "\n\nTargets:\n\n"
         )
         fh.write("\n".join(f"- {line}" for line in B.format_targets(targets).splitlines()) + "\n")
     if not no_plot:
         try:
-            title = f"Work-precision, issue-6 scene, N = {meta['n']}, T = 20 s, {meta['devices'][0]} ({load})"
+            scene = f"tennis-racket scene, N = {meta['n']}, T = 20 s"
+            title = f"Work-precision, {scene}, {meta['devices'][0]} ({load})"
             plot(rows, prefix + ".png", title)
         except ImportError:
             print("matplotlib is not installed: no plot", file=sys.stderr)
@@ -292,9 +294,9 @@ def readme_section(meta, rows, targets) -> str:
         )
     if any_scaled:
         lines += ["", "¹ run on a subset of the bodies (the most sensitive included), time scaled to N."]
-    lines += ["", "Issue-6 targets, as the script evaluates them (float64, this run):", ""]
+    lines += ["", "Performance targets, as the script evaluates them (float64, this run):", ""]
     for t in targets:
-        flag = {True: "**met**", False: "**missed**", None: "n/a"}[t["met"]]
+        flag = {True: "**met**", False: "**not met**", None: "n/a"}[t["met"]]
         lines.append(f"- {flag} — {t['target']}: {t['text']}")
     return "\n".join(lines)
 
@@ -416,7 +418,7 @@ def main(argv=None):
     meta["total_s"] = time.perf_counter() - t_start
     table = B.format_table(rows)
     target_text = B.format_targets(targets)
-    print("\n" + table + "\n\nTargets (issue 6; float64):\n" + target_text, flush=True)
+    print("\n" + table + "\n\nTargets (float64):\n" + target_text, flush=True)
 
     os.makedirs(os.path.dirname(os.path.abspath(a.out_prefix)), exist_ok=True)
     with open(a.out_prefix + ".json", "w") as fh:

@@ -1,0 +1,180 @@
+"""The benchmark harness (``benchmarks/_harness.py``) and the work-precision script's reports.
+
+The scripts run as ``python benchmarks/<name>.py``, with ``benchmarks/`` on ``sys.path``; the tests
+put it there too.
+"""
+
+import ast
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+import rigidjax as rj
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCHMARKS))
+
+import _harness as H  # noqa: E402
+import work_precision as wp  # noqa: E402
+
+
+def _rj_attributes(path):
+    """Every ``rj.<name>`` and ``rj.<namespace>.<name>`` a script uses, as dotted strings."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "rj":
+            out.add(node.attr)
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Attribute)
+            and isinstance(node.value.value, ast.Name)
+            and node.value.value.id == "rj"
+        ):
+            out.add(f"{node.value.attr}.{node.attr}")
+    return out
+
+
+def test_harness_imports_rigidjax_through_public_names_only():
+    tree = ast.parse((BENCHMARKS / "_harness.py").read_text(encoding="utf-8"))
+    imported = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            imported += [a.name for a in node.names]
+        if isinstance(node, ast.ImportFrom):
+            assert node.level == 0, "a relative import"
+            imported += [f"{node.module}.{a.name}" for a in node.names]
+    ours = [name for name in imported if name.split(".")[0] == "rigidjax"]
+    assert ours == ["rigidjax"]  # `import rigidjax as rj`, nothing else
+    assert all(not name.startswith("_") for name in _rj_attributes(BENCHMARKS / "_harness.py"))
+
+
+@pytest.mark.parametrize(
+    "script", sorted(p.name for p in BENCHMARKS.glob("*.py") if p.name != "extremes_table.py"), ids=str
+)
+def test_benchmarks_use_current_public_names(script):
+    """No private ``rj._x`` and no top-level name that has moved (those warn)."""
+    for name in sorted(_rj_attributes(BENCHMARKS / script)):
+        assert not any(part.startswith("_") for part in name.split(".")), name
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", DeprecationWarning)
+            obj = rj
+            for part in name.split("."):
+                obj = getattr(obj, part)
+
+
+def test_time_at_error_interpolates_on_the_pareto_front():
+    # A fourth-order method: time ~ error^(-1/4). A dominated point (slower and less accurate) is ignored.
+    errs = [1e-4, 1e-6, 1e-8]
+    rows = [{"max_rel_omega": e, "run_s": e**-0.25} for e in errs] + [{"max_rel_omega": 1e-5, "run_s": 1e3}]
+    t, extrapolated = H.time_at_error(rows, 1e-7)
+    assert t == pytest.approx(1e-7**-0.25) and not extrapolated
+    assert H.time_at_error(rows, 1e-2) == (rows[0]["run_s"], False)  # no extrapolation to cheaper
+    assert H.time_at_error(rows, 1e-10) == (None, False)
+    t, extrapolated = H.time_at_error(rows, 1e-10, extrapolate=True)
+    assert t == pytest.approx(1e-10**-0.25) and extrapolated
+
+
+def test_run_methods_refuses_a_row_computed_in_another_dtype():
+    """A method declared float32 whose output comes back float64 (diffrax promotes a float32 state
+    under float64 times) stops the run instead of landing in the float32 rows."""
+    scene = H.reference_scene(4)
+    omega, q = scene[1], scene[2]  # float64 numpy arrays
+
+    promoted = H.Method("peer", "rtol=1e-6", lambda: (omega, q), "g", dtype="float32", kind="peer")
+    with pytest.raises(RuntimeError, match="computed in float64, declared float32"):
+        H.run_methods([promoted], scene, (omega, q), repeats=0)
+    honest = H.Method("peer", "rtol=1e-6", lambda: (omega, q), "g", dtype="float64", kind="peer")
+    (row,) = H.run_methods([honest], scene, (omega, q), repeats=0)
+    assert row["max_rel_omega"] == 0.0 and row["dtype"] == "float64"
+
+
+@pytest.mark.slow
+def test_small_run_closed_form_and_hand_rk4():
+    """Closed form and hand RK4 on 8 bodies against the extended-precision reference: the rows,
+    the table and the targets, and the physics in them."""
+    scene = H.reference_scene(8)
+    omega_ref, q_ref, checked, info = H.refined_reference(scene, 8, 0)
+    assert info["checked_bodies"] == 8  # every body's reference redone in extended precision
+    # The float64 closed form agrees with the 80-bit Taylor integration to near roundoff.
+    assert info["closed_form_vs_taylor_max_rel_omega"] < 1e-11
+    assert info["closed_form_vs_taylor_max_angle"] < 1e-11
+    methods = H.standard_methods(scene, "quick", include=["exact", "rk4"])
+    calls = []
+    rows = H.run_methods(
+        methods,
+        scene,
+        (omega_ref, q_ref),
+        repeats=1,
+        progress=lambda what, done, total: calls.append((done, total)),
+        checked=checked,
+        first_calls={"exact": info["closed_form_first_call_s"]},
+    )
+    # 5 methods (closed form with and without q, RK4 at 3 steps) x (first call + 1 repeat)
+    assert calls[-1] == (10, 10)
+    by_key = {(r["family"], r["setting"]): r for r in rows}
+    exact = by_key[("simulate 'exact' (closed form)", "-")]
+    assert exact["errors_on"] == "8 checked bodies" and exact["max_rel_omega"] < 1e-11
+    rk4 = [by_key[("hand RK4 (7,N)", f"dt={dt}")] for dt in ("0.02", "0.01", "0.005")]
+    # Fourth order: halving the step divides the error by ~16 (omega and orientation).
+    for coarse, fine in zip(rk4, rk4[1:], strict=False):
+        assert 8 < coarse["max_rel_omega"] / fine["max_rel_omega"] < 32
+        assert 8 < coarse["max_angle"] / fine["max_angle"] < 32
+        assert 8 < coarse["max_energy"] / fine["max_energy"] < 32
+    assert rk4[0]["new_compile"] and not rk4[1]["new_compile"]  # one program for every step
+    assert all(r["run_s"] > 0 and len(r["run_s_all"]) == 1 for r in rows)
+    # The table carries the numbers of the rows.
+    table = H.format_table(rows)
+    line = next(x for x in table.splitlines() if x.startswith("| hand RK4 (7,N) | dt=0.01 |"))
+    assert float(line.split("|")[6]) == pytest.approx(rk4[1]["max_rel_omega"], rel=0.06)
+    # The closed-form target is evaluated (met or not) against the fastest integrator.
+    targets = H.evaluate_targets(rows)
+    target = next(t for t in targets if t["target"].startswith("exact"))
+    fastest = min(r["run_s"] for r in rk4)
+    assert target["value"] == pytest.approx(fastest / exact["run_s"])
+    assert target["target"] in H.format_targets(targets)
+
+
+def test_work_precision_readme_section_lists_the_key_rows_and_targets(tmp_path):
+    """benchmarks/work_precision.py rewrites the README table between its markers from the results."""
+
+    def row(family, setting, dtype, run_s, err, compile_s=None, scale=1.0):
+        return dict(
+            family=family,
+            setting=setting,
+            dtype=dtype,
+            run_s=run_s,
+            compile_s=compile_s,
+            time_scale=scale,
+            max_rel_omega=err,
+            median_rel_omega=err / 10,
+            max_angle=None,
+        )
+
+    rows = [
+        row("simulate 'balanced'", "preset", "float64", 0.5, 4e-9, compile_s=3.0),
+        row("simulate 'balanced'", "preset", "float32", 0.2, 1.7),
+        row("scipy solve_ivp DOP853 per body", "rtol=1e-10", "float64", 120.0, 1.6e-8, scale=500.0),
+    ]
+    targets = [{"target": "balanced >= 10x vmapped diffrax at <= 1e-06", "met": False, "text": "3.1x"}]
+    meta = dict(
+        command="python benchmarks/work_precision.py",
+        devices=["cpu:0"],
+        cpu_count=2,
+        jax="0",
+        repeats=3,
+        loadavg_start=[1.0],
+        loadavg_end=[1.0],
+    )
+    text = wp.readme_section(meta, rows, targets)
+    assert '| `simulate` "balanced" | 0.5 | 3.0 | 4.0e-09 | 4.0e-10 | - |' in text
+    assert '| float32 `simulate` "balanced" | 0.2 | (shared) | 1.7e+00 |' in text
+    assert "| 120 ¹ |" in text and "¹ run on a subset" in text
+    assert "- **not met** — balanced >= 10x vmapped diffrax at <= 1e-06: 3.1x" in text
+    readme = tmp_path / "README.md"
+    start, end = wp.README_MARKERS
+    readme.write_text(f"head\n{start}\nold\n{end}\ntail\n")
+    wp.update_readme(meta, rows, targets, path=readme)
+    new = readme.read_text()
+    assert new.startswith(f"head\n{start}\n") and new.endswith(f"{end}\ntail\n") and "old" not in new
