@@ -314,3 +314,26 @@ def test_bench_rejects_unknown_method():
     assert code == 2 and "unknown --methods ['euler']" in err
     code, out, err = _run(["bench", "-n", "0"])
     assert code == 2 and "must be a positive integer, got 0" in err and "usage: rigidjax bench" in err
+
+
+def test_cli_uses_public_rigidjax_names_only():
+    """The command line imports rigidjax as a user would: ``import rigidjax as rj``, no private module,
+    no ``rj._name`` and no top-level name that has moved (those warn)."""
+    import ast
+    import warnings
+    from pathlib import Path
+
+    package = Path(rigidjax.__file__).parent / "_cli"
+    for path in sorted(package.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                assert node.level in (0, 1), f"{path.name}: import from outside the CLI package"
+                assert node.level == 1 or not (node.module or "").startswith("rigidjax"), path.name
+            if isinstance(node, ast.Import):
+                assert all(a.name.split(".")[0] != "rigidjax" or a.name == "rigidjax" for a in node.names)
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "rj":
+                name = node.attr
+                assert not name.startswith("_") or name == "__version__", f"{path.name}: rj.{name}"
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error", DeprecationWarning)
+                    getattr(rigidjax, name)

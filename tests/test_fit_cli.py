@@ -22,6 +22,7 @@ def write_csv(path, ts, omega, header="t,wx,wy,wz"):
     path.write_text("\n".join(rows) + "\n")
 
 
+@pytest.mark.slow
 def test_fit_command_recovers_inertia(tmp_path, capsys):
     inertia = np.array([1.0, 2.0, 2.5])
     omega0 = np.array([0.3, 0.05, 1.0])
@@ -77,3 +78,18 @@ def test_malformed_files_are_named(tmp_path, capsys, text, message):
 def test_missing_file(tmp_path, capsys):
     assert run_fit([str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--segments", "many"], "--segments must be a positive integer or 'auto', got 'many'"),
+        (["--known-moment", "w", "2.5"], "--known-moment needs an axis (x, y, z) and a number"),
+    ],
+)
+def test_bad_options_are_named_on_stderr(tmp_path, capsys, options, message):
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), np.ones((12, 3)))
+    assert run_fit([str(data), "--quiet", *options]) == 2
+    captured = capsys.readouterr()
+    assert message in captured.err and captured.out == ""

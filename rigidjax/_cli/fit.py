@@ -172,7 +172,10 @@ def run(args) -> int:
         try:
             segments = int(segments)
         except ValueError:
-            print(f"rigidjax fit: error: --segments must be a positive integer or 'auto', got {segments!r}.")
+            print(
+                f"rigidjax fit: error: --segments must be a positive integer or 'auto', got {segments!r}.",
+                file=sys.stderr,
+            )
             return 2
     known_moment = None
     if args.known_moment is not None:
