@@ -169,7 +169,8 @@ def _motion_parts(inertia, omega0, t):
 def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     """Body-frame angular velocity of a torque-free body at time ``t``, in closed form.
 
-    Jacobi elliptic functions (Landau & Lifshitz, section 37), on both sides of the separatrix.
+    The solution in Jacobi elliptic functions (Landau & Lifshitz, section 37), on both sides of the
+    separatrix.
     Exact up to roundoff: no integration, so the cost does not grow with ``t``.
 
     Derivatives (forward and reverse) are those of the flow and finite everywhere, steady rotations
