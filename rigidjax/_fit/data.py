@@ -1,0 +1,110 @@
+"""The records a fit reads: checks of sample times, angular velocities and quaternions (each
+message names the argument and the fix), sign alignment of quaternions, and angular velocity from
+orientation samples."""
+
+import numpy as np
+
+from .._kinematics.quaternion import _quat_multiply
+
+
+def _check_times(ts):
+    """``ts`` as a float array, checked: 1-D, finite, strictly increasing."""
+    ts = _real_array(ts, "ts")
+    if ts.ndim != 1:
+        raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}.")
+    if not np.all(np.isfinite(ts)):
+        raise ValueError("ts contains NaN or inf; every sample needs a finite time.")
+    if ts.shape[0] > 1 and not np.all(np.diff(ts) > 0):
+        bad = int(np.argmin(np.diff(ts) > 0))
+        raise ValueError(
+            f"ts must be strictly increasing; ts[{bad}] = {ts[bad]} is followed by "
+            f"ts[{bad + 1}] = {ts[bad + 1]}."
+        )
+    return ts
+
+
+def _real_array(x, name):
+    """``x`` as a float array; a ``TypeError`` naming ``name`` unless it holds real numbers."""
+    x = np.asarray(x)
+    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise TypeError(f"{name} must hold real numbers, got dtype {x.dtype}.")
+    return x.astype(float)
+
+
+def _check_data(ts, omega_observed):
+    """``(ts, omega)`` of a gyro record, checked: shapes ``(T,)`` and ``(T, 3)``, no inf."""
+    ts = _check_times(ts)
+    omega = _real_array(omega_observed, "omega_observed")
+    if omega.shape != (ts.shape[0], 3):
+        raise ValueError(
+            f"omega_observed must have shape (T, 3) = ({ts.shape[0]}, 3) to match ts, got {omega.shape}."
+        )
+    if np.any(np.isinf(omega)):
+        raise ValueError("omega_observed contains inf; mark missing samples with NaN instead.")
+    return ts, omega
+
+
+def _check_quaternions(ts, q_observed):
+    """``(ts, q)`` of an orientation record, checked: unit quaternions ``(T, 4)``, no inf; a row
+    with any NaN becomes all NaN."""
+    ts = _check_times(ts)
+    q = _real_array(q_observed, "orientation_observed")
+    if q.shape != (ts.shape[0], 4):
+        raise ValueError(
+            f"orientation_observed must have shape (T, 4) = ({ts.shape[0]}, 4) (unit quaternions, scalar "
+            f"first) to match ts, got {q.shape}."
+        )
+    if np.any(np.isinf(q)):
+        raise ValueError("orientation_observed contains inf; mark missing samples with NaN instead.")
+    q = np.where(np.isnan(q).any(axis=1, keepdims=True), np.nan, q)  # a quaternion is all or nothing
+    norm_error = np.abs(np.linalg.norm(q, axis=1) - 1.0)
+    if np.nanmax(norm_error, initial=0.0) > 1e-5:
+        row = int(np.nanargmax(norm_error))
+        raise ValueError(
+            f"orientation_observed must hold unit quaternions; row {row} has norm "
+            f"{np.linalg.norm(q[row]):.8g}. Normalise them (rigidjax.quat_normalize) first."
+        )
+    return ts, q
+
+
+def _align_signs(q):
+    """Flips quaternion signs so that neighbouring valid samples have a positive dot product."""
+    q = q.copy()
+    previous = None
+    for i in range(q.shape[0]):
+        if np.isnan(q[i, 0]):
+            continue
+        if previous is not None and np.dot(q[i], previous) < 0:
+            q[i] = -q[i]
+        previous = q[i]
+    return q
+
+
+def omega_from_orientations(ts, q_observed):
+    """Body-frame angular velocity from orientation samples, by central differences.
+
+    ``omega_i = log(q_{i-1}^* q_{i+1}) / (t_{i+1} - t_{i-1})``, one-sided at the ends. ``q`` and
+    ``-q`` are the same orientation. A starting point for fits, not a smoothed estimate.
+
+    **Arguments:**
+
+    - `ts`: sample times (s), strictly increasing, shape ``(T,)``.
+    - `q_observed`: ``(T, 4)`` unit quaternions (scalar first, body -> space); a row with a NaN is a
+      missing sample.
+
+    **Returns:** the angular velocity (rad/s), ``(T, 3)``; NaN where a neighbour is missing.
+    """
+    ts, q = _check_quaternions(ts, q_observed)
+    q = _align_signs(q)
+    T = ts.shape[0]
+    lo = np.clip(np.arange(T) - 1, 0, T - 1)
+    hi = np.clip(np.arange(T) + 1, 0, T - 1)
+    conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])
+    rel = np.asarray(_quat_multiply(conj, q[hi]))
+    rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)
+    vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
+    angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axis = np.where(vec_norm[:, None] > 0, rel[:, 1:] / vec_norm[:, None], 0.0)
+        omega = axis * (angle / (ts[hi] - ts[lo]))[:, None]
+    return omega

@@ -1,0 +1,218 @@
+"""The data-driven starting point of a fit: local quadratic fits of the record (smoothed omega,
+omega_dot and the noise per component), the dominant wobble period, and the inertia from Euler's
+equations, which are LINEAR in the inertia (torque-free: up to scale; with a known torque: in
+kg m^2)."""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._dynamics.models import State, _total_torque
+from .data import _check_data
+
+# Symmetric tensor entries (Ixx, Iyy, Izz, Ixy, Ixz, Iyz), and the principal moments alone.
+_TENSOR_ENTRIES = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+_MOMENT_ENTRIES = [(0, 0), (1, 1), (2, 2)]
+
+
+def _local_derivatives(ts, omega, half_width: int):
+    """Value and time derivative of each component by a local quadratic least-squares fit over
+    ``2 half_width + 1`` neighbouring samples (NaN-aware; a Savitzky–Golay filter for uneven times)."""
+    T = ts.shape[0]
+    value = np.full_like(omega, np.nan)
+    slope = np.full_like(omega, np.nan)
+    leverage = np.full_like(omega, np.nan)  # the hat-matrix diagonal of each sample in its own fit
+    for i in range(T):
+        lo, hi = max(0, i - half_width), min(T, i + half_width + 1)
+        dt = ts[lo:hi] - ts[i]
+        for c in range(3):
+            y = omega[lo:hi, c]
+            ok = np.isfinite(y)
+            if ok.sum() < 4:
+                continue
+            scale = np.max(np.abs(dt[ok])) or 1.0
+            x = dt[ok] / scale
+            V = np.stack([np.ones_like(x), x, x * x], axis=1)
+            coef, *_ = np.linalg.lstsq(V, y[ok], rcond=None)
+            value[i, c] = coef[0]
+            slope[i, c] = coef[1] / scale
+            gram = V.T @ V
+            if np.linalg.cond(gram) < 1e12:
+                leverage[i, c] = np.linalg.inv(gram)[0, 0]  # the sample sits at x = 0
+    return value, slope, leverage
+
+
+def _dominant_period(ts, omega):
+    """Period of the strongest oscillation in the record (via the FFT of the resampled data)."""
+    n = max(64, ts.shape[0])
+    grid = np.linspace(ts[0], ts[-1], n)
+    power = np.zeros(n // 2 + 1)
+    for c in range(3):
+        y = omega[:, c]
+        ok = np.isfinite(y)
+        if ok.sum() < 4:
+            continue
+        y = np.interp(grid, ts[ok], y[ok])
+        power += np.abs(np.fft.rfft(y - y.mean())) ** 2
+    power[0] = 0.0
+    k = int(np.argmax(power))
+    return (ts[-1] - ts[0]) / k if k > 0 else ts[-1] - ts[0]
+
+
+def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_width: int | None = None):
+    """Data-driven inertia estimate from Euler's torque-free equations, which are linear in the inertia.
+
+    With ``omega`` and ``omega_dot`` from a local quadratic fit (smoothed finite differences), every
+    sample gives ``I omega_dot + omega x (I omega) = 0``: three linear equations in the three
+    principal moments (or six tensor entries). The right singular vector of the smallest singular
+    value is the estimate, normalised to trace 1 and made physical (second moments floored at a small
+    positive value). A starting point for :func:`fit_inertia`, biased by noise; not a final answer.
+
+    **Arguments:**
+
+    - `ts`: sample times (s), strictly increasing, shape ``(T,)``.
+    - `omega_observed`: ``(T, 3)`` body(sensor)-frame angular velocity (rad/s); NaN marks a missing
+      sample (per component).
+    - `full_tensor`: estimate a full tensor in sensor axes instead of principal moments about them.
+    - `half_width`: each local fit spans ``2 half_width + 1`` samples; by default about a sixteenth
+      of the record's dominant period (at least 2, at most 50 samples each side).
+
+    **Returns:** ``(inertia, smoothed_omega)``: moments ``(3,)`` or a tensor ``(3, 3)`` with trace 1,
+    and the smoothed record ``(T, 3)`` (NaN where too few neighbours were observed).
+    """
+    ts, omega = _check_data(ts, omega_observed)
+    estimate = _estimate(ts, omega, full_tensor=full_tensor, half_width=half_width)
+    return estimate.inertia, estimate.smoothed
+
+
+class _Estimate(NamedTuple):
+    inertia: np.ndarray  # trace 1: moments (3,) or tensor (3, 3)
+    smoothed: np.ndarray  # (T, 3): the local fits' values, outliers rejected
+    noise: np.ndarray  # (3,): noise per component, from the scatter about the local fits
+    # (value, slope) of the local fits to the record as given (before outlier rejection): the
+    # equations with a known torque are solved with these.
+    raw_fits: tuple[np.ndarray, np.ndarray]
+
+
+def _estimate(ts, omega_observed, *, full_tensor: bool = False, half_width: int | None = None):
+    """:func:`estimate_inertia` with the noise per component and the local fits it used."""
+    ts = np.asarray(ts, float)
+    omega = np.asarray(omega_observed, float)
+    if half_width is None:
+        period = _dominant_period(ts, omega)
+        samples_per_period = period / max(np.median(np.diff(ts)), 1e-300)
+        half_width = int(np.clip(samples_per_period / 16.0, 2, 50))
+    value, slope, leverage = _local_derivatives(ts, omega, half_width)
+    raw_fits = (value, slope)
+    # One pass of outlier rejection: samples far from the local fit (5 robust sigma) are dropped.
+    deviation = np.abs(omega - value)
+    sigma = 1.4826 * np.nanmedian(deviation, axis=0)
+    outlier = deviation > 5.0 * np.maximum(sigma, 1e-300)
+    if np.any(outlier):
+        omega = np.where(outlier, np.nan, omega)
+        value, slope, leverage = _local_derivatives(ts, omega, half_width)
+    # Noise per component: a residual about the local fit that includes the sample has variance
+    # sigma^2 (1 - h), h the sample's leverage (0.49 for 5 equally spaced samples): undo that.
+    scaled = np.abs(omega - value) / np.sqrt(np.clip(1.0 - leverage, 0.05, 1.0))
+    noise = 1.4826 * np.nanmedian(scaled, axis=0) if np.isfinite(scaled).any() else np.full(3, np.nan)
+    ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
+    w, wd = value[ok], slope[ok]
+    scale = np.sqrt(np.mean(np.sum(w * w, axis=1))) if w.size else 1.0
+    w, wd = w / scale, wd / scale**2  # omega_dot scales as omega^2 in the torque-free equations
+    inertia = _torque_free_inertia(w, wd, full_tensor)
+    return _Estimate(inertia, value, noise, raw_fits)
+
+
+def _torque_free_inertia(w, wd, full_tensor):
+    """The trace-1 physical inertia nearest the null space of the torque-free equations."""
+    if not full_tensor:
+        w1, w2, w3 = w.T
+        rows = [
+            np.stack([wd[:, 0], -w2 * w3, w2 * w3], axis=1),
+            np.stack([w3 * w1, wd[:, 1], -w3 * w1], axis=1),
+            np.stack([-w1 * w2, w1 * w2, wd[:, 2]], axis=1),
+        ]
+        A = np.concatenate(rows, axis=0)
+        if A.shape[0] < 3:
+            return np.full(3, 1.0 / 3.0)
+        v = np.linalg.svd(A, full_matrices=False)[2][-1]
+        v = v * np.sign(v.sum()) if v.sum() != 0 else np.ones(3)
+        moments = np.abs(v) / np.abs(v).sum()
+        J = np.maximum(0.5 - moments, 2e-3)
+        J = J / J.sum()
+        return 0.5 * (J.sum() - J)
+    basis = _symmetric_basis(_TENSOR_ENTRIES)
+    A = _euler_columns(w, wd, basis)
+    if A.shape[0] < 6:
+        return np.eye(3) / 3.0
+    v = np.linalg.svd(A, full_matrices=False)[2][-1]
+    tensor = np.einsum("k,kij->ij", v, basis)
+    tensor = tensor * np.sign(np.trace(tensor)) if np.trace(tensor) != 0 else np.eye(3)
+    # Physical projection: second-moment matrix S = trace/2 - I must be positive definite.
+    tensor = tensor / np.trace(tensor)
+    S = 0.5 * np.eye(3) - tensor
+    evals, evecs = np.linalg.eigh(S)
+    evals = np.maximum(evals, 2e-3)
+    S = (evecs * (evals / evals.sum())) @ evecs.T  # trace 1, so I = (1 - S) / 2 has trace 1
+    return 0.5 * (np.eye(3) - S)
+
+
+def _symmetric_basis(entries):
+    """One symmetric 0/1 matrix per tensor entry ``(i, j)``: shape ``(len(entries), 3, 3)``."""
+    basis = np.zeros((len(entries), 3, 3))
+    for k, (i, j) in enumerate(entries):
+        basis[k, i, j] = basis[k, j, i] = 1.0
+    return basis
+
+
+def _euler_columns(w, wd, basis):
+    """``I omega_dot + omega x (I omega)`` is linear in the entries of ``I``: its matrix, one
+    column per basis tensor, one row per sample and component."""
+    return np.stack([(wd @ B.T + np.cross(w, w @ B.T)).reshape(-1) for B in basis], axis=1)
+
+
+def _torque_estimate(ts, raw_fits, torques, full_tensor, inertia_free, orientations=None):
+    """Inertia from the linear equations ``I omega_dot + omega x (I omega) = tau(t, omega)`` (least
+    squares, with omega and omega_dot the local fits ``raw_fits`` of :func:`_estimate`) as
+    ``(trace-1 shape, trace)``; falls back to the torque-free shape with its scale by least squares
+    if the unconstrained solve is not physical."""
+    value, slope = raw_fits
+    ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
+    w, wd, t = value[ok], slope[ok], ts[ok]
+    if orientations is None:
+        tau = np.asarray(
+            jax.vmap(lambda t, w: _total_torque(torques, t, State(w), None))(jnp.asarray(t), jnp.asarray(w))
+        )
+    else:
+        q = np.asarray(orientations)[ok]
+        ok_q = np.all(np.isfinite(q), axis=1)
+        w, wd, t, q = w[ok_q], wd[ok_q], t[ok_q], q[ok_q]
+        tau = np.asarray(
+            jax.vmap(lambda t, w, q: _total_torque(torques, t, State(w, q), None))(
+                jnp.asarray(t), jnp.asarray(w), jnp.asarray(q)
+            )
+        )
+    basis = _symmetric_basis(_TENSOR_ENTRIES if full_tensor else _MOMENT_ENTRIES)
+    A = _euler_columns(w, wd, basis)
+    b = tau.reshape(-1)
+    tensor_free = inertia_free if full_tensor else np.diag(inertia_free)
+    shape_column = (wd @ tensor_free.T + np.cross(w, w @ tensor_free.T)).reshape(-1)
+    denominator = float(shape_column @ shape_column)
+    scale = float(shape_column @ b) / denominator if denominator > 0 else 0.0
+    coef = np.linalg.lstsq(A, b, rcond=None)[0]
+    tensor = np.einsum("k,kij->ij", coef, basis)
+    trace = float(np.trace(tensor))
+    if trace > 0:
+        candidate = tensor / trace
+        S = 0.5 * np.eye(3) - candidate
+        evals, evecs = np.linalg.eigh(S)
+        if np.all(evals > 0):
+            return (candidate if full_tensor else np.diag(candidate)), trace
+    if scale > 0:
+        return inertia_free, scale
+    raise ValueError(
+        "The torque does not fix the scale of this record (the least-squares inertia is not "
+        "positive); check the torque's units and sign, or give inertia_init."
+    )

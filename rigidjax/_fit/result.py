@@ -1,0 +1,148 @@
+"""The result of a fit, :class:`InertiaFit`, and the fitted model's predictions."""
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .._closed_form.torque_free import torque_free_motion, torque_free_omega
+from .._dynamics.models import RigidBody, State
+from .._integrate.simulate import simulate
+from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
+
+
+class InertiaFit(eqx.Module):
+    """The result of :func:`fit_inertia` and :func:`fit_inertia_to_orientation`.
+
+    **Attributes:**
+
+    - `inertia`: principal moments ``(3,)`` about the sensor axes, or the full tensor ``(3, 3)`` in
+      sensor axes with ``full_tensor=True``; trace 1 unless a scale was given (then kg m^2).
+    - `omega0`: fitted initial angular velocity (rad/s), ``(3,)``, or ``(segments, 3)``: one per
+      window, at `segment_starts`.
+    - `loss`: final mean (robust) squared residual, (rad/s)^2 (rad^2 for orientation fits).
+    - `history`: the loss per iteration.
+    - `converged`: the optimiser met its tolerance before its step limit. That is a minimum, not
+      necessarily the right one: compare `residual_rms` with `noise_estimate`. A ratio well above 1
+      means a wrong wobble frequency (a local minimum): use ``segments="auto"``.
+    - `num_steps`: iterations of the optimiser.
+    - `inertia_stderr`, `omega0_stderr`: standard errors (Gauss–Newton approximation of the
+      covariance at the optimum, scaled by the residual variance), same shapes as the values.
+    - `principal_moments`: the fitted inertia's principal moments, ascending.
+    - `principal_axes`: its principal axes as columns (sensor-frame components, ``det = +1``).
+    - `residual_rms`: root-mean-square residual per component (rad/s; rad for orientation fits).
+    - `noise_estimate`: the noise per component estimated from the record's scatter about local
+      fits, in the residual's units.
+    - `orientation0`, `orientation0_stderr`: for :func:`fit_inertia_to_orientation`, the fitted
+      initial orientation(s) (unit quaternions) and their standard errors (rad, a rotation vector
+      about the body axes); None for angular-velocity fits.
+    - `segment_starts`: the start time (s) of each window.
+    - `initial_inertia`: the data-driven starting estimate (same gauge as `inertia`).
+    - `covariance`: the covariance of the optimiser's scaled parameters.
+    - `normalised`: True when `inertia` has trace 1 (no scale was given).
+    - `method`: the optimiser, ``"optax"`` or ``"levenberg-marquardt"``.
+    - `torque`: the known torque of the fit (a tuple of torques), or None: torque-free.
+    """
+
+    inertia: Float[Array, "3"] | Float[Array, "3 3"]
+    omega0: Float[Array, "3"] | Float[Array, "segments 3"]
+    loss: Float[Array, ""]
+    history: Float[Array, " steps"]
+    converged: Bool[Array, ""]
+    num_steps: int
+    inertia_stderr: Float[Array, "3"] | Float[Array, "3 3"]
+    omega0_stderr: Float[Array, "3"] | Float[Array, "segments 3"]
+    principal_moments: Float[Array, "3"]
+    principal_axes: Float[Array, "3 3"]
+    residual_rms: Float[Array, "3"]
+    noise_estimate: Float[Array, "3"]
+    orientation0: Float[Array, "4"] | Float[Array, "segments 4"] | None
+    orientation0_stderr: Float[Array, "3"] | Float[Array, "segments 3"] | None
+    segment_starts: Float[Array, " segments"]
+    initial_inertia: Float[Array, "3"] | Float[Array, "3 3"]
+    covariance: Float[Array, "p p"]
+    normalised: bool = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+    torque: Any = None
+
+    def _predict_with_torque(self, ts, with_orientation: bool):
+        """Integrates the fitted model under its known torque from each window's start ("precise")."""
+        ts = np.asarray(ts, float)
+        starts = np.asarray(self.segment_starts)
+        window = np.clip(np.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
+        omega0 = self.omega0.reshape(-1, 3)
+        q0 = None if self.orientation0 is None else self.orientation0.reshape(-1, 4)
+        dtype = self.inertia.dtype
+        out = np.zeros((ts.shape[0], 4 if with_orientation else 3))
+        for k in np.unique(window):
+            rows = np.flatnonzero(window == k)
+            times = np.concatenate([[starts[k]], ts[rows]])
+            keep = np.concatenate([[True], np.diff(times) > 0])  # a sample exactly at the start
+            state = State(omega0[k], q0[k] if q0 is not None else None)
+            traj = simulate(
+                RigidBody(self.inertia, torque=self.torque),
+                state,
+                jnp.asarray(times[keep], dtype),
+                accuracy="precise",
+            )
+            values = np.asarray(traj.orientation if with_orientation else traj.omega)
+            index = np.cumsum(keep) - 1
+            out[rows] = values[index[1:]]
+        return jnp.asarray(out, dtype)
+
+    def predict_omega(self, ts) -> Float[Array, "T 3"]:
+        """The fitted model's angular velocity at given times.
+
+        Each time is predicted from the window it falls in (the first window before
+        `segment_starts[0]`): by the closed form, or integrated under the known torque if the fit
+        had one.
+
+        **Arguments:**
+
+        - `ts`: times (s), ``(T,)``.
+
+        **Returns:** the body-frame angular velocity (rad/s, sensor axes), ``(T, 3)``.
+        """
+        if self.torque is not None:
+            return self._predict_with_torque(ts, with_orientation=False)
+        ts = jnp.asarray(ts, self.inertia.dtype)
+        starts = self.segment_starts
+        omega0 = self.omega0.reshape(-1, 3)
+        window = jnp.clip(jnp.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
+        if self.inertia.ndim == 2:
+            axes = self.principal_axes
+            w = torque_free_omega(self.principal_moments, omega0[window] @ axes, ts - starts[window])
+            return w @ axes.T
+        return torque_free_omega(self.inertia, omega0[window], ts - starts[window])
+
+    def predict_orientation(self, ts) -> Float[Array, "T 4"]:
+        """The fitted model's orientation at given times; orientation fits only.
+
+        Each time is predicted from the window it falls in, as in :meth:`predict_omega`.
+
+        **Arguments:**
+
+        - `ts`: times (s), ``(T,)``.
+
+        **Returns:** unit quaternions (scalar first, body -> space), ``(T, 4)``.
+        """
+        if self.orientation0 is None:
+            raise ValueError("This fit has no orientation: it was fitted to angular velocity only.")
+        if self.torque is not None:
+            return self._predict_with_torque(ts, with_orientation=True)
+        ts = jnp.asarray(ts, self.inertia.dtype)
+        starts = self.segment_starts
+        omega0 = self.omega0.reshape(-1, 3)
+        q0 = self.orientation0.reshape(-1, 4)
+        window = jnp.clip(jnp.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
+        axes = self.principal_axes
+        q_axes = _quat_from_matrix(axes)
+        q = torque_free_motion(
+            self.principal_moments,
+            omega0[window] @ axes,
+            _quat_multiply(q0[window], q_axes),
+            ts - starts[window],
+        )[1]
+        return _quat_multiply(q, _quat_conjugate(q_axes))
