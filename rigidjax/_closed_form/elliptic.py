@@ -24,8 +24,8 @@ Algorithms:
   ``~ sech(u)``), unlike the angle recurrence of Abramowitz & Stegun 16.4 / cephes.
 - ``ellipe``, ``ellipkinc``, ``ellipeinc``: Carlson's symmetric integrals ``R_F`` and ``R_D`` by
   duplication (DLMF 19.36), combined so that every term is positive for ``0 <= m <= 1`` (one of the
-  forms of DLMF 19.25(ii)), i.e. no cancellation near ``m = 1`` where ``F`` diverges but ``E`` stays
-  finite.
+  forms of DLMF 19.25(ii)): no cancellation near ``m = 1``, where ``F`` diverges but ``E`` is finite.
+- ``elliprj``: Carlson's ``R_J`` by the same duplication (Carlson 1995).
 
 Derivatives are closed forms (``jax.custom_jvp``), exact up to rounding, in every argument:
 ``dF/dm = sin(phi)**3 R_D(cos(phi)**2, 1, dn**2) / 6`` (DLMF 19.18.1), ``dK/dm = R_D(0, 1, p) / 6``,
@@ -206,36 +206,32 @@ def _ellipk_jvp(primals, tangents):
 
 
 def ellipk(m: Scalar) -> ScalarOut:
-    """Complete elliptic integral of the first kind ``K(m)``.
+    """Complete elliptic integral of the first kind ``K(m)``, as ``scipy.special.ellipk``.
 
-    Same convention as ``scipy.special.ellipk``. A float ``m`` cannot lie closer to 1 than
-    ``eps / 2``; below that use ``ellipkm1(p)`` with ``p = 1 - m``. The derivative is
-    ``dK/dm = R_D(0, 1, 1 - m) / 6`` (``pi/8`` at ``m = 0``).
+    A float ``m`` cannot lie closer to 1 than ``eps / 2``; below that use ``ellipkm1(p)`` with
+    ``p = 1 - m``. The derivative is ``dK/dm = R_D(0, 1, 1 - m) / 6`` (``pi/8`` at ``m = 0``).
 
     **Arguments:**
 
-    - `m`: the parameter ``m = k**2 <= 1`` (not the modulus ``k``), any shape, float32 or float64.
+    - `m`: the parameter ``m = k**2 <= 1`` (not the modulus ``k``), float32 or float64.
 
-    **Returns:** ``K(m)``, the shape and dtype of `m`; ``K(1) = inf``, NaN for ``m > 1`` or NaN
-    input (nothing raises).
+    **Returns:** ``K(m)``, shaped as `m`: ``inf`` at ``m = 1``, NaN for ``m > 1`` or NaN input.
     """
     m, p = _as_pair(m, "m", complementary=False)
     return _ellipk(m, p)
 
 
 def ellipkm1(p: Scalar) -> ScalarOut:
-    """Complete elliptic integral of the first kind ``K(1 - p)`` of the complementary parameter.
+    """``K(1 - p)`` of the complementary parameter ``p = 1 - m``, as ``scipy.special.ellipkm1``.
 
-    As ``scipy.special.ellipkm1``. Accurate for every ``p`` down to the smallest normal number
-    (``K ~ log(4 / sqrt(p))``), also where ``m = 1 - p`` would round to 1. The derivative is
-    ``dK/dp = -R_D(0, 1, p) / 6``.
+    Accurate for every ``p`` down to the smallest normal number (``K ~ log(4 / sqrt(p))``), also where
+    ``m = 1 - p`` would round to 1. The derivative is ``dK/dp = -R_D(0, 1, p) / 6``.
 
     **Arguments:**
 
-    - `p`: the complementary parameter ``p = 1 - m >= 0``, any shape, float32 or float64.
+    - `p`: the complementary parameter ``p = 1 - m >= 0``, float32 or float64.
 
-    **Returns:** ``K(1 - p)``, the shape and dtype of `p`; ``inf`` at ``p = 0``, NaN for ``p < 0`` or
-    NaN input (nothing raises).
+    **Returns:** ``K(1 - p)``, shaped as `p`: ``inf`` at ``p = 0``, NaN for ``p < 0`` or NaN input.
     """
     m, p = _as_pair(p, "p", complementary=True)
     return _ellipk(m, p)
@@ -265,17 +261,15 @@ def _ellipe_jvp(primals, tangents):
 
 
 def ellipe(m: Scalar) -> ScalarOut:
-    """Complete elliptic integral of the second kind ``E(m)``.
+    """Complete elliptic integral of the second kind ``E(m)``, as ``scipy.special.ellipe``.
 
-    As ``scipy.special.ellipe``. The derivative is the closed form ``dE/dm = (E - K) / (2 m)``,
-    evaluated without the division (finite at ``m = 0``).
+    The derivative is the closed form ``dE/dm = (E - K) / (2 m)``, without the division.
 
     **Arguments:**
 
-    - `m`: the parameter ``m = k**2 <= 1``, any shape, float32 or float64.
+    - `m`: the parameter ``m = k**2 <= 1``, float32 or float64.
 
-    **Returns:** ``E(m)``, the shape and dtype of `m`; ``E(1) = 1``, NaN for ``m > 1`` or NaN input
-    (nothing raises).
+    **Returns:** ``E(m)``, shaped as `m`: ``E(1) = 1``, NaN for ``m > 1`` or NaN input.
     """
     m, p = _as_pair(m, "m", complementary=False)
     return _ellipe(m, p)
@@ -388,18 +382,15 @@ def _legendre_jvp(primals, tangents):
 
 
 def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
-    """Incomplete elliptic integral of the first kind ``F(phi | m)``.
-
-    As ``scipy.special.ellipkinc``, for any real ``phi``: ``F(phi + j pi) = F(phi) + 2 j K(m)``.
-    Differentiable in both arguments (closed-form derivatives).
+    """Incomplete elliptic integral of the first kind ``F(phi | m)``, as ``scipy.special.ellipkinc``.
 
     **Arguments:**
 
-    - `phi`: the amplitude (rad), any real value.
+    - `phi`: the amplitude (rad), any real value: ``F(phi + j pi) = F(phi) + 2 j K(m)``.
     - `m`: the parameter ``m = k**2 <= 1``, broadcast against `phi`.
 
-    **Returns:** ``F(phi | m)``, the broadcast shape. ``F(phi | 1) = atanh(sin(phi))`` for
-    ``|phi| < pi/2`` and ``+-inf`` beyond; NaN for ``m > 1`` or NaN input (nothing raises).
+    **Returns:** ``F(phi | m)``: ``atanh(sin(phi))`` at ``m = 1`` for ``|phi| < pi/2`` and ``+-inf``
+    beyond; NaN for ``m > 1`` or NaN input.
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
@@ -407,19 +398,15 @@ def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
 
 
 def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
-    """Incomplete elliptic integral of the second kind ``E(phi | m)``.
-
-    As ``scipy.special.ellipeinc``, for any real ``phi``: ``E(phi + j pi) = E(phi) + 2 j E(m)``.
-    For ``m < 0`` the terms of the formula partly cancel: the relative error grows like ``|m| eps``.
-    Differentiable in both arguments (closed-form derivatives).
+    """Incomplete elliptic integral of the second kind ``E(phi | m)``, as ``scipy.special.ellipeinc``.
 
     **Arguments:**
 
-    - `phi`: the amplitude (rad), any real value.
-    - `m`: the parameter ``m = k**2 <= 1``, broadcast against `phi`.
+    - `phi`: the amplitude (rad), any real value: ``E(phi + j pi) = E(phi) + 2 j E(m)``.
+    - `m`: the parameter ``m = k**2 <= 1``, broadcast against `phi`. For ``m < 0`` the terms of the
+      formula partly cancel: the relative error grows like ``|m| eps``.
 
-    **Returns:** ``E(phi | m)``, the broadcast shape; NaN for ``m > 1`` or NaN input (nothing
-    raises).
+    **Returns:** ``E(phi | m)``; NaN for ``m > 1`` or NaN input.
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
@@ -534,21 +521,19 @@ def _ellipj_dm(u, m, p, sn, cn, dn, am):
 
 
 def ellipj(u: Scalar, m: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, ScalarOut]:
-    """Jacobi elliptic functions ``(sn, cn, dn, am)`` of ``u``.
+    """Jacobi elliptic functions ``(sn, cn, dn, am)`` of ``u``, as ``scipy.special.ellipj``.
 
-    As ``scipy.special.ellipj``, but accurate up to ``m = 1``: ``m = 0`` gives
-    ``(sin u, cos u, 1, u)``, ``m = 1`` gives ``(tanh u, sech u, sech u, gd u)``. The error is a few
-    ulp of ``|f| + |u df/du|``, i.e. of the conditioning in ``u``. Differentiable in ``u`` and ``m``
-    (closed-form derivatives, finite at ``m = 0`` and ``m = 1``). A float ``m`` cannot lie closer to
-    1 than ``eps / 2``; below that use ``ellipj_m1(u, p)`` with ``p = 1 - m``.
+    Accurate up to ``m = 1``: ``m = 0`` gives ``(sin u, cos u, 1, u)``, ``m = 1`` gives ``(tanh u, sech u,
+    sech u, gd u)``. The error is a few ulp of ``|f| + |u df/du|``, i.e. of the conditioning in ``u``.
+    Differentiable in ``u`` and ``m`` (closed-form derivatives, finite at ``m = 0`` and ``m = 1``). A
+    float ``m`` cannot lie closer to 1 than ``eps / 2``; below that use ``ellipj_m1(u, p)``.
 
     **Arguments:**
 
     - `u`: the argument, any real value.
     - `m`: the parameter, ``0 <= m <= 1``, broadcast against `u`.
 
-    **Returns:** the tuple ``(sn, cn, dn, am)``, each of the broadcast shape; all NaN outside
-    ``0 <= m <= 1`` or for NaN input (nothing raises).
+    **Returns:** ``(sn, cn, dn, am)``, each of the broadcast shape; NaN outside ``0 <= m <= 1``.
     """
     u, m = common_float(u, m, names=["u", "m"])
     u, m = _broadcast((u, m), ("u", "m"))
@@ -566,8 +551,7 @@ def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Sc
     - `u`: the argument, any real value.
     - `p`: the complementary parameter, ``0 <= p <= 1``, broadcast against `u`.
 
-    **Returns:** the tuple ``(sn, cn, dn, am)``, each of the broadcast shape; all NaN outside
-    ``0 <= p <= 1`` or for NaN input (nothing raises).
+    **Returns:** ``(sn, cn, dn, am)``, each of the broadcast shape; NaN outside ``0 <= p <= 1``.
     """
     u, p = common_float(u, p, names=["u", "p"])
     u, p = _broadcast((u, p), ("u", "p"))
@@ -643,20 +627,17 @@ def _carlson_rf_rj(x, y, z, p):
 
 
 def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
-    """Carlson's symmetric elliptic integral of the third kind ``R_J(x, y, z, p)``.
+    """Carlson's symmetric integral of the third kind, as ``scipy.special.elliprj`` (real arguments).
 
-    As ``scipy.special.elliprj`` for real arguments:
     ``R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t + p) sqrt((t + x) (t + y) (t + z)))``. Gradients by
     automatic differentiation through the duplication, finite wherever all arguments are positive.
 
     **Arguments:**
 
-    - `x`, `y`, `z`: ``>= 0``, at most one of them zero.
-    - `p`: ``> 0`` (the principal value for ``p < 0`` is not implemented). The four arguments
-      broadcast against each other.
+    - `x`, `y`, `z`, `p`: ``x, y, z >= 0`` (at most one of them zero) and ``p > 0`` (the principal
+      value for ``p < 0`` is not implemented); all four broadcast against each other.
 
-    **Returns:** ``R_J``, the broadcast shape; NaN outside the domain above or for NaN input
-    (nothing raises).
+    **Returns:** ``R_J``; NaN outside the domain above or for NaN input.
     """
     x, y, z, p = common_float(x, y, z, p, names=["x", "y", "z", "p"])
     x, y, z, p = _broadcast((x, y, z, p), ("x", "y", "z", "p"))

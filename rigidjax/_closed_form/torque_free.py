@@ -178,7 +178,7 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     like ``cosh(lambda t)`` about the intermediate axis). The derivative with respect to ``inertia``
     loses about ``eps / gap`` relative accuracy as the moments meet (``gap`` the relative difference of
     two moments; measured 6e-3 at ``gap = 1e-15``, 1e-8 at 1e-9, 7e-12 at 1e-6,
-    ``tests/test_extremes_bodies.py``): the parametrisation's ``1 / (I_j - I_k)`` terms cancel. Exactly
+    ``tests/test_extreme_bodies.py``): the parametrisation's ``1 / (I_j - I_k)`` terms cancel. Exactly
     equal moments are exact; for gaps below ~1e-9 differentiate ``simulate`` instead.
 
     **Arguments:**
@@ -456,7 +456,7 @@ def torque_free_motion(
     integrals; ``G(tau) = Pi(-n; am tau | m)`` is within a few ulp of ``K(m)`` of mpmath's). For elongated
     bodies (``I_a << I_c``, where the precession rate peaks at ``|L| / I_a``) the error is larger than
     that: 3.3e-11 over 40 s for ``(1e-3, 1, 1.001)``, where an integrator at rtol 1e-11 reaches 3e-12
-    (``tests/test_extremes_bodies.py``). Near the
+    (``tests/test_extreme_bodies.py``). Near the
     separatrix the integrals are measured from the nearest quarter period, so the accuracy holds for
     ``p = 1 - m`` down to the smallest normal number: at ``s = (L^2 - 2 E I_2) / L^2 = 1.5e-9`` and
     ``-4e-10``, ``q`` agrees with a 30-digit Taylor integration to 3e-15 and 1.5e-14 over a period (the
