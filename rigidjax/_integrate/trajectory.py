@@ -1,13 +1,18 @@
 """The result of :func:`rigidjax.simulate` and the physics it can report about itself."""
 
+import os
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._dynamics.equations import _inertia_times, _kinetic_energy
 from .._dynamics.models import AbstractModel
 from .._kinematics.euler import _euler_from_quat
 from .._kinematics.quaternion import _quat_rotate
+from . import storage
 from .batching import model_per_time
 
 
@@ -38,6 +43,69 @@ class Trajectory(eqx.Module):
     @property
     def batch_shape(self) -> tuple[int, ...]:
         return self.omega.shape[:-2]
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Writes the trajectory to one ``.npz`` file that :meth:`Trajectory.load` reads back exactly.
+
+        The file holds NumPy arrays only (``numpy.load(path, allow_pickle=False)`` opens it): the
+        model (``model/class`` and each of its fields, its torques' included, e.g. ``model/inertia``,
+        ``model/torques/0/frame``), ``ts``, ``omega``, ``orientation`` (absent for an omega-only
+        scene), ``success``, ``stats/<name>`` for every stat that is an array or a number, and
+        ``meta/format``, ``meta/format_version``, ``meta/rigidjax_version``, ``meta/dtype``. The
+        write goes to a temporary file beside ``path`` that replaces ``path`` only when complete, so
+        an interrupted save leaves any earlier file as it was.
+
+        **Arguments:**
+
+        - `path`: the file to write, used as given (no suffix is added; ``.npz`` is customary). An
+          existing file is replaced.
+
+        **Returns:**
+
+        None. Raises ``FileNotFoundError``, ``IsADirectoryError`` or ``PermissionError`` naming the
+        path when it cannot be written, and ``ValueError`` when the model cannot be stored
+        faithfully (a :class:`rigidjax.Torque` wraps Python code; custom scenes and torques are not
+        rigidjax's to rebuild): save the arrays with ``numpy.savez`` yourself then. Both before
+        anything is written.
+        """
+        path = storage.check_writable(path)
+        storage.write_atomic(path, storage.encode(self))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Trajectory":
+        """Reads a trajectory written by :meth:`Trajectory.save`.
+
+        **Arguments:**
+
+        - `path`: the ``.npz`` file.
+
+        **Returns:**
+
+        The :class:`Trajectory` as it was saved: the same model class and fields, the same arrays
+        with the same dtypes and values bit for bit, the same stats (so ``invariants()`` agrees).
+        Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the path for a
+        file that is not a rigidjax trajectory, is damaged, is of a format version this rigidjax
+        does not read, or holds float64 arrays while JAX runs in 32-bit mode.
+        """
+        return cls(**storage.read(path))
+
+    def __repr__(self) -> str:
+        model = type(self.model).__name__
+        torques = getattr(self.model, "torques", ())
+        if torques:
+            model += "[" + ", ".join(type(t).__name__ for t in torques) + "]"
+        parts = [model, f"batch_shape={self.batch_shape}", f"{self.ts.shape[0]} samples"]
+        try:
+            ts, success = np.asarray(self.ts), np.asarray(self.success)
+        except jax.errors.TracerArrayConversionError:  # inside jit: shapes only
+            ts = success = None
+        if ts is not None and ts.size:
+            parts.append(f"t={ts[0]:g} to {ts[-1]:g} s")
+        parts.append(str(self.omega.dtype))
+        parts.append("omega only" if self.orientation is None else "with orientation")
+        if success is not None:
+            parts.append(f"{int(success.sum())}/{success.size} bodies succeeded")
+        return f"Trajectory({', '.join(parts)})"
 
     def _model_per_time(self) -> AbstractModel:
         """The model with a length-1 time axis inserted after its batch axes, to broadcast over T."""
