@@ -17,7 +17,6 @@ from .._checks import check_model, check_state, check_times, check_times_shape, 
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, State
 from .._kinematics.euler import is_proper_sequence
-from .._kinematics.quaternion import _quat_derivative  # noqa: F401  (until the fit imports it from there)
 from . import batching, driver
 from .chunked import integrate, max_norm
 from .formulations import LieGroupODE, ScaledODE, SplittingODE
