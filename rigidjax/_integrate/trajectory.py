@@ -90,6 +90,8 @@ class Trajectory(eqx.Module):
         return cls(**storage.read(path))
 
     def __repr__(self) -> str:
+        """One line: the scene and its torques, the batch shape, the number of samples, the time span,
+        the dtype, whether there are orientations and how many bodies succeeded; no array values."""
         model = type(self.model).__name__
         torques = getattr(self.model, "torques", ())
         if torques:
