@@ -575,3 +575,10 @@ def test_simulate_routes_structure_preserving_solvers():
     assert float(jnp.max(jnp.abs(jnp.linalg.norm(split.orientation, axis=-1) - 1.0))) < 1e-13
     with pytest.raises(ValueError, match="fixed step: pass dt0"):
         rj.simulate(top, state0, ts, solver=rj.solvers.RKMK())
+
+
+def test_heavy_top_accepts_a_list_for_com():
+    top = rj.HeavyTop([1.0, 1.0, 0.5], 1.0, [0.0, 0.0, 0.1])
+    assert top.com.shape == (3,)
+    with pytest.raises(ValueError, match="HeavyTop.com"):
+        rj.HeavyTop([1.0, 1.0, 0.5], 1.0, [0.0, 0.1])

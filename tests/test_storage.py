@@ -187,13 +187,9 @@ def test_loaded_model_simulates_the_same(tmp_path):
     assert _bits(again.orientation) == _bits(traj.orientation)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ValueError,
-    reason="Trajectory.invariants() reads a principal-moment inertia broadcast to a batch ending in 3, "
-    "(2, 3, 3), as a tensor; the file keeps the model as it is in memory",
-)
 def test_invariants_of_a_batch_ending_in_3(tmp_path):
+    """Principal moments (3,) with a (2, 3) batch of states: the trajectory keeps the model as given,
+    so nothing reads a moment vector broadcast to (2, 3, 3) as a tensor."""
     name = "free-moments-batch(2,3)-orientation-f64"
     traj = _computed.get(name) or CASES[name]()
     traj.save(tmp_path / "traj.npz")

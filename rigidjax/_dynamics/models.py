@@ -414,6 +414,8 @@ class HeavyTop(AbstractModel):
         self.com = com
         self.gravity = gravity
         self.torques = torque
+
+    def __check_init__(self):
         check_last_axis(self.com, 3, "HeavyTop.com")
 
     @property

@@ -45,11 +45,6 @@ def flatten_model(model, batch: tuple[int, ...], dtype=None):
     return leaves, flat
 
 
-def unflatten_model(model, leaves, flat, batch: tuple[int, ...]):
-    """The scene with its per-body arrays replaced by ``flat`` reshaped to ``batch + core``."""
-    return model.replace_body_leaves(leaves, [v.reshape(batch + v.shape[1:]) for v in flat])
-
-
 def body_model(model, leaves, values):
     """The scene of one body (or one chunk), from its per-body arrays."""
     return model.replace_body_leaves(leaves, values)

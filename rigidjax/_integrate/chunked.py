@@ -174,7 +174,9 @@ def _integrate_traced(
         ts=ts,
         omega=omega.reshape(batch + (n_times, 3)),
         orientation=out_q,
-        model=batching.unflatten_model(model, leaves, flat, batch),
+        # As given (checked, cast), not broadcast: (3,) moments broadcast to a batch ending in 3
+        # would read as a (..., 3, 3) tensor.
+        model=model,
         success=ok.reshape(batch),
         stats={"num_steps": steps, "chunk_size": plan.chunk, "quaternion_norm_error": q_norm_error},
     )

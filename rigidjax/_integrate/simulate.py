@@ -49,7 +49,7 @@ def _exact(model, omega0, q0, ts):
         ts=ts,
         omega=omega,
         orientation=orientation,
-        model=model.replace_body_leaves(model.body_leaves(), [inertia]),
+        model=model,
         success=jnp.ones(batch, bool),
         stats={"num_steps": jnp.zeros((), jnp.int32), "chunk_size": 0, "quaternion_norm_error": q_norm_error},
     )
