@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
-from rigidjax import _fit  # noqa: E402
+from rigidjax._fit.prepare import _prepare_omega  # noqa: E402  (the residual problem the fit builds)
 
 
 def records():
@@ -108,7 +108,7 @@ def derivatives_section(repeats):
     rec = records()
     for record, segments in (("short", 1), ("long", 45)):
         ts, obs, _, _ = rec[record]
-        data = _fit._prepare_omega(ts, obs, segments, False, None, None, "squared", None, None, jnp.float64)
+        data = _prepare_omega(ts, obs, segments, False, None, None, "squared", None, None, jnp.float64)
         problem, p = data.problem, jnp.asarray(data.p0)
         jf = jax.jit(jax.jacfwd(problem.residuals))
         jr = jax.jit(jax.jacrev(problem.residuals))

@@ -11,5 +11,4 @@ from .data import omega_from_orientations as omega_from_orientations
 from .estimate import estimate_inertia as estimate_inertia
 from .fit import fit_inertia as fit_inertia
 from .fit import fit_inertia_to_orientation as fit_inertia_to_orientation
-from .prepare import _prepare_omega as _prepare_omega  # benchmarks/fit_methods.py builds the problem
 from .result import InertiaFit as InertiaFit
