@@ -1,8 +1,8 @@
 """Dynamics: Euler's equations and the quantities derived from them.
 
-References are independent of rigidjax: numpy transcriptions of the textbook equations, scipy
-rotations, central finite differences, a numpy RK4 integration, and the closed-form free precession
-of a symmetric top.
+References are independent of rigidjax: numpy transcriptions of the textbook equations (Euler's
+equations in principal axes: ``helpers.euler_rhs``), scipy rotations, central finite differences, a
+numpy RK4 integration, and the closed-form free precession of a symmetric top.
 """
 
 import functools
@@ -11,9 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_difference, euler_rhs, quat_multiply
 from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
+from rigidjax._checks import is_full_tensor  # the shape rule (no longer public)
 
 N = 8
 _rng = np.random.default_rng(2024)
@@ -29,23 +31,6 @@ QR = ROT.as_matrix()  # (N, 3, 3): principal axes of the full tensors below, as 
 # ----------------------------------------------------------------------------------------------
 
 
-def np_euler_principal(inertia, w, tau=0.0):
-    """I1 w1' = (I2 - I3) w2 w3 + tau1, and cyclic (transcribed from the textbook)."""
-    inertia, w, tau = np.broadcast_arrays(
-        np.asarray(inertia, float), np.asarray(w, float), np.asarray(tau, float)
-    )
-    I1, I2, I3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
-    w1, w2, w3 = w[..., 0], w[..., 1], w[..., 2]
-    return np.stack(
-        [
-            ((I2 - I3) * w2 * w3 + tau[..., 0]) / I1,
-            ((I3 - I1) * w3 * w1 + tau[..., 1]) / I2,
-            ((I1 - I2) * w1 * w2 + tau[..., 2]) / I3,
-        ],
-        axis=-1,
-    )
-
-
 def np_euler_tensor(T, w, tau=0.0):
     """I w' = tau - w x (I w)."""
     L = np.einsum("...ij,...j->...i", T, w)
@@ -57,26 +42,6 @@ def np_euler_tensor(T, w, tau=0.0):
 def tensors(inertia=INERTIA, Q=QR):
     """Full tensors ``Q diag(I) Q^T``: the body frame rotated by ``Q^T`` away from principal axes."""
     return np.einsum("...ij,...j,...kj->...ik", Q, inertia, Q)
-
-
-def central_jacobian(f, x, h=1e-6):
-    """d f / d x by central differences, shape ``f(x).shape + x.shape``."""
-    x = np.asarray(x, float)
-    cols = []
-    for idx in np.ndindex(*x.shape):
-        dx = np.zeros_like(x)
-        dx[idx] = h
-        cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * h))
-    out = np.stack(cols, axis=-1)
-    return out.reshape(out.shape[:-1] + x.shape)
-
-
-def np_quat_multiply(p, q):
-    pw, pv = p[..., :1], p[..., 1:]
-    qw, qv = q[..., :1], q[..., 1:]
-    return np.concatenate(
-        [pw * qw - np.sum(pv * qv, -1, keepdims=True), pw * qv + qw * pv + np.cross(pv, qv)], axis=-1
-    )
 
 
 def rk4(f, y0, h, steps):
@@ -100,9 +65,9 @@ def rk4(f, y0, h, steps):
 def test_principal_form_matches_numpy_transcription():
     out = rj.euler_equations(INERTIA, OMEGA, TORQUE)
     assert out.shape == (N, 3) and out.dtype == jnp.float64
-    np.testing.assert_allclose(out, np_euler_principal(INERTIA, OMEGA, TORQUE), rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(out, euler_rhs(INERTIA, OMEGA, TORQUE), rtol=1e-14, atol=1e-14)
     free = rj.euler_equations(INERTIA, OMEGA)
-    np.testing.assert_allclose(free, np_euler_principal(INERTIA, OMEGA), rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(free, euler_rhs(INERTIA, OMEGA), rtol=1e-14, atol=1e-14)
     np.testing.assert_array_equal(free, rj.euler_equations(INERTIA, OMEGA, np.zeros(3)))
     # A sphere feels no gyroscopic torque; a spin about a principal axis is steady.
     np.testing.assert_allclose(rj.euler_equations(np.full(3, 2.0), OMEGA, TORQUE), TORQUE / 2.0, atol=1e-15)
@@ -115,9 +80,9 @@ def test_full_tensor_matches_principal_form_in_rotated_frame():
     T = tensors()
     w_rot = np.einsum("nij,nj->ni", QR, OMEGA)
     tau_rot = np.einsum("nij,nj->ni", QR, TORQUE)
-    expected = np.einsum("nij,nj->ni", QR, np_euler_principal(INERTIA, OMEGA, TORQUE))
+    expected = np.einsum("nij,nj->ni", QR, euler_rhs(INERTIA, OMEGA, TORQUE))
     np.testing.assert_allclose(rj.euler_equations(T, w_rot, tau_rot), expected, rtol=1e-12, atol=1e-12)
-    expected_free = np.einsum("nij,nj->ni", QR, np_euler_principal(INERTIA, OMEGA))
+    expected_free = np.einsum("nij,nj->ni", QR, euler_rhs(INERTIA, OMEGA))
     np.testing.assert_allclose(rj.euler_equations(T, w_rot), expected_free, rtol=1e-12, atol=1e-12)
     # Direct transcription of I w' = tau - w x (I w).
     np.testing.assert_allclose(
@@ -126,7 +91,7 @@ def test_full_tensor_matches_principal_form_in_rotated_frame():
     # A diagonal tensor is the principal form.
     diag = np.einsum("ni,ij->nij", INERTIA, np.eye(3))
     np.testing.assert_allclose(
-        rj.euler_equations(diag, OMEGA, TORQUE), np_euler_principal(INERTIA, OMEGA, TORQUE), atol=1e-13
+        rj.euler_equations(diag, OMEGA, TORQUE), euler_rhs(INERTIA, OMEGA, TORQUE), atol=1e-13
     )
 
 
@@ -174,7 +139,7 @@ def test_gradients_match_finite_differences(case):
         g = (lambda x: f(x, w)) if argnum == 0 else (lambda x: f(inertia, x))
         fwd = np.asarray(jax.jacfwd(g)(jnp.asarray(x)))
         rev = np.asarray(jax.jacrev(g)(jnp.asarray(x)))
-        fd = central_jacobian(g, x)
+        fd = central_difference(g, x)
         assert fwd.shape == (3,) + x.shape
         np.testing.assert_allclose(fwd, rev, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(fwd, fd, rtol=1e-7, atol=1e-8)
@@ -246,9 +211,7 @@ def test_space_angular_momentum_is_conserved_along_free_motion():
 
     def f(y):
         w, q = y[:3], y[3:]
-        return np.concatenate(
-            [np_euler_principal(inertia, w), 0.5 * np_quat_multiply(q, np.concatenate([[0.0], w]))]
-        )
+        return np.concatenate([euler_rhs(inertia, w), 0.5 * quat_multiply(q, np.concatenate([[0.0], w]))])
 
     ys = rk4(f, np.concatenate([w0, q0]), 2e-3, 1500)
     w, q = ys[:, :3], ys[:, 3:]
@@ -310,15 +273,15 @@ def test_batch_broadcasting():
     T = tensors()
     cases = [
         # (inertia, omega, torque, expected shape, numpy reference)
-        (INERTIA, OMEGA, None, (N, 3), np_euler_principal(INERTIA, OMEGA)),
-        (INERTIA[0], OMEGA, None, (N, 3), np_euler_principal(INERTIA[0], OMEGA)),
-        (INERTIA, OMEGA[0], TORQUE, (N, 3), np_euler_principal(INERTIA, OMEGA[0], TORQUE)),
+        (INERTIA, OMEGA, None, (N, 3), euler_rhs(INERTIA, OMEGA)),
+        (INERTIA[0], OMEGA, None, (N, 3), euler_rhs(INERTIA[0], OMEGA)),
+        (INERTIA, OMEGA[0], TORQUE, (N, 3), euler_rhs(INERTIA, OMEGA[0], TORQUE)),
         (
             INERTIA[:, None, :],
             OMEGA[:3],
             TORQUE[0],
             (N, 3, 3),
-            np_euler_principal(INERTIA[:, None], OMEGA[:3], TORQUE[0]),
+            euler_rhs(INERTIA[:, None], OMEGA[:3], TORQUE[0]),
         ),
         (T[0], OMEGA, None, (N, 3), np_euler_tensor(T[0], OMEGA)),
         (T[0], OMEGA, TORQUE[0], (N, 3), np_euler_tensor(T[0], OMEGA, TORQUE[0])),
@@ -368,7 +331,7 @@ def test_float32():
     inertia, w, tau = INERTIA.astype(np.float32), OMEGA.astype(np.float32), TORQUE.astype(np.float32)
     T = tensors().astype(np.float32)
     for out, ref in (
-        (rj.euler_equations(inertia, w, tau), np_euler_principal(inertia, w, tau)),
+        (rj.euler_equations(inertia, w, tau), euler_rhs(inertia, w, tau)),
         (rj.euler_equations(T, w), np_euler_tensor(T.astype(float), w.astype(float))),
         (rj.kinetic_energy(inertia, w), 0.5 * np.sum(inertia * w * w, -1)),
         (rj.angular_momentum(T, w), np.einsum("nij,nj->ni", T, w)),
@@ -407,17 +370,17 @@ def test_bad_shape_rejected_under_runtime_typecheck(call, name):
         call()
 
 
-def test_inertia_times_and_tensor_shape_rule():
+def test_angular_momentum_and_tensor_shape_rule():
     rng = np.random.default_rng(7)
     moments = rng.uniform(1.0, 2.0, (4, 3))
     omega = rng.normal(size=(4, 3))
-    np.testing.assert_allclose(np.asarray(rj.inertia_times(moments, omega)), moments * omega, rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(rj.angular_momentum(moments, omega)), moments * omega, rtol=1e-15)
     A = rng.normal(size=(4, 3, 3))
     tensor = A @ np.swapaxes(A, -1, -2) + 3 * np.eye(3)
     np.testing.assert_allclose(
-        np.asarray(rj.inertia_times(tensor, omega)), np.einsum("nij,nj->ni", tensor, omega), rtol=1e-13
+        np.asarray(rj.angular_momentum(tensor, omega)), np.einsum("nij,nj->ni", tensor, omega), rtol=1e-13
     )
-    assert rj.is_full_tensor(np.ones((3, 3))) and rj.is_full_tensor(np.ones((5, 3, 3)))
-    assert not rj.is_full_tensor(np.ones(3)) and not rj.is_full_tensor(np.ones((5, 3)))
+    assert is_full_tensor(np.ones((3, 3))) and is_full_tensor(np.ones((5, 3, 3)))
+    assert not is_full_tensor(np.ones(3)) and not is_full_tensor(np.ones((5, 3)))
     with pytest.raises(ValueError, match="inertia"):
-        rj.is_full_tensor(np.ones((2, 4)))
+        is_full_tensor(np.ones((2, 4)))

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import expect_error, random_moments, random_rotation
 
 from rigidjax import (
     check_inertia,
@@ -33,27 +34,8 @@ IS_PHYSICAL = jax.jit(is_physical_inertia)
 CHECK = jax.jit(check_inertia, static_argnames="name")
 
 
-def random_rotation(rng, shape=()):
-    q, r = np.linalg.qr(rng.normal(size=shape + (3, 3)))
-    q = q * np.sign(np.diagonal(r, axis1=-2, axis2=-1))[..., None, :]
-    return q * np.sign(np.linalg.det(q))[..., None, None]
-
-
-def random_moments(rng, shape=()):
-    """Physical principal moments (those of a random box), in random order."""
-    return np.asarray(solid_box(rng.uniform(0.5, 2.0, size=shape), rng.uniform(0.2, 2.0, size=shape + (3,))))
-
-
 def tensor_from(moments, rotation):
     return np.einsum("...ij,...j,...kj->...ik", rotation, moments, rotation)
-
-
-def expect_error(fn, *words):
-    with pytest.raises(Exception) as info:
-        jax.block_until_ready(fn())
-    text = str(info.value)
-    for word in words:
-        assert word in text, f"{word!r} not in error message:\n{text}"
 
 
 # --- principal_axes ------------------------------------------------------------------------------

@@ -11,9 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import box_moments, central_difference, euler_rhs, expect_error
 
 import rigidjax as rj
-from rigidjax._dynamics.stability import SleepingTop, SpinStability, sleeping_top, spin_stability
+from rigidjax import SleepingTop, SpinStability, sleeping_top, spin_stability
 
 G = 9.81
 # Jitted once per input signature: the many small calls below would otherwise run op by op.
@@ -21,25 +22,9 @@ SPIN = jax.jit(spin_stability)
 TOP = jax.jit(sleeping_top, static_argnames="symmetry_rtol")
 
 
-def expect_error(fn, *words):
-    with pytest.raises(Exception) as info:
-        jax.block_until_ready(fn())
-    text = str(info.value)
-    for word in words:
-        assert word in text, f"{word!r} not in error message:\n{text}"
-
-
 # ----------------------------------------------------------------------------------------------
 # Independent numpy references
 # ----------------------------------------------------------------------------------------------
-
-
-def np_euler(inertia, w):
-    """Torque-free Euler equations I1 w1' = (I2 - I3) w2 w3 (cyclic), transcribed from the textbook."""
-    I1, I2, I3 = inertia
-    return np.array(
-        [(I2 - I3) * w[1] * w[2] / I1, (I3 - I1) * w[2] * w[0] / I2, (I1 - I2) * w[0] * w[1] / I3]
-    )
 
 
 def transverse_jacobian(inertia, axis, omega):
@@ -50,7 +35,7 @@ def transverse_jacobian(inertia, axis, omega):
     jac = np.zeros((3, 3))
     for c in range(3):
         step = np.eye(3)[c] * 1e-3 * max(abs(omega), 1.0)
-        jac[:, c] = (np_euler(inertia, w0 + step) - np_euler(inertia, w0 - step)) / (2 * step[c])
+        jac[:, c] = (euler_rhs(inertia, w0 + step) - euler_rhs(inertia, w0 - step)) / (2 * step[c])
     return jac[np.ix_(others, others)], others
 
 
@@ -172,7 +157,7 @@ def test_spin_stability_matches_jacobian_eigenvalues():
     """Random physical bodies (any moment order), random spin rates: growth rate and frequency equal
     the real and imaginary parts of the numpy eigenvalues of the linearised Euler equations."""
     rng = np.random.default_rng(3)
-    inertia = np.asarray(rj.solid_box(jnp.ones(20), jnp.asarray(rng.uniform(0.2, 2.0, (20, 3)))))
+    inertia = box_moments(rng.uniform(0.2, 2.0, (20, 3)))
     spin = rng.uniform(-5.0, 5.0, 20)
     result = SPIN(jnp.asarray(inertia), jnp.asarray(spin))
     assert isinstance(result, SpinStability)
@@ -218,17 +203,6 @@ def test_symmetric_top_and_sphere_without_nan():
         assert all(np.all(np.isfinite(g)) for g in SPIN_RATES_GRAD(jnp.asarray(inertia), jnp.asarray(w)))
 
 
-def central_difference(fn, x, h):
-    x = np.asarray(x, float)
-    h = np.broadcast_to(np.asarray(h, float), x.shape)
-    out = []
-    for i in range(x.size):
-        e = np.zeros_like(x)
-        e.flat[i] = h.flat[i]
-        out.append((float(fn(jnp.asarray(x + e))) - float(fn(jnp.asarray(x - e)))) / (2 * h.flat[i]))
-    return np.array(out).reshape(x.shape)
-
-
 @pytest.mark.parametrize("field,axis", [("growth_rate", 1), ("frequency", 0), ("frequency", 2)])
 def test_spin_stability_gradient_matches_finite_differences(field, axis):
     inertia, spin = np.array([1.0, 1.7, 2.2]), 2.5
@@ -246,7 +220,7 @@ def test_spin_stability_gradient_matches_finite_differences(field, axis):
 @pytest.mark.parametrize("shape", [(), (1,), (3, 1, 2, 1)])
 def test_spin_stability_batch_shapes(shape):
     rng = np.random.default_rng(5)
-    inertia = np.asarray(rj.solid_box(jnp.ones(shape), jnp.asarray(rng.uniform(0.2, 2.0, shape + (3,)))))
+    inertia = box_moments(rng.uniform(0.2, 2.0, shape + (3,)))
     spin = rng.uniform(0.5, 4.0, (4,) + (1,) * len(shape))  # broadcasts to (4, *shape)
     result = spin_stability(jnp.asarray(inertia), jnp.asarray(spin))
     full = (4,) + shape

@@ -5,28 +5,27 @@ import jax.numpy as jnp
 import mpmath as mp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
+from helpers import (
+    central_difference,
+    dop853_free_body,
+    perturbed_inertia,
+    perturbed_omega,
+    quat_axis_angle,
+    quat_multiply,
+    random_quaternions,
+)
 from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
-from rigidjax._closed_form.torque_free import (
-    _reduced_phase,
-    torque_free_motion,
-    torque_free_omega,
-    torque_free_orientation,
-    torque_free_period,
-)
+from rigidjax import torque_free_motion, torque_free_omega, torque_free_period
+from rigidjax._closed_form.torque_free import _reduced_phase  # the third-kind integral itself
 
 omega_at = jax.jit(torque_free_omega)
 
 
 def dop853(inertia, omega0, ts):
-    I1, I2, I3 = inertia
-
-    def f(t, w):
-        return [(I2 - I3) * w[1] * w[2] / I1, (I3 - I1) * w[2] * w[0] / I2, (I1 - I2) * w[0] * w[1] / I3]
-
-    return solve_ivp(f, (0.0, ts[-1]), omega0, t_eval=ts, method="DOP853", rtol=1e-13, atol=1e-14).y.T
+    """omega by DOP853 at rtol = 1e-13, atol = 1e-14 (in rad/s)."""
+    return dop853_free_body(inertia, omega0, ts, atol=1e-14)[0]
 
 
 # (inertia, omega0): both sides of the separatrix, axes in every order (odd and even relabellings),
@@ -127,7 +126,7 @@ def test_steady_rotations_and_sphere():
 
 def test_batches_and_gradients():
     rng = np.random.default_rng(3)
-    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (4, 3)))
+    inertia = perturbed_inertia(rng, 4, 0.05)
     omega0 = rng.normal(size=(4, 3))
     ts = np.linspace(0.0, 5.0, 6)
     batch = np.asarray(
@@ -145,12 +144,10 @@ def test_batches_and_gradients():
     jac_I_rev, jac_w_rev = jax.jacrev(final, argnums=(0, 1))(I0, w0)
     np.testing.assert_allclose(jac_I, jac_I_rev, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(jac_w, jac_w_rev, rtol=1e-9, atol=1e-12)
-    h = 1e-6
-    for k in range(3):
-        dI = (np.asarray(final(I0.at[k].add(h), w0)) - np.asarray(final(I0.at[k].add(-h), w0))) / (2 * h)
-        dw = (np.asarray(final(I0, w0.at[k].add(h))) - np.asarray(final(I0, w0.at[k].add(-h)))) / (2 * h)
-        np.testing.assert_allclose(np.asarray(jac_I)[:, k], dI, rtol=1e-6, atol=1e-8)
-        np.testing.assert_allclose(np.asarray(jac_w)[:, k], dw, rtol=1e-6, atol=1e-8)
+    dI = central_difference(lambda I: final(I, w0), I0, h=1e-6)
+    dw = central_difference(lambda w: final(I0, w), w0, h=1e-6)
+    np.testing.assert_allclose(np.asarray(jac_I), dI, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(jac_w), dw, rtol=1e-6, atol=1e-8)
 
 
 def test_float32():
@@ -164,8 +161,8 @@ def test_float32():
 def test_simulate_exact_switches_to_the_closed_form():
     """accuracy="exact" is one word away from integration and agrees with it on a racket batch."""
     rng = np.random.default_rng(0)
-    inertia = jnp.asarray(np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (16, 3))))
-    omega0 = jnp.asarray(np.array([0.05, 4.0, 0.05]) + 0.01 * rng.normal(size=(16, 3)))
+    inertia = jnp.asarray(perturbed_inertia(rng, 16, 0.05))
+    omega0 = jnp.asarray(perturbed_omega(rng, 16, 0.01))
     ts = jnp.linspace(0.0, 20.0, 41)
     exact = rj.simulate(rj.FreeBody(inertia), rj.State(omega0), ts, accuracy="exact")
     precise = rj.simulate(rj.FreeBody(inertia), rj.State(omega0), ts, accuracy="precise")
@@ -189,26 +186,11 @@ def test_simulate_exact_switches_to_the_closed_form():
 
 
 # --------------------------------------------------------------------------------------------------
-# Orientation: torque_free_motion / torque_free_orientation
+# Orientation: torque_free_motion
 
 # Every value test below calls this with inertia/omega0 (8, 1, 3), q0 (8, 1, 4) and ts (8, 41): one compile.
 motion_at = jax.jit(torque_free_motion)
 N_CASES, N_TIMES = 8, 41
-
-
-def qmul(p, q):
-    """Hamilton product in numpy (scalar first), independent of rigidjax."""
-    pw, pv = p[..., :1], p[..., 1:]
-    qw, qv = q[..., :1], q[..., 1:]
-    w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
-    return np.concatenate([w, pw * qv + qw * pv + np.cross(pv, qv)], axis=-1)
-
-
-def qaxis(axis, angle):
-    """Quaternion of a rotation by ``angle`` about ``axis`` (continuous in the angle, no wrapping)."""
-    axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    angle = np.asarray(angle, float)[..., None]
-    return np.concatenate([np.cos(angle / 2), np.sin(angle / 2) * axis], axis=-1)
 
 
 def unit(q):
@@ -232,24 +214,8 @@ def run_cases(inertia, omega0, q0, ts):
 def dop853_motion(inertia, omega0, q0, ts):
     """Euler's equations with dq/dt = q (0, omega) / 2 by DOP853 at rtol = atol = 1e-13, in units with
     max(I) = 1 and |omega0| = 1 (the equations keep their form), so SI-scale bodies are fine too."""
-    I1, I2, I3 = np.asarray(inertia) / np.max(inertia)
     scale = np.linalg.norm(omega0)
-
-    def f(t, y):
-        x, y_, z, qw, qx, qy, qz = y
-        return [
-            (I2 - I3) * y_ * z / I1,
-            (I3 - I1) * z * x / I2,
-            (I1 - I2) * x * y_ / I3,
-            0.5 * (-qx * x - qy * y_ - qz * z),
-            0.5 * (qw * x + qy * z - qz * y_),
-            0.5 * (qw * y_ - qx * z + qz * x),
-            0.5 * (qw * z + qx * y_ - qy * x),
-        ]
-
-    y0 = np.concatenate([np.asarray(omega0) / scale, q0])
-    sol = solve_ivp(f, (0.0, scale * ts[-1]), y0, t_eval=scale * ts, method="DOP853", rtol=1e-13, atol=1e-13)
-    return sol.y[:3].T * scale, sol.y[3:].T
+    return dop853_free_body(inertia, omega0, ts, q0, time_scale=scale, omega_scale=scale)
 
 
 EARTH = np.array([8.0101e37, 8.0103e37, 8.0365e37])  # kg m^2, (C - A) / A = 3.3e-3
@@ -320,15 +286,18 @@ def test_symmetric_tops_and_steady_rotations_in_closed_form():
     for i, (I, w0, axis) in enumerate(cases):
         I, w0 = np.array(I), np.array(w0)
         if axis is None:
-            expected = qmul(Q0, qaxis(w0 if np.any(w0) else [1.0, 0, 0], np.linalg.norm(w0) * ts[i]))
+            expected = quat_multiply(
+                Q0, quat_axis_angle(w0 if np.any(w0) else [1.0, 0, 0], np.linalg.norm(w0) * ts[i])
+            )
             np.testing.assert_allclose(omega[i], np.broadcast_to(w0, omega[i].shape), atol=1e-15)
         else:
             I_eq = I[(axis + 1) % 3]
             L_space = Rotation.from_quat(Q0, scalar_first=True).apply(I * w0)
             Omega = (I[axis] - I_eq) / I_eq * w0[axis]
             e_sym = np.eye(3)[axis]
-            expected = qmul(
-                qmul(qaxis(L_space, np.linalg.norm(L_space) / I_eq * ts[i]), Q0), qaxis(e_sym, -Omega * ts[i])
+            expected = quat_multiply(
+                quat_multiply(quat_axis_angle(L_space, np.linalg.norm(L_space) / I_eq * ts[i]), Q0),
+                quat_axis_angle(e_sym, -Omega * ts[i]),
             )
         np.testing.assert_allclose(q[i], expected, atol=2e-14, err_msg=str(i))
 
@@ -400,7 +369,7 @@ def test_conservation_and_long_times():
     assert np.max(np.abs(energy / energy[:, :1] - 1)) < 1e-13
     for i, angle in refs.items():
         n_hat = L0[i] / np.linalg.norm(L0[i])
-        later = qmul(qaxis(n_hat, angle), q[i, :20])
+        later = quat_multiply(quat_axis_angle(n_hat, angle), q[i, :20])
         # q and -q are the same rotation. q's conditioning in t is eps |omega| t: 1e-11 for the unit
         # bodies, 4e-9 for the Earth (1.9e7 rad of spin in 1e4 Euler periods).
         err = np.minimum(np.abs(q[i, 20:40] - later).max(), np.abs(q[i, 20:40] + later).max())
@@ -501,19 +470,18 @@ def test_gradients_match_finite_differences_and_stay_finite():
         assert np.all(np.isfinite(np.asarray(d))), (I, w)
 
 
-def test_orientation_batches_and_wrapper():
+def test_orientation_batches_and_restart():
     """Broadcasting like torque_free_omega; restarting from a state on the trajectory continues it."""
     rng = np.random.default_rng(5)
-    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.1 * rng.uniform(-1, 1, (N_CASES, 3)))
+    inertia = perturbed_inertia(rng, N_CASES, 0.1)
     omega0 = rng.normal(size=(N_CASES, 3))
-    q0 = rng.normal(size=(N_CASES, 4))
-    q0 /= np.linalg.norm(q0, axis=-1, keepdims=True)
+    q0 = random_quaternions(rng, N_CASES)
     ts = np.tile(np.linspace(0.0, 10.0, N_TIMES), (N_CASES, 1))
     omega, q = run_cases(inertia, omega0, q0[:, None], ts)
     # Broadcasting (shapes only: tracing, no compile): one q0 for all bodies, times on their own axis.
-    shape = jax.eval_shape(torque_free_orientation, inertia[:, None], omega0[:, None], q0[0], ts[0])
-    assert shape.shape == (N_CASES, N_TIMES, 4)
-    assert jax.eval_shape(torque_free_orientation, inertia[0], omega0[0], q0[0], 1.0).shape == (4,)
+    shape = jax.eval_shape(torque_free_motion, inertia[:, None], omega0[:, None], q0[0], ts[0])
+    assert shape[0].shape == (N_CASES, N_TIMES, 3) and shape[1].shape == (N_CASES, N_TIMES, 4)
+    assert jax.eval_shape(torque_free_motion, inertia[0], omega0[0], q0[0], 1.0)[1].shape == (4,)
     # q(t) of a state reached at t1, continued for t2, is q(t1 + t2) (up to sign).
     w1, q1 = omega[:, 10], q[:, 10]
     _, q2 = run_cases(inertia, w1, q1[:, None], ts - ts[:, 10:11])
@@ -523,10 +491,9 @@ def test_orientation_batches_and_wrapper():
 
 def test_simulate_exact_returns_the_closed_form_orientation():
     rng = np.random.default_rng(2)
-    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (N_CASES, 3)))
-    omega0 = np.array([0.05, 4.0, 0.05]) + 0.3 * rng.normal(size=(N_CASES, 3))
-    q0 = rng.normal(size=(N_CASES, 4))
-    q0 /= np.linalg.norm(q0, axis=-1, keepdims=True)
+    inertia = perturbed_inertia(rng, N_CASES, 0.05)
+    omega0 = perturbed_omega(rng, N_CASES, 0.3)
+    q0 = random_quaternions(rng, N_CASES)
     ts = np.linspace(2.0, 22.0, N_TIMES)
     model, state = rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega0), jnp.asarray(q0))
     exact = rj.simulate(model, state, jnp.asarray(ts), accuracy="exact")
