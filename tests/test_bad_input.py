@@ -1,21 +1,21 @@
-"""Bad inputs to every public function (issue 8): a clear error, nothing silent, nothing lost.
+"""Bad inputs to every public function: a clear error, nothing silent, nothing lost.
 
-The policy (module docstrings of _quaternion, _euler, _dynamics, _inertia, _misc):
+The policy (module docstrings of rigidjax/_kinematics, _dynamics and _checks.py):
 
 1. Structural problems -- wrong shape, complex or boolean dtype, unknown sequence -- raise
    ``ValueError``/``TypeError`` while tracing, naming the argument. Integer arrays are promoted to
-   the default float dtype (``_misc.as_float_array``).
+   the default float dtype (``_checks.as_float_array``).
 2. Value problems -- NaN or inf, non-physical inertia, a zero quaternion, a matrix that is not a
    rotation, unsorted times -- raise at run time through ``eqx.error_if``, eagerly, under ``jax.jit``
    and under ``jax.vmap``, naming the argument and the problem (``EquinoxRuntimeError`` eagerly and
    under ``eqx.filter_jit``; under a plain ``jax.jit`` equinox's message arrives as a
    ``jax.errors.JaxRuntimeError``, or a ``ValueError`` from a reused compiled program). Host-side
    entry points (the fitting functions, which work in NumPy) raise ``ValueError`` at call time.
-3. Finite valid input never manufactures NaN or inf (tests/test_extremes_kinematics.py covers
-   gimbal lock; here: zero omega, identity and half-turn quaternions, zero-size shapes).
+3. Finite valid input never manufactures NaN or inf (tests/test_gimbal_lock.py covers gimbal lock;
+   here: zero omega, identity and half-turn quaternions, zero-size shapes).
 
-``_MISSING`` lists the cases that returned NaN or meaningless output silently when this suite was
-written (strict xfails then); their checks were added for issue 8 and the cases now must raise.
+``_ONCE_SILENT`` lists the cases that returned NaN or meaningless output silently when this suite was
+written (strict xfails then); their checks are in place now and the cases must raise.
 
 Compiling is the cost: each function is jitted once (module-level cache) and every bad value of
 the same shape reuses that program; structural errors raise before anything compiles.
@@ -84,7 +84,6 @@ CALLS = {
     # dynamics
     "euler_equations": (rj.euler_equations, (I3, W, W), ("inertia", "omega", "torque")),
     "euler_equations_tensor": (rj.euler_equations, (TENSOR, W), ("inertia", "omega")),
-    "inertia_times": (rj.inertia_times, (I3, W), ("inertia", "omega")),
     "angular_momentum": (rj.angular_momentum, (I3, W), ("inertia", "omega")),
     "kinetic_energy": (rj.kinetic_energy, (TENSOR, W), ("inertia", "omega")),
     "space_angular_momentum": (rj.space_angular_momentum, (I3, W, Q), ("inertia", "omega", "orientation")),
@@ -361,14 +360,14 @@ def test_valid_degenerate_inputs_stay_finite(extreme):
 # ----------------------------------------------------------------------------------------------
 
 ELLIPTIC = {
-    "ellipk": (rj.ellipk, (0.5,)),
-    "ellipkm1": (rj.ellipkm1, (0.5,)),
-    "ellipe": (rj.ellipe, (0.5,)),
-    "ellipkinc": (rj.ellipkinc, (0.3, 0.5)),
-    "ellipeinc": (rj.ellipeinc, (0.3, 0.5)),
-    "ellipj": (rj.ellipj, (0.3, 0.5)),
-    "ellipj_m1": (rj.ellipj_m1, (0.3, 0.5)),
-    "elliprj": (rj.elliprj, (1.0, 2.0, 3.0, 4.0)),
+    "ellipk": (rj.elliptic.ellipk, (0.5,)),
+    "ellipkm1": (rj.elliptic.ellipkm1, (0.5,)),
+    "ellipe": (rj.elliptic.ellipe, (0.5,)),
+    "ellipkinc": (rj.elliptic.ellipkinc, (0.3, 0.5)),
+    "ellipeinc": (rj.elliptic.ellipeinc, (0.3, 0.5)),
+    "ellipj": (rj.elliptic.ellipj, (0.3, 0.5)),
+    "ellipj_m1": (rj.elliptic.ellipj_m1, (0.3, 0.5)),
+    "elliprj": (rj.elliptic.elliprj, (1.0, 2.0, 3.0, 4.0)),
 }
 
 
@@ -478,7 +477,7 @@ def test_scene_structural_errors(without_runtime_typecheck, extreme):
 
 _TS_FIT = np.linspace(0.0, 10.0, 41)
 _W_FIT = np.asarray(rj.torque_free_omega(I3, W, _TS_FIT))
-_Q_FIT = np.asarray(rj.torque_free_orientation(I3, W, Q, _TS_FIT))
+_Q_FIT = np.asarray(rj.torque_free_motion(I3, W, Q, _TS_FIT)[1])
 FIT_CASES = {
     "fit_inertia-inf": (
         lambda: rj.fit_inertia(_TS_FIT, with_value(_W_FIT, inf)),
@@ -533,100 +532,100 @@ def _raises_or_nan(fn):
         assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(out) if hasattr(x, "dtype"))
 
 
-_MISSING = {
-    # (case) -> (call, reason); reason = the check that is missing, and where.
+_ONCE_SILENT = {
+    # case -> (call, what it did before its check was added)
     "torque_free_omega-nan": (
         lambda: rj.torque_free_omega(I3, with_value(W, nan), 0.5),
-        "_torque_free.torque_free_omega: NaN/inf in inertia, omega0 or t returns NaN silently",
+        "torque_free_omega: NaN/inf in inertia, omega0 or t returned NaN silently",
     ),
     "torque_free_period-negative-moment": (
         lambda: rj.torque_free_period(np.array([-1.0, 2.0, 2.5]), W),
-        "_torque_free.torque_free_period: non-positive moments give NaN silently",
+        "torque_free_period: non-positive moments gave NaN silently",
     ),
     "torque_free_motion-zero-q0": (
         lambda: rj.torque_free_motion(I3, W, np.zeros(4), 0.5),
-        "_torque_free.torque_free_motion/orientation: a zero q0 returns a finite (meaningless) quaternion",
+        "torque_free_motion: a zero q0 returned a finite (meaningless) quaternion",
     ),
     "spin_stability-nan-omega": (
         lambda: rj.spin_stability(I3, nan),
-        "_stability.spin_stability: NaN omega_magnitude returns NaN rates silently",
+        "spin_stability: NaN omega_magnitude returned NaN rates silently",
     ),
     "sleeping_top-nan-omega3": (
         lambda: rj.sleeping_top(np.array([1.0, 1.0, 0.5]), 1.0, COM, nan),
-        "_stability.sleeping_top: NaN omega3 (or mass, gravity) returns NaN silently",
+        "sleeping_top: NaN omega3 (or mass, gravity) returned NaN silently",
     ),
     "sleeping_top-negative-mass": (
         lambda: rj.sleeping_top(np.array([1.0, 1.0, 0.5]), -1.0, COM, 20.0),
-        "_stability.sleeping_top: a negative mass is accepted",
+        "sleeping_top: a negative mass was accepted",
     ),
     "simulate-heavy-top-negative-mass": (
         lambda: _simulate(_heavy_top(mass=-1.0)),
-        "_simulate/_models: HeavyTop with a negative mass is simulated without error",
+        "simulate: HeavyTop with a negative mass was simulated without error",
     ),
     "estimate_inertia-unsorted": (
         lambda: rj.estimate_inertia(_TS_FIT[::-1], _W_FIT),
-        "_fit.estimate_inertia: unsorted ts give NaN results instead of the ValueError fit_inertia raises",
+        "estimate_inertia: unsorted ts gave NaN results instead of the ValueError fit_inertia raises",
     ),
     "estimate_inertia-inf": (
         lambda: rj.estimate_inertia(_TS_FIT, with_value(_W_FIT, inf)),
-        "_fit.estimate_inertia: inf samples give NaN results instead of a ValueError",
+        "estimate_inertia: inf samples gave NaN results instead of a ValueError",
     ),
     "quat_exp-nan": (
-        lambda: rj.quat_exp(with_value(W, nan)),
-        "_lie_group.quat_exp: NaN/inf theta returns NaN silently",
+        lambda: rj.kinematics.quat_exp(with_value(W, nan)),
+        "kinematics.quat_exp: NaN/inf theta returned NaN silently",
     ),
     "dexpinv-nan": (
-        lambda: rj.dexpinv(W, with_value(W, nan)),
-        "_lie_group.dexpinv: NaN/inf returns NaN silently",
+        lambda: rj.solvers.dexpinv(W, with_value(W, nan)),
+        "solvers.dexpinv: NaN/inf returned NaN silently",
     ),
     "rkmk_step-nan-omega": (
-        lambda: rj.rkmk_step(lambda t, w, q, args: -w, 0.0, with_value(W, nan), Q, 0.1),
-        "_lie_group.rkmk_step: NaN omega/q/h returns NaN silently",
+        lambda: rj.solvers.rkmk_step(lambda t, w, q, args: -w, 0.0, with_value(W, nan), Q, 0.1),
+        "solvers.rkmk_step: NaN omega/q/h returned NaN silently",
     ),
-    "simulate_structure_preserving-nan-omega": (
+    "simulate-RKMK-nan-omega": (
         lambda: (
-            rj.simulate_structure_preserving(
-                rj.FreeBody(I3), rj.State(with_value(W, nan), Q), TS, rj.RKMK(), 0.1
+            rj.simulate(
+                rj.FreeBody(I3), rj.State(with_value(W, nan), Q), TS, solver=rj.solvers.RKMK(), dt0=0.1
             ).omega
         ),
-        "_lie_group.simulate_structure_preserving: NaN state0.omega gives a NaN trajectory (simulate raises)",
+        "simulate(solver=RKMK()): NaN state0.omega gave a NaN trajectory (the presets raised)",
     ),
-    "simulate_structure_preserving-non-physical": (
+    "simulate-RKMK-non-physical": (
         lambda: (
-            rj.simulate_structure_preserving(
-                rj.FreeBody(np.array([1.0, 1.0, 3.0])), rj.State(W, Q), TS, rj.RKMK(), 0.1
+            rj.simulate(
+                rj.FreeBody(np.array([1.0, 1.0, 3.0])), rj.State(W, Q), TS, solver=rj.solvers.RKMK(), dt0=0.1
             ).omega
         ),
-        "_lie_group.simulate_structure_preserving: non-physical inertia is integrated (simulate raises)",
+        "simulate(solver=RKMK()): non-physical inertia was integrated (the presets raised)",
     ),
     "split_free_body-nan": (
-        lambda: rj.split_free_body(with_value(I3, nan), W, Q, 0.1, 2),
-        "_splitting.split_free_body: NaN/inf inertia, L0, q0 or dt returns NaN silently",
+        lambda: rj.solvers.split_free_body(with_value(I3, nan), W, Q, 0.1, 2),
+        "solvers.split_free_body: NaN/inf inertia, L0, q0 or dt returned NaN silently",
     ),
     "split_free_body-zero-q0": (
-        lambda: rj.split_free_body(I3, W, np.zeros(4), 0.1, 2),
-        "_splitting.split_free_body: a zero q0 is integrated silently",
+        lambda: rj.solvers.split_free_body(I3, W, np.zeros(4), 0.1, 2),
+        "solvers.split_free_body: a zero q0 was integrated silently",
     ),
     "split_heavy_top-nan": (
-        lambda: rj.split_heavy_top(I3, nan, COM, 9.81, W, Q, 0.1, 2),
-        "_splitting.split_heavy_top: NaN mass (or other input) returns NaN silently",
+        lambda: rj.solvers.split_heavy_top(I3, nan, COM, 9.81, W, Q, 0.1, 2),
+        "solvers.split_heavy_top: NaN mass (or other input) returned NaN silently",
     ),
     "LiePoissonSplitting-nan": (
-        lambda: rj.LiePoissonSplitting(with_value(I3, nan)).inertia,
-        "_splitting.LiePoissonSplitting: NaN/non-physical inertia is accepted at construction",
+        lambda: rj.solvers.LiePoissonSplitting(with_value(I3, nan)).inertia,
+        "solvers.LiePoissonSplitting: NaN/non-physical inertia was accepted at construction",
     ),
     "HeavyTopSplitting-nan": (
-        lambda: rj.HeavyTopSplitting(I3, nan, COM).inertia,
-        "_splitting.HeavyTopSplitting: NaN mass is accepted at construction",
+        lambda: rj.solvers.HeavyTopSplitting(I3, nan, COM).inertia,
+        "solvers.HeavyTopSplitting: NaN mass was accepted at construction",
     ),
 }
 
 
-@pytest.mark.parametrize("case", list(_MISSING))
-def test_value_checks_added_for_issue_8(case):
+@pytest.mark.parametrize("case", list(_ONCE_SILENT))
+def test_once_silent_bad_values_now_raise(case):
     """Each case returned NaN or meaningless output silently when this suite was written; the
     check named in the reason is now in place."""
-    _raises_or_nan(_MISSING[case][0])
+    _raises_or_nan(_ONCE_SILENT[case][0])
 
 
 def test_fit_rejects_complex_data():
@@ -638,7 +637,7 @@ def test_fit_rejects_complex_data():
 
 def test_dexpinv_shape_error_names_argument(without_runtime_typecheck):
     with pytest.raises(ValueError, match=r"\btheta\b"):
-        rj.dexpinv(np.ones(4), W)
+        rj.solvers.dexpinv(np.ones(4), W)
 
 
 def test_estimate_inertia_shape_error_names_argument():
@@ -649,22 +648,23 @@ def test_estimate_inertia_shape_error_names_argument():
 def test_other_structural_errors(without_runtime_typecheck):
     for fn, match in [
         (lambda: rj.torque_free_omega(np.ones(4), W, 0.5), "inertia must have shape"),
-        (lambda: rj.torque_free_orientation(I3, W, np.zeros(3), 0.5), "q0 must have shape"),
+        (lambda: rj.torque_free_motion(I3, W, np.zeros(3), 0.5), "q0 must have shape"),
         (lambda: rj.torque_free_period(I3.astype(complex), W), "inertia must be real"),
-        (lambda: rj.quat_exp(np.ones(4)), "theta must have shape"),
-        (lambda: rj.rkmk_step(lambda t, w, q, a: w, 0.0, np.ones(4), Q, 0.1), "omega must have shape"),
+        (lambda: rj.kinematics.quat_exp(np.ones(4)), "theta must have shape"),
         (
-            lambda: rj.rkmk_step(lambda t, w, q, a: w, 0.0, W, Q, 0.1, tableau="bogus"),
+            lambda: rj.solvers.rkmk_step(lambda t, w, q, a: w, 0.0, np.ones(4), Q, 0.1),
+            "omega must have shape",
+        ),
+        (
+            lambda: rj.solvers.rkmk_step(lambda t, w, q, a: w, 0.0, W, Q, 0.1, tableau="bogus"),
             "tableau must be one of",
         ),
-        (lambda: rj.split_free_body(I3, np.ones(4), Q, 0.1, 2), "must have shape"),
-        (lambda: rj.split_free_body(np.eye(3), W, Q, 0.1, 2), "needs principal moments"),
-        (lambda: rj.split_free_body(I3, W, Q, 0.1, 2, order=3), "order must be 2 or 4"),
+        (lambda: rj.solvers.split_free_body(I3, np.ones(4), Q, 0.1, 2), "must have shape"),
+        (lambda: rj.solvers.split_free_body(np.eye(3), W, Q, 0.1, 2), "needs principal moments"),
+        (lambda: rj.solvers.split_free_body(I3, W, Q, 0.1, 2, order=3), "order must be 2 or 4"),
         (lambda: rj.spin_stability(TENSOR, 1.0), "needs principal moments"),
         (
-            lambda: rj.simulate_structure_preserving(
-                rj.FreeBody(I3), rj.State(W, Q), TS[::-1], rj.RKMK(), 0.1
-            ),
+            lambda: rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS[::-1], solver=rj.solvers.RKMK(), dt0=0.1),
             "strictly increasing",
         ),
     ]:

@@ -1,4 +1,5 @@
-"""Kinematics at the extremes (issue 8): gimbal lock in all twelve sequences, and quaternion extremes.
+"""Gimbal lock in all twelve Euler sequences, and quaternion extremes (half turns, near-identity,
+components exactly 0 or 1, slightly non-orthogonal matrices).
 
 tests/test_kinematics.py checks the conversions exactly at the lock and 1e-9 from it. Here the lock
 is approached in a sweep -- exactly at it and within 1e-12, 1e-9 and 1e-6 of it, from both sides, in
@@ -17,25 +18,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import EPS32, EPS64
 from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
 
-SEQS = rj.SEQUENCES
-PROPER = np.array([rj.is_proper_sequence(s) for s in SEQS])
+SEQS = rj.kinematics.SEQUENCES
+PROPER = np.array([rj.kinematics.is_proper_sequence(s) for s in SEQS])
 CLASSES = {"proper": PROPER, "Tait-Bryan": ~PROPER}
 # (phi, psi) pairs: generic, both near +-pi (phi + psi wraps), and small.
 PAIRS = np.array([[0.7, -1.9], [-2.5, 2.9], [3.0, 3.1], [-0.3, 0.3]])
 DELTAS = (0.0, 1e-12, 1e-9, 1e-6)
 OMEGA = np.array([0.3, -1.2, 0.8])  # a generic body angular velocity (rad/s), not in the lock plane
 RATES = np.array([0.5, -0.4, 1.1])
-EPS64 = float(np.finfo(np.float64).eps)
-EPS32 = float(np.finfo(np.float32).eps)
 ADVICE = "keep states in quaternions; convert to Euler angles only for output"
 
 
 def _locks(seq):
-    return (0.0, np.pi) if rj.is_proper_sequence(seq) else (np.pi / 2, -np.pi / 2)
+    return (0.0, np.pi) if rj.kinematics.is_proper_sequence(seq) else (np.pi / 2, -np.pi / 2)
 
 
 def _grid():

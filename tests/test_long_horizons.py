@@ -1,5 +1,5 @@
 """Extremes in time and batch: long horizons, float32, mixed batches, gradients through long and
-chaotic horizons, and the zero cases (issue 8).
+chaotic horizons, and the zero cases.
 
 References are independent of the integrators under test: the closed-form torque-free motion
 (``torque_free_motion``, itself checked against 80-bit Taylor integration in tests/test_torque_free.py),
@@ -15,6 +15,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import (
+    IDENTITY_Q,
+    RACKET_INERTIA,
+    RACKET_OMEGA,
+    log_log_slope,
+    perturbed_inertia,
+    perturbed_omega,
+)
 
 import rigidjax as rj
 
@@ -22,10 +30,10 @@ import rigidjax as rj
 FORWARD = diffrax.ForwardMode()
 N_BODIES = 8
 N_SAMPLES = 201
-IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+IDENTITY = IDENTITY_Q
 # A wobble about the largest axis, clear of the separatrix: the long-horizon scene of
 # benchmarks/long_horizon.py.
-FREE_I = np.array([1.0, 2.0, 2.5])
+FREE_I = RACKET_INERTIA
 FREE_W0 = np.array([0.3, 0.05, 1.0])
 
 
@@ -161,7 +169,11 @@ def test_splitting_energy_error_is_bounded(order, bound, extreme):
     dt = 0.03
     ts = jnp.linspace(0.0, 1e5 * dt, N_SAMPLES)
     traj = rj.simulate(
-        rj.FreeBody(inertia), rj.State(omega, q), ts, solver=rj.LiePoissonSplitting(order=order), dt0=dt
+        rj.FreeBody(inertia),
+        rj.State(omega, q),
+        ts,
+        solver=rj.solvers.LiePoissonSplitting(order=order),
+        dt0=dt,
     )
     energy, momentum = _energy_and_momentum(inertia[None], np.asarray(traj.omega)[None])
     e_first, e_second = _relative_drift(energy)
@@ -189,7 +201,7 @@ def test_mixed_batch_every_body_meets_the_tolerance(extreme):
     no body is less accurate than when integrated on its own (the step is accepted only when every
     body passes), and the slow bodies meet the tolerance."""
     rng = np.random.default_rng(3)
-    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.1 * rng.uniform(-1, 1, (N_BODIES, 3)))
+    inertia = perturbed_inertia(rng, N_BODIES, 0.1)
     omega = rng.normal(size=(N_BODIES, 3))
     fast = 3
     omega[fast] *= 1000.0
@@ -233,13 +245,11 @@ def test_mixed_batch_every_body_meets_the_tolerance(extreme):
 
 
 def _racket_scene(n, seed=0):
-    """The n bodies of the issue-6 tennis-racket scene (benchmarks/README.md) closest to the
+    """The n bodies of the benchmarks' tennis-racket scene (benchmarks/README.md) closest to the
     separatrix, s = (|L|^2 - 2 E I_2) / |L|^2."""
     rng = np.random.default_rng(seed)
-    u = rng.uniform(-1, 1, (10_000, 3))
-    noise = rng.normal(size=(10_000, 3))
-    inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * u)
-    omega = np.array([0.05, 4.0, 0.05]) + 0.01 * noise
+    inertia = perturbed_inertia(rng, 10_000, 0.05)
+    omega = perturbed_omega(rng, 10_000, 0.01)
     L2 = np.sum((inertia * omega) ** 2, axis=-1)
     s = (L2 - np.sum(inertia * omega**2, axis=-1) * inertia[:, 1]) / L2
     hardest = np.argsort(np.abs(s))[:n]
@@ -255,7 +265,7 @@ def test_float32_regular_motion_and_chaotic_scene(extreme):
         # name, scene, times, bound on the integrator's error, bound on the closed form's error
         ("regular wobble, 10 periods", regular, ts_regular, 1e-5, 1e-5),
         (
-            "tennis-racket scene (issue 6), 8 bodies nearest the separatrix, T = 20 s",
+            "tennis-racket scene, 8 bodies nearest the separatrix, T = 20 s",
             racket,
             ts_racket,
             2.0,
@@ -297,8 +307,8 @@ def test_gradient_growth_near_the_separatrix_matches_the_period_sensitivity(extr
     secular coefficient (d omega/dt) (T/P) dP/d omega0; near the separatrix dP/d omega0 ~ 1/s is
     huge. The gradient through the integrator (jacfwd through simulate) agrees with the gradient of
     the closed form, and the growth per period matches -omega_dot * dP/d omega0 / P."""
-    inertia = jnp.asarray([1.0, 2.0, 2.5])
-    omega0 = jnp.asarray([0.05, 4.0, 0.05])
+    inertia = jnp.asarray(RACKET_INERTIA)
+    omega0 = jnp.asarray(RACKET_OMEGA)
     period = float(rj.torque_free_period(inertia, omega0))
     dperiod = np.asarray(jax.grad(rj.torque_free_period, argnums=1)(inertia, omega0))
 
@@ -329,7 +339,7 @@ def test_gradient_growth_near_the_separatrix_matches_the_period_sensitivity(extr
     )
     predicted = -np.outer(omega_dot, dperiod)
     np.testing.assert_allclose(secular, predicted, rtol=1e-6, atol=1e-6 * np.max(np.abs(predicted)))
-    growth = np.polyfit(np.log([1, 2, 4, 8]), np.log(norms), 1)[0]
+    growth = log_log_slope([1, 2, 4, 8], norms)
     assert 0.7 < growth < 1.1, growth
     extreme(
         "gradients",
