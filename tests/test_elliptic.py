@@ -16,11 +16,9 @@ import mpmath
 import numpy as np
 import pytest
 import scipy.special as sc
+from helpers import EPS32, EPS64
 
-from rigidjax._closed_form.elliptic import ellipe, ellipeinc, ellipj, ellipj_m1, ellipk, ellipkinc, ellipkm1, elliprj
-
-EPS64 = float(np.finfo(np.float64).eps)
-EPS32 = float(np.finfo(np.float32).eps)
+from rigidjax.elliptic import ellipe, ellipeinc, ellipj, ellipj_m1, ellipk, ellipkinc, ellipkm1, elliprj
 
 
 def _stacked(f):

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
-from rigidjax import PROPER_SEQUENCES, SEQUENCES, TAIT_BRYAN_SEQUENCES
+from rigidjax.kinematics import PROPER_SEQUENCES, SEQUENCES, TAIT_BRYAN_SEQUENCES
 
 N = 8  # samples per batch; one batch size throughout keeps JAX's per-shape compile cache warm
 TOL64 = 1e-13
@@ -676,8 +676,8 @@ def test_unknown_sequence_raises(seq):
 def test_sequence_lists():
     assert set(SEQUENCES) == set(PROPER_SEQUENCES) | set(TAIT_BRYAN_SEQUENCES)
     assert len(set(SEQUENCES)) == 12
-    assert all(rj.is_proper_sequence(s) for s in PROPER_SEQUENCES)
-    assert not any(rj.is_proper_sequence(s) for s in TAIT_BRYAN_SEQUENCES)
+    assert all(rj.kinematics.is_proper_sequence(s) for s in PROPER_SEQUENCES)
+    assert not any(rj.kinematics.is_proper_sequence(s) for s in TAIT_BRYAN_SEQUENCES)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Executes every notebook in notebooks/ top to bottom (issue 7), so that none can rot.
+"""Executes every notebook in notebooks/ top to bottom, so that none can rot.
 
 Each ``notebooks/*.ipynb`` is one test case (new notebooks are picked up by name). The kernel runs
 in a separate process with the interpreter that runs pytest: a kernelspec named ``python3`` that
