@@ -1,0 +1,191 @@
+"""The public surface: the names ``import rigidjax`` offers, its namespaces (``rigidjax.kinematics``,
+``.elliptic``, ``.solvers``), and the names of earlier releases kept for one release as aliases that
+warn with ``DeprecationWarning``.
+"""
+
+import importlib
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rigidjax as rj
+
+NAMESPACES = ("kinematics", "elliptic", "solvers")
+TOP_LEVEL_LIMIT = 60  # the top level stays the short list most users need
+
+# The top-level names of the public contract (../shared/API.md).
+CONTRACT = [
+    "matrix_from_euler",
+    "quat_from_euler",
+    "euler_from_matrix",
+    "euler_from_quat",
+    "matrix_from_quat",
+    "quat_from_matrix",
+    "quat_multiply",
+    "quat_conjugate",
+    "quat_rotate",
+    "body_angular_velocity",
+    "space_angular_velocity",
+    "euler_rates",
+    "euler_equations",
+    "principal_axes",
+    "kinetic_energy",
+    "angular_momentum",
+    "free_precession_rate",
+    "State",
+    "FreeBody",
+    "HeavyTop",
+    "simulate",
+    "Trajectory",
+    "fit_inertia",
+    "InertiaFit",
+]
+
+# Names that moved from the top level to a namespace: the alias is the identical object.
+MOVED = {
+    **dict.fromkeys(
+        ["SEQUENCES", "PROPER_SEQUENCES", "TAIT_BRYAN_SEQUENCES", "is_proper_sequence", "quat_exp"],
+        "kinematics",
+    ),
+    **dict.fromkeys(
+        ["ellipk", "ellipkm1", "ellipe", "ellipkinc", "ellipeinc", "ellipj", "ellipj_m1", "elliprj"],
+        "elliptic",
+    ),
+    **dict.fromkeys(
+        [
+            "RKMK",
+            "LiePoissonSplitting",
+            "HeavyTopSplitting",
+            "PRESETS",
+            "rkmk_step",
+            "dexpinv",
+            "rigid_body_vector_field",
+            "free_body_vector_field",
+            "heavy_top_vector_field",
+            "split_free_body",
+            "split_heavy_top",
+            "splitting_step",
+            "heavy_top_splitting_step",
+        ],
+        "solvers",
+    ),
+}
+# Names replaced by another public spelling of the same thing.
+REPLACED = ["inertia_times", "torque_free_orientation", "simulate_structure_preserving", "is_full_tensor"]
+
+
+def deprecated(name):
+    """``rigidjax.<name>``, asserting that getting it warns once, with a DeprecationWarning naming it."""
+    with pytest.warns(DeprecationWarning, match=rf"rigidjax\.{name}\b") as record:
+        value = getattr(rj, name)
+    assert len(record) == 1, [str(w.message) for w in record]
+    return value
+
+
+# ----------------------------------------------------------------------------------------------
+# What exists
+
+
+def test_top_level_names_exist():
+    assert len(set(rj.__all__)) == len(rj.__all__), "duplicates in rigidjax.__all__"
+    missing = [name for name in rj.__all__ if name not in vars(rj)]
+    assert not missing, missing
+
+
+def test_top_level_is_short():
+    assert len(rj.__all__) <= TOP_LEVEL_LIMIT, len(rj.__all__)
+
+
+@pytest.mark.parametrize("namespace", NAMESPACES)
+def test_namespace_names_exist(namespace):
+    module = importlib.import_module(f"rigidjax.{namespace}")
+    assert getattr(rj, namespace) is module
+    assert module.__all__ and len(set(module.__all__)) == len(module.__all__)
+    missing = [name for name in module.__all__ if name not in vars(module)]
+    assert not missing, missing
+
+
+def test_everyday_kinematics_are_the_same_objects_at_the_top_level():
+    """rigidjax.kinematics holds every rotation helper; the everyday ones are also at the top level."""
+    shared = [name for name in rj.kinematics.__all__ if name in rj.__all__]
+    assert "matrix_from_euler" in shared and "quat_rotate" in shared
+    for name in shared:
+        assert getattr(rj, name) is getattr(rj.kinematics, name), name
+
+
+def test_contract_names_import_without_a_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        namespace = {}
+        exec(f"from rigidjax import {', '.join(CONTRACT)}", namespace)
+        exec("from rigidjax import *", namespace)
+        for name in NAMESPACES:
+            exec(f"import rigidjax.{name}", namespace)
+    assert set(CONTRACT) <= set(rj.__all__)
+    assert all(namespace[name] is getattr(rj, name) for name in rj.__all__)
+
+
+def test_dir_lists_the_public_names_only():
+    names = dir(rj)
+    assert set(rj.__all__) <= set(names) and set(NAMESPACES) <= set(names)
+    assert not set(MOVED) & set(names) and not set(REPLACED) & set(names)
+
+
+def test_unknown_name_is_an_attribute_error():
+    with pytest.raises(AttributeError, match="no_such_name"):
+        rj.no_such_name  # noqa: B018
+    with pytest.raises(ImportError):
+        exec("from rigidjax import no_such_name", {})
+
+
+# ----------------------------------------------------------------------------------------------
+# Deprecated names: they warn, and give the replacement
+
+
+@pytest.mark.parametrize("name", list(MOVED))
+def test_moved_name_warns_and_is_the_same_object(name):
+    namespace = MOVED[name]
+    with pytest.warns(DeprecationWarning, match=rf"rigidjax\.{namespace}\.{name}"):
+        old = getattr(rj, name)
+    assert old is getattr(getattr(rj, namespace), name)
+    assert name not in rj.__all__ and name in getattr(rj, namespace).__all__
+
+
+def test_moved_name_warns_on_from_import():
+    with pytest.warns(DeprecationWarning, match=r"rigidjax\.elliptic\.ellipk"):
+        namespace = {}
+        exec("from rigidjax import ellipk", namespace)
+    assert namespace["ellipk"] is rj.elliptic.ellipk
+
+
+def test_inertia_times_is_angular_momentum():
+    assert deprecated("inertia_times") is rj.angular_momentum
+
+
+def test_is_full_tensor_is_the_shape_rule():
+    is_full_tensor = deprecated("is_full_tensor")
+    for shape in [(3,), (5, 3), (3, 3), (5, 3, 3), (2, 5, 3, 3)]:
+        assert is_full_tensor(np.ones(shape)) == (shape[-2:] == (3, 3)), shape
+
+
+def test_torque_free_orientation_is_the_orientation_of_torque_free_motion():
+    torque_free_orientation = deprecated("torque_free_orientation")
+    inertia, omega0 = jnp.asarray([1.0, 2.0, 2.5]), jnp.asarray([0.3, 0.05, 1.0])
+    q0 = jnp.asarray([0.8, 0.2, -0.4, 0.4]) / jnp.linalg.norm(jnp.asarray([0.8, 0.2, -0.4, 0.4]))
+    ts = jnp.linspace(0.0, 3.0, 4)
+    np.testing.assert_array_equal(
+        torque_free_orientation(inertia, omega0, q0, ts), rj.torque_free_motion(inertia, omega0, q0, ts)[1]
+    )
+
+
+def test_simulate_structure_preserving_is_simulate_with_a_solver():
+    simulate_structure_preserving = deprecated("simulate_structure_preserving")
+    model = rj.FreeBody(jnp.asarray([1.0, 2.0, 2.5]))
+    state0 = rj.State(jnp.asarray([0.3, 0.05, 1.0]), jnp.asarray([1.0, 0.0, 0.0, 0.0]))
+    ts, solver = jnp.linspace(0.0, 1.0, 5), rj.solvers.LiePoissonSplitting()
+    old = simulate_structure_preserving(model, state0, ts, solver, 0.1)
+    new = rj.simulate(model, state0, ts, solver=solver, dt0=0.1)
+    np.testing.assert_array_equal(old.omega, new.omega)
+    np.testing.assert_array_equal(old.orientation, new.orientation)
