@@ -6,6 +6,7 @@ every argument, float32 and float64, with scipy's parameter convention (``m = k^
 rigidjax's closed-form torque-free motion.
 """
 
+from ._closed_form.carlson import elliprj as elliprj
 from ._closed_form.elliptic import ellipe as ellipe
 from ._closed_form.elliptic import ellipeinc as ellipeinc
 from ._closed_form.elliptic import ellipj as ellipj
@@ -13,6 +14,5 @@ from ._closed_form.elliptic import ellipj_m1 as ellipj_m1
 from ._closed_form.elliptic import ellipk as ellipk
 from ._closed_form.elliptic import ellipkinc as ellipkinc
 from ._closed_form.elliptic import ellipkm1 as ellipkm1
-from ._closed_form.elliptic import elliprj as elliprj
 
 __all__ = ["ellipe", "ellipeinc", "ellipj", "ellipj_m1", "ellipk", "ellipkinc", "ellipkm1", "elliprj"]

@@ -25,7 +25,8 @@ from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
 from .._numerics import safe_norm
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
-from .elliptic import _carlson_rf_rj, _ellipj_checked, ellipkm1
+from .carlson import _carlson_rf_rj
+from .elliptic import _ellipj_checked, ellipkm1
 
 
 def _sorted_frame(inertia, omega0):
