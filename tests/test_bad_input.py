@@ -435,7 +435,13 @@ SIMULATE_CASES = {
 }
 
 
-@pytest.mark.parametrize("case", list(SIMULATE_CASES))
+# Each case compiles a simulation: the fast tier keeps one per kind of problem.
+SIMULATE_FAST = ("nan-inertia", "non-unit-orientation", "unsorted-ts")
+
+
+@pytest.mark.parametrize(
+    "case", [pytest.param(c, marks=() if c in SIMULATE_FAST else pytest.mark.slow) for c in SIMULATE_CASES]
+)
 def test_simulate_rejects_bad_values(case):
     """simulate is itself jitted (eqx.filter_jit): these are run-time errors inside a compiled program."""
     fn, match = SIMULATE_CASES[case]
@@ -621,7 +627,13 @@ _ONCE_SILENT = {
 }
 
 
-@pytest.mark.parametrize("case", list(_ONCE_SILENT))
+@pytest.mark.parametrize(
+    "case",
+    [
+        pytest.param(c, marks=pytest.mark.slow if c.startswith(("simulate", "torque_free_motion")) else ())
+        for c in _ONCE_SILENT
+    ],
+)
 def test_once_silent_bad_values_now_raise(case):
     """Each case returned NaN or meaningless output silently when this suite was written; the
     check named in the reason is now in place."""

@@ -131,7 +131,13 @@ GRAD_CASES = {
 }
 
 
-@pytest.mark.parametrize("case", list(GRAD_CASES))
+@pytest.mark.parametrize(
+    "case",
+    [
+        pytest.param(c, marks=pytest.mark.slow if c in ("symmetric", "tensor-symmetric") else ())
+        for c in GRAD_CASES
+    ],
+)
 def test_gradients_match_finite_differences(case):
     inertia, w, tau = GRAD_CASES[case]
     f = functools.partial(rj.euler_equations, torque=tau)

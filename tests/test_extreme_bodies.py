@@ -500,6 +500,7 @@ NEAR_SPHERES = [0, 1, 2, 3, 7]
 SYMMETRIC = [4, 5, 6]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
 def test_near_spherical_bodies(preset, groups, runs, references, extreme):
     inertia, omega0, ts = groups["near"]
@@ -597,6 +598,7 @@ def jac_err(jac, ref):
     return np.max(np.abs(jac - ref), axis=(1, 2)) / np.where(size > 0, size, 1.0)
 
 
+@pytest.mark.slow
 def test_near_spherical_gradients(groups, jacobians, extreme):
     inertia, omega0, _ = groups["near"]
     jac = jacobians["near"]
@@ -681,6 +683,7 @@ def test_near_spherical_gradients(groups, jacobians, extreme):
 PLATES = [0, 1, 2, 3, 7]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
 def test_flat_plate_limit(preset, groups, runs, references, extreme):
     inertia, omega0, ts = groups["unit"]
@@ -710,6 +713,7 @@ def test_flat_plate_limit(preset, groups, runs, references, extreme):
     )
 
 
+@pytest.mark.slow
 def test_beyond_the_flat_plate_is_rejected(groups, runs, extreme):
     """check_inertia allows the triangle equality up to 1e2 eps trace: for (1, 2, 3(1 + x)) that is
     x <= 200 eps = 4.4e-14. x = 1e-14 is accepted (and moves like the plate, test above); x = 1e-13
@@ -755,6 +759,7 @@ def test_closed_forms_reject_beyond_the_flat_plate(groups):
 SCALES = {"fast": "|ω0| ~ 1e5 rad/s", "slow": "|ω0| ~ 1e-9 rad/s"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
 def test_dimensionless_tolerances_at_si_scales(preset, groups, runs, references, extreme):
     """The same eight dimensionless bodies at |omega| ~ 1 and rescaled to SI extremes (omega s,
@@ -814,6 +819,7 @@ def test_dimensionless_tolerances_at_si_scales(preset, groups, runs, references,
         )
 
 
+@pytest.mark.slow
 def test_si_scale_gradients(jacobians, extreme):
     area = "SI scales, gradients"
     for name, label in [("unit", "|ω0| ~ 1"), *SCALES.items()]:
@@ -840,6 +846,7 @@ def test_si_scale_gradients(jacobians, extreme):
         )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
 def test_earth(preset, groups, runs, references, extreme):
     """The Earth in SI units: A = 8.0101e37 kg m^2, (C - A) / A = 3.27e-3, omega3 = 7.29e-5 rad/s, with
@@ -893,6 +900,7 @@ STABLE = [3, 4]
 EQUILIBRIA = [0, 5]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
 def test_separatrix(preset, groups, runs, references, extreme):
     inertia, omega0, ts = groups["sep"]
@@ -958,6 +966,7 @@ def test_separatrix(preset, groups, runs, references, extreme):
             assert np.max(err[STABLE]) <= 1e-2
 
 
+@pytest.mark.slow
 def test_separatrix_gradients(groups, jacobians, extreme):
     """d omega(t) / d omega0 is the flow's derivative: finite on the separatrix and at the equilibrium,
     growing like cosh(lambda t) (lambda = 0.5 here). torque_free_omega now carries it at steady

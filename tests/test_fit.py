@@ -38,6 +38,7 @@ def long_times():
     return np.linspace(0.0, 45.0 * period, 1800)
 
 
+@pytest.mark.slow
 def test_principal_fit_recovers_truth_and_methods_agree():
     rng = np.random.default_rng(0)
     ts = short_times()
@@ -65,6 +66,7 @@ def test_principal_fit_recovers_truth_and_methods_agree():
     np.testing.assert_allclose(lm.residual_rms, np.sqrt(np.mean((pred - obs) ** 2, axis=0)), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_standard_errors_are_honest():
     """Over repeated noise draws the truth lies within 2 sigma about 95 % of the time."""
     rng = np.random.default_rng(1)
@@ -81,6 +83,7 @@ def test_standard_errors_are_honest():
     assert 0.88 <= fraction <= 1.0, fraction
 
 
+@pytest.mark.slow
 def test_gauge_scaled_inertia_and_known_scale():
     """c I moves the same way as I: the normalised fit is the same; a known scale gives c I back."""
     rng = np.random.default_rng(2)
@@ -99,6 +102,7 @@ def test_gauge_scaled_inertia_and_known_scale():
     np.testing.assert_allclose(by_trace.inertia, c * I_TRUE.sum() * normalised.inertia, rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_multiple_shooting_succeeds_where_single_shooting_fails():
     """45 wobble cycles from a poor start (moments 8 % off): single shooting locks onto a wrong
     frequency; windows of about one cycle recover the truth."""
@@ -123,6 +127,7 @@ def test_multiple_shooting_succeeds_where_single_shooting_fails():
     assert np.all(np.sqrt(np.mean(residual**2, axis=0)) < 1.3 * 0.02 * np.std(exact, axis=0))
 
 
+@pytest.mark.slow
 def test_missing_samples_and_outliers_need_a_robust_loss():
     rng = np.random.default_rng(4)
     ts = long_times()
@@ -142,6 +147,7 @@ def test_missing_samples_and_outliers_need_a_robust_loss():
     assert err_robust < 0.2 * err_squared
 
 
+@pytest.mark.slow
 def test_full_tensor_recovers_tensor_and_axes():
     rng = np.random.default_rng(5)
     ts = short_times()
@@ -160,6 +166,7 @@ def test_full_tensor_recovers_tensor_and_axes():
     assert bool(jnp.all(rj.is_physical_inertia(fit.inertia)))
 
 
+@pytest.mark.slow
 def test_earth_like_body_in_si_units():
     """(C - A)/A = 3.3e-3, omega ~ 7e-5 rad/s, a wobble period of ~300 days, 1 % gyro noise, and the
     scale fixed by a known polar moment: absolute moments in kg m^2."""
@@ -190,6 +197,7 @@ def test_estimate_is_a_good_start():
     assert np.nanmax(np.abs(smoothed - exact)) < 0.05
 
 
+@pytest.mark.slow
 def test_known_torque_fixes_the_scale():
     """A known constant body torque makes the absolute inertia identifiable: the fit integrates the
     torqued motion and returns kg m^2. The record is made by simulate (an independent integrator
@@ -225,6 +233,7 @@ def test_gravity_torque_is_com_cross_weight():
     np.testing.assert_allclose(tau, np.cross(com, R.T @ np.array([0.0, 0.0, -mass * g])), atol=1e-14)
 
 
+@pytest.mark.slow
 def test_heavy_top_gravity_fixes_the_scale_from_orientations():
     """Motion capture of a heavy top on its pivot, with the weight m g and the centre of mass known
     (GravityTorque): the inertia about the pivot comes out in kg m^2 within its standard errors. The
@@ -268,6 +277,7 @@ def orientation_record(rng, noise, rotation=None):
     return ts, q, q0
 
 
+@pytest.mark.slow
 def test_orientation_fit_principal():
     rng = np.random.default_rng(8)
     ts, q, q0 = orientation_record(rng, 2e-3)
@@ -290,6 +300,7 @@ def test_orientation_fit_principal():
     assert np.all(2 * np.arccos(np.minimum(overlap, 1.0)) < 5 * 2e-3 * np.sqrt(3))
 
 
+@pytest.mark.slow
 def test_orientation_fit_full_tensor():
     rng = np.random.default_rng(9)
     R = np.asarray(rj.matrix_from_euler(np.array([0.4, 0.7, -0.3])))
@@ -335,6 +346,7 @@ def test_bad_input_is_named(ts, omega, kwargs, match):
         fit_inertia(ts, omega, **kwargs)
 
 
+@pytest.mark.slow
 def test_omega_from_orientations_converges_at_second_order():
     """Central differences of closed-form orientations against the closed-form omega: the error falls
     4x per halving of the sample spacing, and flipping quaternion signs changes nothing."""

@@ -142,7 +142,11 @@ ANGLE_CASES = {
 }
 
 
-@pytest.mark.parametrize("dtype", list(ANGLE_CASES), ids=["float64", "float32"])
+# The float32 sweep (a second eager pass over every operation) runs in the full run only.
+FLOAT32 = pytest.param(np.float32, marks=pytest.mark.slow, id="float32")
+
+
+@pytest.mark.parametrize("dtype", [pytest.param(np.float64, id="float64"), FLOAT32])
 def test_angles_reproduce_the_rotation(dtype, extreme):
     bound, behaviour = ANGLE_CASES[dtype]
     k = kinematics(dtype)
@@ -185,7 +189,7 @@ def _reference_omega():
     return np.array(body), np.array(space)
 
 
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("dtype", [pytest.param(np.float64, id="float64"), FLOAT32])
 def test_angular_velocity_near_lock(dtype, extreme):
     k = kinematics(dtype)
     eps = EPS64 if dtype == np.float64 else EPS32
@@ -241,6 +245,7 @@ def test_euler_rates_near_lock_float64(extreme):
         jax.block_until_ready(rj.euler_rates(ANGLES[0, 0], OMEGA, SEQS[0]))
 
 
+@pytest.mark.slow
 def test_euler_rates_near_lock_float32(extreme):
     """In float32 a lock within 16 eps (~2e-6) of the determinant counts as exact."""
     k = kinematics(np.float32)
@@ -350,6 +355,7 @@ def test_euler_from_matrix_gradients_at_lock():
         assert (np.abs(fwd - rev) / scale).max() <= 1e-12
 
 
+@pytest.mark.slow
 def test_gradients_finite_float32(extreme):
     fwd, _ = quat_jacobians(np.float32, reverse=False)  # (float32 jacrev: tests/test_kinematics.py)
     assert fwd.dtype == np.float32

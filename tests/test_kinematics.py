@@ -153,6 +153,17 @@ def is_exact_lock(theta):
 # The code paths of the angle extraction: proper/Tait-Bryan x the two parities of the sequence.
 # (Gradient and float32 checks compile a lot per sequence, so they run on these four.)
 FOUR_SEQUENCES = ["zxz", "zyz", "xyz", "zyx"]
+SLOW = pytest.mark.slow
+
+
+def fast_tier(values, fast):
+    """Parameters ``values``, those not in ``fast`` marked slow: the fast tier (``-m "not slow"``) runs
+    every code path once, the full run every case."""
+    return [pytest.param(v, marks=() if v in fast else SLOW) for v in values]
+
+
+# Every sequence in the full run; the four code paths of the angle extraction in the fast tier.
+EVERY_SEQUENCE = fast_tier(SEQUENCES, FOUR_SEQUENCES)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -160,7 +171,7 @@ FOUR_SEQUENCES = ["zxz", "zyz", "xyz", "zyx"]
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_matrix_and_quat_from_euler_match_scipy(seq):
     # Include angles outside the canonical ranges: the forward map does not care.
     angles = np.concatenate([ANGLES[seq], np.random.default_rng(7).uniform(-7, 7, (8, 3))])
@@ -187,7 +198,7 @@ def test_default_sequence_is_zxz_and_case_insensitive():
     np.testing.assert_allclose(rj.matrix_from_euler(a[0]).T, A, atol=1e-15)
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_euler_from_matrix_and_quat_round_trip(seq):
     angles = ANGLES[seq]
     rot = scipy_rot(angles, seq)
@@ -219,7 +230,7 @@ def test_euler_from_matrix_and_quat_round_trip(seq):
     )
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_euler_from_unnormalised_quat(seq):
     rot = scipy_rot(ANGLES[seq][:4], seq)
     out = rj.euler_from_quat(2.5 * scipy_quat(rot), seq)
@@ -275,7 +286,7 @@ def test_quat_multiply_conjugate_rotate():
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_body_angular_velocity_matches_sympy(seq):
     angles, rates = ANGLES[seq], RATES
     expected = sympy_body_omega(seq)(angles, rates)
@@ -307,7 +318,7 @@ def _path(t):
     return a0 + a1 * t + a2 * np.sin(w * t), a1 + a2 * w * np.cos(w * t)
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_space_angular_velocity_matches_finite_differences(seq):
     ts = np.linspace(-1.0, 1.0, 7)
     h = 1e-5
@@ -323,7 +334,7 @@ def test_space_angular_velocity_matches_finite_differences(seq):
     np.testing.assert_allclose(rj.body_angular_velocity(angles, rates, seq), omega_body_fd, atol=1e-9)
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_euler_rates_inverts_body_angular_velocity(seq):
     angles, rates = ANGLES[seq], RATES
     omega = sympy_body_omega(seq)(angles, rates)
@@ -350,7 +361,7 @@ def test_euler_rates_zxz_closed_form():
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_euler_from_matrix_and_quat_at_gimbal_lock(seq):
     angles = lock_batch(seq)
     theta = angles[:, 1]
@@ -425,7 +436,7 @@ def _rates_lock_inputs(seq):
     return angles, omega_ok, omega_ok + 0.5 * normal
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_euler_rates_at_gimbal_lock(seq):
     angles, omega_ok, omega_bad = _rates_lock_inputs(seq)
     # omega in the followable plane: the documented split psi' = 0, which reproduces omega.
@@ -458,7 +469,7 @@ def test_euler_rates_at_gimbal_lock_under_jit_and_vmap(seq):
     np.testing.assert_allclose(out[:2], rj.euler_rates(angles, omega_ok, seq), atol=1e-15)
 
 
-@pytest.mark.parametrize("seq", SEQUENCES)
+@pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 @pytest.mark.parametrize("side", [-1.0, 1.0])
 def test_euler_rates_near_gimbal_lock(seq, side):
     lock = 0.0 if is_proper(seq) else np.pi / 2
@@ -493,7 +504,7 @@ BATCH_CASES = {
 }
 
 
-@pytest.mark.parametrize("batch", BATCH_SHAPES)
+@pytest.mark.parametrize("batch", fast_tier(BATCH_SHAPES, [(), (3, 1, 2)]))
 def test_batch_shapes(batch):
     rng = np.random.default_rng(11)
     n = int(np.prod(batch))
@@ -553,7 +564,7 @@ def test_broadcasting_angles_against_rates():
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("seq", FOUR_SEQUENCES)
+@pytest.mark.parametrize("seq", fast_tier(FOUR_SEQUENCES, ["zxz", "zyx"]))
 def test_float32_conversions(seq):
     angles = ANGLES[seq].astype(np.float32)
     rot = scipy_rot(angles, seq)  # reference from the float32 values, computed in float64

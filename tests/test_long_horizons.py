@@ -109,6 +109,7 @@ LONG_BOUNDS = {"fast": 1.5e-4, "balanced": 1e-9, "precise": 5e-13, "exact": 2e-1
 QNORM_BOUNDS = {"fast": 1.5e-4, "balanced": 1e-6, "precise": 1e-11, "exact": 1e-14}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("accuracy", ["fast", "balanced", "precise", "exact"])
 def test_long_horizon_drift_per_preset(long_runs, accuracy, extreme):
     inertia, omega, q, ts, runs = long_runs
@@ -161,6 +162,7 @@ def test_closed_form_after_ten_thousand_periods(extreme):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("order, bound", [(2, 1e-4), (4, 1e-7)])
 def test_splitting_energy_error_is_bounded(order, bound, extreme):
     """Structure-preserving splittings do not drift: over 1e5 steps the energy error of the second
@@ -196,6 +198,7 @@ def test_splitting_energy_error_is_bounded(order, bound, extreme):
 # Mixed batches: one fast body among slow ones
 
 
+@pytest.mark.slow
 def test_mixed_batch_every_body_meets_the_tolerance(extreme):
     """Seven bodies at |omega| ~ 1 and one 1000x faster, integrated together with one shared step:
     no body is less accurate than when integrated on its own (the step is accepted only when every
@@ -256,6 +259,7 @@ def _racket_scene(n, seed=0):
     return inertia[hardest], omega[hardest]
 
 
+@pytest.mark.slow
 def test_float32_regular_motion_and_chaotic_scene(extreme):
     regular = _batch(FREE_I, FREE_W0)
     ts_regular = np.linspace(0.0, 10 * FREE_PERIOD, N_SAMPLES)
@@ -302,6 +306,7 @@ def test_float32_regular_motion_and_chaotic_scene(extreme):
 # Gradients through long horizons
 
 
+@pytest.mark.slow
 def test_gradient_growth_near_the_separatrix_matches_the_period_sensitivity(extreme):
     """Torque-free motion is integrable, so d omega(T)/d omega0 grows LINEARLY with T, with the
     secular coefficient (d omega/dt) (T/P) dP/d omega0; near the separatrix dP/d omega0 ~ 1/s is
@@ -369,6 +374,7 @@ _top_jac = jax.jit(jax.jacfwd(_top_final_omega))
 _top_final = jax.jit(_top_final_omega)
 
 
+@pytest.mark.slow
 def test_gradient_growth_through_chaos_and_multiple_shooting(extreme):
     """Gradients through the chaotic heavy top grow exponentially with the horizon; they agree with
     central finite differences while those are meaningful; and windows of fixed length (multiple
@@ -429,6 +435,7 @@ def test_gradient_growth_through_chaos_and_multiple_shooting(extreme):
 # The zero cases
 
 
+@pytest.mark.slow
 def test_zero_angular_velocity_value_and_gradient(extreme):
     """A body at rest stays at rest, and the linearisation about rest is exact: d omega(T)/d omega0
     = identity and d q(T)/d omega0 = [0; (T/2) identity] (q = exp(omega0 T / 2) to first order)."""
@@ -464,6 +471,7 @@ def test_zero_angular_velocity_value_and_gradient(extreme):
         )
 
 
+@pytest.mark.slow
 def test_zero_torque_zero_duration_single_time(extreme):
     inertia = jnp.asarray(FREE_I)
     omega = jnp.asarray([0.3, -0.2, 1.0])

@@ -111,6 +111,7 @@ def spin_runs():
     return omega, runs, predicted
 
 
+@pytest.mark.slow
 def test_intermediate_axis_growth_rate_matches_simulation(spin_runs):
     """Fit log|dw| against t where |dw| is between 1e-7 and 1e-3 of Omega (linear regime, past the
     start) and compare the slope with the predicted growth rate (measured agreement ~1e-8)."""
@@ -131,6 +132,7 @@ def test_intermediate_axis_growth_rate_matches_simulation(spin_runs):
     assert n_unstable == len(BODIES)
 
 
+@pytest.mark.slow
 def test_stable_axes_frequency_matches_simulation(spin_runs):
     """The transverse components circle the largest and smallest axes at the predicted body-frame
     frequency (fitted by linear prediction; measured agreement ~1e-13) and stay small."""
@@ -305,6 +307,7 @@ def top_runs():
     return xi, theta, predicted
 
 
+@pytest.mark.slow
 def test_sleeping_top_above_critical_spin_matches_simulation(top_runs):
     """Above w_crit the tilt is the sum of two circular modes exp(i lambda t); Prony's fit of the
     simulated tilt gives both roots of I1 lambda^2 - I3 w3 lambda + m g l = 0 (measured agreement
@@ -326,6 +329,7 @@ def test_sleeping_top_above_critical_spin_matches_simulation(top_runs):
         np.testing.assert_allclose(fit_frequency(np.abs(xi[n]) ** 2, dt, offset=True), fast - slow, rtol=1e-7)
 
 
+@pytest.mark.slow
 def test_sleeping_top_below_critical_spin_matches_simulation(top_runs):
     """Below w_crit the tilt grows as exp(growth_rate t) while turning at I3 w3 / (2 I1): Prony's fit
     of the linear part (theta < 1e-3) gives both (measured ~1e-6), and a straight line through

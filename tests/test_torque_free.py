@@ -50,6 +50,7 @@ def test_matches_dop853(inertia, omega0):
     np.testing.assert_allclose(exact, dop853(inertia, omega0, ts), atol=1e-11 * np.linalg.norm(omega0))
 
 
+@pytest.mark.slow
 def test_near_separatrix_against_30_digit_integration():
     """DOP853 at 1e-13 is off by 2.5e-11 here; the closed form agrees with mpmath's 30-digit Taylor
     integration to roundoff."""
@@ -124,6 +125,7 @@ def test_steady_rotations_and_sphere():
         np.testing.assert_allclose(out, np.broadcast_to(omega0, out.shape), atol=1e-14)
 
 
+@pytest.mark.slow
 def test_batches_and_gradients():
     rng = np.random.default_rng(3)
     inertia = perturbed_inertia(rng, 4, 0.05)
@@ -158,6 +160,7 @@ def test_float32():
     np.testing.assert_allclose(np.asarray(out, np.float64), reference, atol=3e-5)
 
 
+@pytest.mark.slow
 def test_simulate_exact_switches_to_the_closed_form():
     """accuracy="exact" is one word away from integration and agrees with it on a racket batch."""
     rng = np.random.default_rng(0)
@@ -333,6 +336,7 @@ def _landau_lifshitz_period(inertia, omega0, dps=30):
         return 4 * K / lam, turn
 
 
+@pytest.mark.slow
 def test_conservation_and_long_times():
     """Over 1e4 periods: |q| = 1 and the space-frame L constant to roundoff, and the orientation equals
     Rot(L_space, N dphi) q(t) after N whole periods, dphi the precession per period from mpmath."""
@@ -422,6 +426,7 @@ def directional_derivative(inertia, omega0, d_inertia, d_omega0):
     return jax.jvp(_final_state, (inertia, omega0), (d_inertia, d_omega0))[1]
 
 
+@pytest.mark.slow
 def test_gradients_match_finite_differences_and_stay_finite():
     """Forward-mode derivatives w.r.t. inertia and omega0 (random directions, so every column of the
     Jacobian contributes) at two sample times vs central differences (h = 1e-6); finite at singular
@@ -489,6 +494,7 @@ def test_orientation_batches_and_restart():
     np.testing.assert_allclose(q2[:, 10:] * sign, q[:, 10:], atol=1e-13)
 
 
+@pytest.mark.slow
 def test_simulate_exact_returns_the_closed_form_orientation():
     rng = np.random.default_rng(2)
     inertia = perturbed_inertia(rng, N_CASES, 0.05)
@@ -509,6 +515,7 @@ def test_simulate_exact_returns_the_closed_form_orientation():
         rj.simulate(model, bad, jnp.asarray(ts), accuracy="exact").orientation.block_until_ready()
 
 
+@pytest.mark.slow
 def test_orientation_near_separatrix_against_taylor_integration():
     """s = (L^2 - 2 E I2) / L^2 = -4e-10, axes relabelled (odd), in the middle of the first flip:
     the closed form agrees with mpmath's 20-digit Taylor integration of omega and q to roundoff."""
