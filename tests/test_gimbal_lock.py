@@ -281,6 +281,7 @@ def quat_jacobians(dtype, reverse=True):
     return np.asarray(jnp.stack(fwd)), np.asarray(jnp.stack(rev)) if reverse else None
 
 
+@pytest.mark.slow
 def test_gradients_finite_and_consistent_float64(extreme):
     fwd, rev = quat_jacobians(np.float64)
     assert np.all(np.isfinite(fwd)) and np.all(np.isfinite(rev))
@@ -301,6 +302,7 @@ def test_gradients_finite_and_consistent_float64(extreme):
     )
 
 
+@pytest.mark.slow
 def test_gradients_match_finite_differences_near_lock(extreme):
     """Away from the exact lock the map q -> angles is smooth, with derivatives ~ 1/delta: central
     differences with the step ``h = (eps delta^2)^(1/3)`` that balances truncation and roundoff."""
@@ -345,6 +347,7 @@ def _matrix_path_jacobians(angles):
     return out
 
 
+@pytest.mark.slow
 def test_euler_from_matrix_gradients_at_lock():
     """The matrix path is quat_from_matrix (shared by all sequences) then euler_from_quat: finite
     jacfwd = jacrev on one proper and one Tait-Bryan sequence at every sweep point."""

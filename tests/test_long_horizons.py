@@ -141,6 +141,7 @@ def test_long_horizon_drift_per_preset(long_runs, accuracy, extreme):
     )
 
 
+@pytest.mark.slow
 def test_closed_form_after_ten_thousand_periods(extreme):
     """The closed form's cost and error do not grow with time: 1e4 periods against the omega
     periodicity (omega(t + P) = omega(t)) and the conserved space-frame L."""

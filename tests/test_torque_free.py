@@ -238,6 +238,7 @@ DOP_CASES = [
 ]
 
 
+@pytest.mark.slow
 def test_orientation_matches_dop853():
     inertia = np.array([c[0] for c in DOP_CASES])
     omega0 = np.array([c[1] for c in DOP_CASES])
