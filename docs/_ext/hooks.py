@@ -1,0 +1,1 @@
+"""MkDocs hooks for the rigidjax site (placeholder)."""
