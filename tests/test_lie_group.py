@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
+from helpers import dop853, log_log_slope
 from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
@@ -61,23 +61,16 @@ def _accel(t, w, q, args):
 VF = rigid_body_vector_field(_accel)
 
 
-_RHS = jax.jit(lambda t, y: jnp.concatenate(VF(t, (y[:3], y[3:]), None)))
+_ACCEL = jax.jit(lambda t, w, q: _accel(t, w, q, None))
 
 
 @functools.cache
 def _reference(t_eval=(T,)):
-    """scipy DOP853, rtol = atol = 1e-13, on (omega, q) with dq/dt = q ⊗ (0, omega) / 2; (T, 3), (T, 4)."""
-    sol = solve_ivp(
-        lambda t, y: np.asarray(_RHS(t, jnp.asarray(y))),
-        (0.0, t_eval[-1]),
-        np.concatenate([OMEGA0, Q0]),
-        method="DOP853",
-        rtol=1e-13,
-        atol=1e-13,
-        t_eval=np.asarray(t_eval),
+    """scipy DOP853 (tests/helpers.py) on the model's angular acceleration with dq/dt = q (0, omega)/2
+    at rtol = atol = 1e-13; (T, 3), (T, 4)."""
+    return dop853(
+        lambda t, w, q: np.asarray(_ACCEL(t, jnp.asarray(w), jnp.asarray(q))), OMEGA0, t_eval, Q0, tol=1e-13
     )
-    assert sol.success
-    return sol.y[:3].T, sol.y[3:].T
 
 
 def test_quat_exp_vs_scipy_and_small_angles():
@@ -109,7 +102,7 @@ def test_dexpinv_vs_finite_differences():
         return jnp.linalg.norm(dexpinv(theta, omega) - theta_dot)
 
     errs = [float(error(size * jnp.array([0.6, -0.3, 0.74]))) for size in (0.2, 0.1, 0.05)]
-    slope = np.polyfit(np.log([0.2, 0.1, 0.05]), np.log(errs), 1)[0]
+    slope = log_log_slope([0.2, 0.1, 0.05], errs)
     print(f"dexpinv truncation errors {errs}, slope {slope:.3f}")
     assert abs(slope - 4.0) < 0.15
     assert errs[0] < 1e-4
@@ -139,8 +132,7 @@ def test_convergence_order_time_and_orientation_torque(tableau, order):
         errs_w.append(float(jnp.max(jnp.abs(w - w_ref))))
         errs_R.append(float(jnp.max(jnp.abs(matrix_from_quat(q) - R_ref))))
     hs = [T / n for n in ns]
-    slope_w = np.polyfit(np.log(hs), np.log(errs_w), 1)[0]
-    slope_R = np.polyfit(np.log(hs), np.log(errs_R), 1)[0]
+    slope_w, slope_R = log_log_slope(hs, errs_w), log_log_slope(hs, errs_R)
     print(f"RKMK {tableau}: omega errors {errs_w} slope {slope_w:.3f}; R errors {errs_R} slope {slope_R:.3f}")
     assert abs(slope_w - order) < 0.15
     assert abs(slope_R - order) < 0.15
@@ -202,6 +194,7 @@ def _adaptive_solver():
     return jax.jit(jax.vmap(solve, in_axes=(0, 0, None, None)))
 
 
+@pytest.mark.slow
 def test_adaptive_pid_matches_reference_under_vmap():
     """Body 0 vs scipy DOP853; body 1 (another start, same batch) vs a fine fixed-step RKMK run."""
     ts = jnp.linspace(0.0, T, 5)
@@ -281,6 +274,7 @@ def test_bad_tableau():
 # simulate_structure_preserving
 
 
+@pytest.mark.slow
 def test_simulate_heavy_top_splitting_tensor_inertia():
     """Two copies of TOP given by inertia TENSORS: one diagonal, one in body axes turned by P. Both vs
     scipy (the second mapped by P), and the splitting's invariants."""
@@ -290,23 +284,11 @@ def test_simulate_heavy_top_splitting_tensor_inertia():
     model = HeavyTop(tensor, 1.2, jnp.stack([TOP.com, P @ TOP.com]), 9.81)
     state0 = State(jnp.stack([OMEGA0, P @ OMEGA0]), jnp.stack([Q0, quat_multiply(Q0, quat_conjugate(p))]))
     ts = jnp.linspace(0.0, 1.0, 6)
-    rhs = jax.jit(
-        lambda y: jnp.concatenate(
-            rigid_body_vector_field(lambda t, w, q, a: TOP.angular_acceleration(t, State(w, q), a))(
-                0.0, (y[:3], y[3:]), None
-            )
-        )
+    accel = jax.jit(lambda w, q: TOP.angular_acceleration(0.0, State(w, q), None))
+    w_ref, q_ref = dop853(
+        lambda t, w, q: np.asarray(accel(jnp.asarray(w), jnp.asarray(q))), OMEGA0, ts, Q0, tol=1e-12
     )
-    ref = solve_ivp(
-        lambda t, y: np.asarray(rhs(jnp.asarray(y))),
-        (0.0, 1.0),
-        np.concatenate([OMEGA0, Q0]),
-        method="DOP853",
-        rtol=1e-12,
-        atol=1e-12,
-        t_eval=np.asarray(ts),
-    )
-    w_ref, R_ref = ref.y[:3].T, matrix_from_quat(jnp.asarray(ref.y[3:].T))
+    R_ref = matrix_from_quat(jnp.asarray(q_ref))
     traj = simulate_structure_preserving(model, state0, ts, HeavyTopSplitting.from_model(TOP, order=4), 0.01)
     assert traj.omega.shape == (2, 6, 3) and traj.orientation.shape == (2, 6, 4)
     assert int(traj.stats["num_steps"][0]) == 100 and bool(jnp.all(traj.success))
@@ -345,6 +327,7 @@ def test_simulate_free_body_splitting_vs_closed_form():
     assert not jnp.allclose(again.omega, traj.omega)
 
 
+@pytest.mark.slow
 def test_simulate_rkmk_damped_sphere_closed_form_and_grad():
     """Spherical body (I) with per-body viscous damping c: omega = omega0 exp(-c t / I) about a fixed axis,
     turned angle |omega0| I / c (1 - exp(-c t / I))."""

@@ -388,6 +388,7 @@ def test_step_limit_is_reported():
 # Orientation representations and devices.
 
 
+@pytest.mark.slow
 def test_euler_angle_state_agrees_with_quaternions_and_stops_at_gimbal_lock():
     top = rj.HeavyTop(jnp.array([1.0, 1.0, 0.5]), 1.0, jnp.array([0.0, 0.0, 0.1]))
     state = rj.State(jnp.array([0.5, 0.2, 60.0]), rj.quat_from_euler(jnp.array([0.2, 0.5, 0.1])))
@@ -425,6 +426,7 @@ np.save({path!r}, np.concatenate([np.asarray(traj.omega), np.asarray(traj.orient
 """
 
 
+@pytest.mark.slow
 def test_sharded_equals_unsharded(tmp_path):
     """With two (forced CPU) devices the chunks are sharded across them; results are identical."""
     import os
@@ -509,6 +511,7 @@ def test_one_fast_body_cannot_hide_in_a_slow_batch():
     assert rms[0] > 5 * batch[fast], (rms[0], batch[fast])
 
 
+@pytest.mark.slow
 def test_heavy_top_gradients_wrt_mass_omega0_and_com():
     """jax.grad through simulate w.r.t. the model's and the state's numbers, against central
     finite differences (the final nutation angle's cosine, a smooth scalar)."""
@@ -561,6 +564,7 @@ def test_user_torque_subclass_and_public_types():
     assert set(rj.solvers.PRESETS) == {"fast", "balanced", "precise"}
 
 
+@pytest.mark.slow
 def test_simulate_routes_structure_preserving_solvers():
     """simulate(solver=HeavyTopSplitting/RKMK, dt0=...) runs the fixed-step structure-preserving path
     and agrees with the adaptive Dopri8 path; without dt0 it says what is missing."""

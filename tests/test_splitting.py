@@ -8,8 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import dop853, log_log_slope
 
-from rigidjax import matrix_from_quat, quat_multiply, quat_normalize, quat_rotate, torque_free_omega
+from rigidjax import matrix_from_quat, quat_normalize, quat_rotate, torque_free_omega
 from rigidjax.solvers import LiePoissonSplitting, free_body_vector_field, split_free_body, splitting_step
 
 # Asymmetric body, well away from the separatrix (L^2 - 2 E I2 = 2.5 - ... clearly nonzero).
@@ -51,8 +52,7 @@ def test_convergence_order(order):
         hs.append(T / n)
         err_L.append(float(jnp.max(jnp.abs(L - L_exact))))
         err_R.append(float(jnp.max(jnp.abs(matrix_from_quat(q) - R_ref))))
-    slope_L = np.polyfit(np.log(hs), np.log(err_L), 1)[0]
-    slope_R = np.polyfit(np.log(hs), np.log(err_R), 1)[0]
+    slope_L, slope_R = log_log_slope(hs, err_L), log_log_slope(hs, err_R)
     print(f"order {order}: L errors {err_L} slope {slope_L:.4f}; R errors {err_R} slope {slope_R:.4f}")
     assert abs(slope_L - order) < 0.1
     assert abs(slope_R - order) < 0.1
@@ -225,8 +225,6 @@ def test_float32(order):
 # ---------------------------------------------------------------------------------------------
 # The heavy top: gravity kick + free-body splitting.
 
-from scipy.integrate import solve_ivp  # noqa: E402
-
 from rigidjax import HeavyTop, State  # noqa: E402
 from rigidjax._integrate.solvers.splitting import (  # noqa: E402
     HeavyTopSplitting,
@@ -257,20 +255,17 @@ def _top_Lz(L, q):
 
 @functools.cache
 def _top_reference(T_end):
-    """scipy DOP853 at rtol = atol = 1e-13 on HeavyTop.angular_acceleration (the model's own equations,
-    not the splitting's) with dq/dt = q ⊗ (0, omega) / 2."""
+    """scipy DOP853 (tests/helpers.py) at rtol = atol = 1e-13 on HeavyTop.angular_acceleration (the
+    model's own equations, not the splitting's) with dq/dt = q (0, omega) / 2."""
     accel = jax.jit(lambda w, q: TOP.angular_acceleration(0.0, State(w, q), None))
-    qdot = jax.jit(lambda q, w: 0.5 * quat_multiply(q, jnp.concatenate([jnp.zeros(1), w])))
-
-    def rhs(t, y):
-        w, q = jnp.asarray(y[:3]), jnp.asarray(y[3:])
-        return np.concatenate([np.asarray(accel(w, q)), np.asarray(qdot(q, w))])
-
-    y0 = np.concatenate([np.asarray(TOP_OMEGA0), np.asarray(TOP_Q0)])
-    sol = solve_ivp(rhs, (0.0, T_end), y0, method="DOP853", rtol=1e-13, atol=1e-13)
-    assert sol.success
-    w, q = sol.y[:3, -1], sol.y[3:, -1]
-    return np.asarray(TOP.inertia) * w, q
+    w, q = dop853(
+        lambda t, w, q: np.asarray(accel(jnp.asarray(w), jnp.asarray(q))),
+        TOP_OMEGA0,
+        [T_end],
+        TOP_Q0,
+        tol=1e-13,
+    )
+    return np.asarray(TOP.inertia) * w[-1], q[-1]
 
 
 def test_heavy_top_vector_field_matches_model():
@@ -316,8 +311,7 @@ def test_heavy_top_convergence_order(order):
         hs.append(TOP_T / n)
         err_L.append(float(jnp.max(jnp.abs(L - L_ref))))
         err_R.append(float(jnp.max(jnp.abs(matrix_from_quat(q) - R_ref))))
-    slope_L = np.polyfit(np.log(hs), np.log(err_L), 1)[0]
-    slope_R = np.polyfit(np.log(hs), np.log(err_R), 1)[0]
+    slope_L, slope_R = log_log_slope(hs, err_L), log_log_slope(hs, err_R)
     print(
         f"heavy top order {order}: L errors {err_L} slope {slope_L:.4f}; R errors {err_R} slope {slope_R:.4f}"
     )
