@@ -4,9 +4,9 @@ Runs the test files of ``FILES`` (extreme bodies, long horizons, bad input, gimb
 ``RIGIDJAX_EXTREMES_REPORT`` set: every check records what it measured (``extreme(...)`` in
 tests/conftest.py) next to the bound it asserts. Writes
 ``benchmarks/results/extremes.json`` and ``benchmarks/results/extremes.md`` and replaces the table
-between the ``<!-- extremes-table -->`` markers in README.md.
+between the ``<!-- extremes-table -->`` markers of the documentation page docs/extremes.md.
 
-Usage: python benchmarks/extremes_table.py [--no-readme]
+Usage: python benchmarks/extremes_table.py [--no-docs]
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import sys
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
+PAGE = ROOT / "docs" / "extremes.md"  # the documentation page that shows the table
 BEGIN, END = "<!-- extremes-table -->", "<!-- /extremes-table -->"
 # The test files that record rows. They run in this order, and the table's sections follow the order
 # in which their rows are recorded.
@@ -53,9 +54,22 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def insert_table(table: str, path: pathlib.Path = PAGE) -> bool:
+    """Replace the text between the markers of ``path`` with ``table``; False if it has no markers."""
+    text = path.read_text()
+    if BEGIN not in text or END not in text:
+        return False
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    path.write_text(f"{head}{BEGIN}\n{table}{END}{tail}")
+    return True
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--no-readme", action="store_true", help="do not rewrite README.md")
+    parser.add_argument(
+        "--no-docs", "--no-readme", action="store_true", help="do not rewrite the table of docs/extremes.md"
+    )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     report = RESULTS / "extremes.json"
@@ -72,16 +86,12 @@ def main():
     table = markdown(rows)
     (RESULTS / "extremes.md").write_text(table)
     print(table)
-    if not args.no_readme:
-        readme = ROOT / "README.md"
-        text = readme.read_text()
-        if BEGIN in text and END in text:
-            head, rest = text.split(BEGIN, 1)
-            _, tail = rest.split(END, 1)
-            readme.write_text(f"{head}{BEGIN}\n{table}{END}{tail}")
-            print("README.md table updated")
+    if not args.no_docs:
+        page = PAGE.relative_to(ROOT)
+        if insert_table(table):
+            print(f"{page} table updated")
         else:
-            print(f"README.md has no {BEGIN} ... {END} markers; table not inserted")
+            print(f"{page} has no {BEGIN} ... {END} markers; table not inserted")
 
 
 if __name__ == "__main__":

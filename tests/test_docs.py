@@ -96,3 +96,23 @@ def _lookup(path):
         return getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError):
         return None
+
+
+def test_extremes_page_shows_the_recorded_table(tmp_path):
+    """benchmarks/extremes_table.py writes its table between the markers of docs/extremes.md; the page
+    shows the table the benchmarks last recorded (benchmarks/results/extremes.md)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import extremes_table
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert extremes_table.PAGE == DOCS / "extremes.md"
+    text = extremes_table.PAGE.read_text()
+    recorded = (ROOT / "benchmarks" / "results" / "extremes.md").read_text()
+    assert f"{extremes_table.BEGIN}\n{recorded}{extremes_table.END}" in text
+    page = tmp_path / "page.md"
+    page.write_text(f"head\n{extremes_table.BEGIN}\nold\n{extremes_table.END}\ntail\n")
+    assert extremes_table.insert_table("| new |\n", page)
+    assert page.read_text() == f"head\n{extremes_table.BEGIN}\n| new |\n{extremes_table.END}\ntail\n"
+    page.write_text("no markers")
+    assert not extremes_table.insert_table("| new |\n", page)
