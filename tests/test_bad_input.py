@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import rigidjax as rj
 
@@ -682,3 +684,205 @@ def test_other_structural_errors(without_runtime_typecheck):
     ]:
         with pytest.raises((ValueError, TypeError), match=match):
             fn()
+
+
+# ----------------------------------------------------------------------------------------------
+# fit_inertia / fit_inertia_to_orientation: every option checked before any work (no compile), so
+# a bad option is a ValueError/TypeError naming it -- never a raw IndexError after the fit, and
+# never a negative or NaN inertia reported as converged.
+# ----------------------------------------------------------------------------------------------
+
+_FIT_FNS = {
+    "fit_inertia": lambda **kw: rj.fit_inertia(_TS_FIT, _W_FIT, **kw),
+    "fit_inertia_to_orientation": lambda **kw: rj.fit_inertia_to_orientation(_TS_FIT, _Q_FIT, **kw),
+}
+FIT_OPTION_CASES = {
+    # case -> (keyword arguments, error type, message)
+    "inertia_trace-negative": (
+        {"inertia_trace": -1.0},
+        ValueError,
+        r"inertia_trace must be a positive finite",
+    ),
+    "inertia_trace-zero": ({"inertia_trace": 0.0}, ValueError, r"inertia_trace must be a positive finite"),
+    "inertia_trace-nan": ({"inertia_trace": nan}, ValueError, r"inertia_trace must be a positive finite"),
+    "inertia_trace-inf": ({"inertia_trace": inf}, ValueError, r"inertia_trace must be a positive finite"),
+    "inertia_trace-array": ({"inertia_trace": np.ones(3)}, TypeError, r"inertia_trace must be a number"),
+    "inertia_trace-text": ({"inertia_trace": "1"}, TypeError, r"inertia_trace must be a number"),
+    "known_moment-negative": ({"known_moment": (2, -1.0)}, ValueError, r"known_moment's moment I_kk"),
+    "known_moment-zero": ({"known_moment": (2, 0.0)}, ValueError, r"known_moment's moment I_kk"),
+    "known_moment-nan": ({"known_moment": (2, nan)}, ValueError, r"known_moment's moment I_kk"),
+    "known_moment-index-5": ({"known_moment": (5, 1.0)}, ValueError, r"index 5, which is out of range"),
+    "known_moment-index-negative": (
+        {"known_moment": (-1, 1.0)},
+        ValueError,
+        r"index -1, which is out of range",
+    ),
+    "known_moment-index-float": (
+        {"known_moment": (2.0, 1.0)},
+        ValueError,
+        r"index 2.0, which is not an integer",
+    ),
+    "known_moment-not-a-pair": ({"known_moment": 2.5}, ValueError, r"known_moment must be \(k, I_kk\)"),
+    "both-scales": ({"inertia_trace": 1.0, "known_moment": (0, 1.0)}, ValueError, "at most one scale"),
+    "steps-zero": ({"steps": 0}, ValueError, r"steps must be a positive integer"),
+    "steps-negative": ({"steps": -5}, ValueError, r"steps must be a positive integer"),
+    "steps-float": ({"steps": 10.5}, ValueError, r"steps must be a positive integer"),
+    "tol-negative": ({"tol": -1e-9}, ValueError, r"tol must be a non-negative finite"),
+    "tol-nan": ({"tol": nan}, ValueError, r"tol must be a non-negative finite"),
+    "f_scale-zero": ({"f_scale": 0.0}, ValueError, r"f_scale must be a positive finite"),
+    "loss-unknown": ({"loss": "l1"}, ValueError, r"loss must be one of"),
+    "method-unknown": ({"method": "newton"}, ValueError, r"method must be one of"),
+    "optimizer-with-lm": (
+        {"method": "levenberg-marquardt", "optimizer": object()},
+        ValueError,
+        r"optimizer is used only with method='optax'",
+    ),
+    "optimizer-not-optax": ({"optimizer": "adam"}, TypeError, r"optimizer must be an optax"),
+    "callback-not-callable": ({"callback": 3}, TypeError, r"callback must be callable"),
+    "dtype-int": ({"dtype": np.int32}, ValueError, r"dtype must be a floating dtype"),
+    "dtype-garbage": ({"dtype": "float99"}, TypeError, r"dtype must be a floating dtype"),
+    "full_tensor-not-bool": ({"full_tensor": "yes"}, TypeError, r"full_tensor must be True or False"),
+    "segments-zero": ({"segments": 0}, ValueError, r"segments must be a positive integer or 'auto'"),
+    "segments-negative": ({"segments": -2}, ValueError, r"segments must be a positive integer or 'auto'"),
+    "segments-float": ({"segments": 2.0}, ValueError, r"segments must be a positive integer or 'auto'"),
+    "segments-over-samples": ({"segments": 41}, ValueError, r"segments=41 is too many for 41 samples"),
+    "inertia_init-negative": (
+        {"inertia_init": np.array([-1.0, 2.0, 2.5])},
+        ValueError,
+        "inertia_init has a non-positive principal moment",
+    ),
+    "inertia_init-nan": ({"inertia_init": with_value(I3, nan)}, ValueError, "inertia_init contains NaN"),
+    "inertia_init-triangle": (
+        {"inertia_init": np.array([1.0, 1.0, 3.0])},
+        ValueError,
+        "inertia_init violates the triangle inequality",
+    ),
+    "inertia_init-shape": (
+        {"inertia_init": np.ones(4)},
+        ValueError,
+        r"inertia_init must be principal moments",
+    ),
+    "inertia_init-tensor-shape": (
+        {"inertia_init": I3, "full_tensor": True},
+        ValueError,
+        r"inertia_init must be a \(3, 3\) tensor",
+    ),
+    "inertia_init-asymmetric": (
+        {"inertia_init": TENSOR + np.triu(np.ones((3, 3)), 1), "full_tensor": True},
+        ValueError,
+        "inertia_init is not symmetric",
+    ),
+    "omega0_init-shape": ({"omega0_init": np.ones(4)}, ValueError, r"omega0_init must have shape \(3,\)"),
+    "omega0_init-segments": (
+        {"omega0_init": np.ones((3, 3)), "segments": 2},
+        ValueError,
+        r"omega0_init must have shape \(3,\) or \(2, 3\)",
+    ),
+    "omega0_init-nan": ({"omega0_init": with_value(W, nan)}, ValueError, "omega0_init contains NaN"),
+}
+_FIT_ONLY_GYRO = {
+    "noise-text": (
+        {"noise": "loud"},
+        ValueError,
+        r"noise must be a number, three numbers \(rad/s\) or 'equal'",
+    ),
+    "noise-shape": ({"noise": np.ones(2)}, ValueError, r"noise must be a scalar or have shape \(3,\)"),
+    "noise-negative": ({"noise": -0.1}, ValueError, "noise must be positive finite"),
+}
+_FIT_ONLY_ORIENTATION = {
+    "orientation0_init-shape": (
+        {"orientation0_init": np.ones(3)},
+        ValueError,
+        r"orientation0_init must have shape \(4,\)",
+    ),
+    "orientation0_init-zero": (
+        {"orientation0_init": np.zeros(4)},
+        ValueError,
+        "orientation0_init has a zero",
+    ),
+    "orientation0_init-nan": (
+        {"orientation0_init": with_value(Q, nan)},
+        ValueError,
+        "orientation0_init contains NaN",
+    ),
+}
+_FIT_OPTION_PARAMS = [
+    pytest.param(fn, case, kw, err, match, id=f"{fn}-{case}")
+    for fn in _FIT_FNS
+    for case, (kw, err, match) in {
+        **FIT_OPTION_CASES,
+        **(_FIT_ONLY_GYRO if fn == "fit_inertia" else _FIT_ONLY_ORIENTATION),
+    }.items()
+]
+
+
+@pytest.mark.parametrize(("fn", "case", "kwargs", "error", "match"), _FIT_OPTION_PARAMS)
+def test_fit_rejects_bad_options_before_any_work(
+    fn, case, kwargs, error, match, monkeypatch, without_runtime_typecheck
+):
+    """Each bad option is named before the optimiser is compiled: the compiled fit is replaced by a
+    function that fails the test, so a check that came too late (or not at all) cannot pass. (The
+    test run's annotation checker is off: users do not have it, and rigidjax's own message is the
+    one to check.)"""
+    from rigidjax._fit import fit as fit_module
+
+    def no_fit(*args, **kw):
+        raise AssertionError(f"{case}: the fit ran instead of rejecting the option")
+
+    monkeypatch.setattr(fit_module, "_run", no_fit)
+    with pytest.raises(error, match=match):
+        _FIT_FNS[fn](**kwargs)
+
+
+class _FitReached(Exception):
+    pass
+
+
+def _stop_at_the_fit(monkeypatch):
+    from rigidjax._fit import fit as fit_module
+
+    def reached(*args, **kw):
+        raise _FitReached
+
+    monkeypatch.setattr(fit_module, "_run", reached)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"inertia_trace": np.float32(2.5)},
+        {"inertia_trace": 3},
+        {"known_moment": [np.int64(2), 2.5]},
+        {"known_moment": (0, np.float64(1e-3))},
+        {"steps": np.int32(5), "tol": 0.0, "f_scale": 0.1, "dtype": "float64"},
+        {
+            "segments": np.int64(3),
+            "omega0_init": np.ones((3, 3)),
+            "inertia_init": TENSOR,
+            "full_tensor": True,
+        },
+        {"method": "levenberg-marquardt", "noise": [0.1, 0.2, 0.3]},
+        {"segments": 20},
+    ],
+)
+def test_fit_accepts_good_options(kwargs, monkeypatch, without_runtime_typecheck):
+    """The option checks let every valid spelling through to the optimiser (stopped there)."""
+    _stop_at_the_fit(monkeypatch)
+    with pytest.raises(_FitReached):
+        rj.fit_inertia(_TS_FIT, _W_FIT, **kwargs)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    value=st.one_of(st.floats(max_value=0.0), st.sampled_from([nan, inf, -inf])),
+    index=st.integers(min_value=-10, max_value=10),
+)
+def test_fit_scale_options_reject_every_bad_value(value, index):
+    """Generated: any non-positive or non-finite scale, any index outside 0..2, is named."""
+    with pytest.raises(ValueError, match="inertia_trace must be a positive finite number"):
+        rj.fit_inertia(_TS_FIT, _W_FIT, inertia_trace=value)
+    with pytest.raises(ValueError, match="known_moment"):
+        rj.fit_inertia(_TS_FIT, _W_FIT, known_moment=(index, value))
+    if not 0 <= index <= 2:
+        with pytest.raises(ValueError, match=f"index {index}, which is out of range"):
+            rj.fit_inertia(_TS_FIT, _W_FIT, known_moment=(index, 1.0))

@@ -11,6 +11,7 @@ a pivot included, for orientation records) the torque fixes the scale, a log-sca
 fitted, and the forward model is Dopri8 (rtol 1e-10, scaled units) instead of the closed form.
 """
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -46,25 +47,90 @@ def _known_torques(torque, inertia_trace, known_moment, *, orientation_data: boo
     return torques
 
 
-def _check_options(loss, method, optimizer, inertia_trace, known_moment):
-    """The optimiser's name (``"optax"`` by default), with the loss and the scale checked."""
-    if loss not in _LOSSES:
+def _is_integer(x) -> bool:
+    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
+
+
+def _positive_number(value, name: str, what: str, *, allow_zero: bool = False) -> float:
+    """``value`` as a Python float; a ``TypeError`` unless it is one real number, a ``ValueError``
+    naming ``name`` unless it is finite and positive (or zero, with ``allow_zero``)."""
+    kind = np.asarray(value).dtype.kind if not isinstance(value, str) else "U"
+    if isinstance(value, bool | np.bool_) or np.ndim(value) != 0 or kind not in "iuf":
+        raise TypeError(f"{name} must be a number ({what}), got {value!r}.")
+    number = float(value)
+    low_ok = number >= 0 if allow_zero else number > 0
+    if not (math.isfinite(number) and low_ok):
+        sign = "non-negative" if allow_zero else "positive"
+        raise ValueError(f"{name} must be a {sign} finite number ({what}), got {number!r}.")
+    return number
+
+
+def _check_known_moment(known_moment):
+    """``(k, I_kk)`` checked: an axis index 0, 1 or 2 and a positive finite moment."""
+    usage = "known_moment must be (k, I_kk): a sensor axis index k (0, 1 or 2) and its moment I_kk (kg m^2)"
+    if isinstance(known_moment, str) or not isinstance(known_moment, tuple | list) or len(known_moment) != 2:
+        raise ValueError(f"{usage}; got {known_moment!r}.")
+    axis, value = known_moment
+    if not _is_integer(axis):
+        raise ValueError(f"{usage}; got the index {axis!r}, which is not an integer.")
+    if not 0 <= axis <= 2:
+        raise ValueError(f"{usage}; got the index {axis}, which is out of range.")
+    value = _positive_number(value, "known_moment's moment I_kk", "kg m^2")
+    return int(axis), value
+
+
+def _check_options(
+    loss, method, optimizer, inertia_trace, known_moment, *, steps, tol, f_scale, dtype, callback, full_tensor
+):
+    """Every option of a fit checked before any work: returns ``(method, steps, inertia_trace,
+    known_moment, dtype)`` with the defaults filled in (``"optax"``; 200 or 2000 steps)."""
+    if not isinstance(loss, str) or loss not in _LOSSES:
         raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}.")
     if method is None:
         method = "optax"
-    if method not in _METHODS:
+    if not isinstance(method, str) or method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}.")
+    if optimizer is not None:
+        if method != "optax":
+            raise ValueError(f"optimizer is used only with method='optax', not {method!r}; drop one of them.")
+        if not (callable(getattr(optimizer, "init", None)) and callable(getattr(optimizer, "update", None))):
+            raise TypeError(
+                f"optimizer must be an optax GradientTransformation (e.g. optax.lbfgs()), got "
+                f"{type(optimizer).__name__}."
+            )
+    if not isinstance(full_tensor, bool | np.bool_):
+        raise TypeError(f"full_tensor must be True or False, got {full_tensor!r}.")
     if inertia_trace is not None and known_moment is not None:
         raise ValueError("Give at most one scale: inertia_trace or known_moment, not both.")
-    return method
+    if inertia_trace is not None:
+        inertia_trace = _positive_number(inertia_trace, "inertia_trace", "the trace of the inertia, kg m^2")
+    if known_moment is not None:
+        known_moment = _check_known_moment(known_moment)
+    if steps is None:
+        steps = 200 if method == "levenberg-marquardt" else 2000
+    elif not _is_integer(steps) or steps < 1:
+        raise ValueError(f"steps must be a positive integer (the iteration limit), got {steps!r}.")
+    _positive_number(tol, "tol", "the relative tolerance on the loss", allow_zero=True)
+    if f_scale is not None:
+        _positive_number(f_scale, "f_scale", "the robust loss's scale, in the units of the residual")
+    if callback is not None and not callable(callback):
+        raise TypeError(f"callback must be callable as callback(iteration, loss), got {callback!r}.")
+    if dtype is None:
+        dtype = jnp.result_type(float)
+    else:
+        try:
+            dtype = np.dtype(dtype)
+        except TypeError:
+            raise TypeError(f"dtype must be a floating dtype (float32 or float64), got {dtype!r}.") from None
+        if not np.issubdtype(dtype, np.floating):
+            raise ValueError(f"dtype must be a floating dtype (float32 or float64), got {dtype}.")
+    return method, int(steps), inertia_trace, known_moment, dtype
 
 
 def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, callback, scale):
     """Runs the optimiser on a prepared problem and returns the fit in the user's units, with
     standard errors from the covariance of the scaled parameters."""
     problem = data.problem
-    if steps is None:
-        steps = 200 if method == "levenberg-marquardt" else 2000
     if method == "optax" and optimizer is None:
         optimizer = _default_optimizer()
     p0 = jnp.asarray(data.p0, dtype)
@@ -216,8 +282,19 @@ def fit_inertia(
     **Returns:** an :class:`InertiaFit` (``orientation0`` is None).
     """
     ts, omega = _check_data(ts, omega_observed)
-    method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
-    dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    method, steps, inertia_trace, known_moment, dtype = _check_options(
+        loss,
+        method,
+        optimizer,
+        inertia_trace,
+        known_moment,
+        steps=steps,
+        tol=tol,
+        f_scale=f_scale,
+        dtype=dtype,
+        callback=callback,
+        full_tensor=full_tensor,
+    )
     torques = _known_torques(torque, inertia_trace, known_moment, orientation_data=False)
     data = _prepare_omega(
         ts,
@@ -293,8 +370,19 @@ def fit_inertia_to_orientation(
     the body axes).
     """
     ts, q = _check_quaternions(ts, orientation_observed)
-    method = _check_options(loss, method, optimizer, inertia_trace, known_moment)
-    dtype = np.dtype(dtype) if dtype is not None else jnp.result_type(float)
+    method, steps, inertia_trace, known_moment, dtype = _check_options(
+        loss,
+        method,
+        optimizer,
+        inertia_trace,
+        known_moment,
+        steps=steps,
+        tol=tol,
+        f_scale=f_scale,
+        dtype=dtype,
+        callback=callback,
+        full_tensor=full_tensor,
+    )
     torques = _known_torques(torque, inertia_trace, known_moment, orientation_data=True)
     data = _prepare_orientation(
         ts,

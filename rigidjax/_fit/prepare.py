@@ -8,7 +8,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .data import _align_signs, omega_from_orientations
+from .._checks import _NOT_FINITE, _NOT_POSITIVE, _NOT_SYMMETRIC, _OK, _TRIANGLE, _inertia_failure
+from .data import _align_signs, _real_array, omega_from_orientations
 from .estimate import _dominant_period, _estimate, _torque_estimate
 from .problem import _inertia_params, _Problem
 
@@ -62,7 +63,14 @@ def _prepare_omega(
     elif isinstance(noise, str) and noise == "equal":
         sigma = np.ones(3)
     else:
-        sigma = np.broadcast_to(np.asarray(noise, float), (3,))
+        if isinstance(noise, str):
+            raise ValueError(f"noise must be a number, three numbers (rad/s) or 'equal', got {noise!r}.")
+        sigma = _real_array(noise, "noise")
+        if sigma.shape not in ((), (1,), (3,)):
+            raise ValueError(
+                f"noise must be a scalar or have shape (3,) (rad/s per axis), got {sigma.shape}."
+            )
+        sigma = np.broadcast_to(sigma, (3,))
         if not np.all(np.isfinite(sigma) & (sigma > 0)):
             raise ValueError(f"noise must be positive finite standard deviations (rad/s), got {noise!r}.")
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
@@ -119,13 +127,14 @@ def _prepare_orientation(
     inertia_start, scale_start = _start_inertia(ts, estimate, torques, inertia_init, full_tensor, q_aligned)
     w0 = _window_start_values(windows, estimate.smoothed, omega_fd, omega0_init, segments, "omega0_init")
     if orientation0_init is not None:
-        q_ref = np.asarray(orientation0_init, float).reshape(-1, 4)
-        if q_ref.shape[0] != segments:
+        q_ref = _per_window(orientation0_init, segments, "orientation0_init", 4)
+        norm = np.linalg.norm(q_ref, axis=1, keepdims=True)
+        if np.any(norm < 1e-6):
             raise ValueError(
-                f"orientation0_init must have shape (4,) or ({segments}, 4), "
-                f"got {np.shape(orientation0_init)}."
+                "orientation0_init has a zero quaternion: a starting orientation must be a unit "
+                "quaternion (w, x, y, z), e.g. (1, 0, 0, 0) for the identity."
             )
-        q_ref = q_ref / np.linalg.norm(q_ref, axis=1, keepdims=True)
+        q_ref = q_ref / norm
     else:
         q_ref = np.stack([q_aligned[a + int(np.argmax(valid_rows[a:b]))] for a, b in windows])
     omega_scale = float(np.sqrt(np.nanmean(np.sum(omega_fd**2, axis=1)))) or 1.0
@@ -179,48 +188,82 @@ def _windows(ts, valid_rows, segments, n_params):
 
 def _resolve_segments(segments, ts, omega):
     """The number of windows: ``segments``, checked, or for ``"auto"`` about one per wobble."""
-    if segments == "auto":
+    if isinstance(segments, str) and segments == "auto":
         # About one dominant oscillation per window: short enough that a poor start's frequency
         # error cannot slip by a whole cycle within a window, long enough to see the cycle.
         period = _dominant_period(ts, omega)
         segments = int(np.clip(round((ts[-1] - ts[0]) / period), 1, max(1, ts.shape[0] // 8)))
     if not (isinstance(segments, int | np.integer) and not isinstance(segments, bool) and segments >= 1):
         raise ValueError(f"segments must be a positive integer or 'auto', got {segments!r}.")
+    if segments > max(ts.shape[0] // 2, 1):
+        raise ValueError(
+            f"segments={segments} is too many for {ts.shape[0]} samples: each window needs at least 2 "
+            f"samples, so at most {ts.shape[0] // 2} windows (or segments='auto')."
+        )
     return int(segments)
 
 
 def _start_inertia(ts, estimate, torques, inertia_init, full_tensor, orientations=None):
     """The starting inertia with trace 1, and with a known torque the starting trace (kg m^2)."""
     inertia, scale_start = estimate.inertia, None
+    init = None if inertia_init is None else _check_inertia_init(inertia_init, full_tensor)
     if torques is not None:
-        if inertia_init is None:
+        if init is None:
             inertia, scale_start = _torque_estimate(
                 ts, estimate.raw_fits, torques, full_tensor, inertia, orientations
             )
         else:
-            init = np.asarray(inertia_init, float)
-            scale_start = float(np.trace(init) if init.ndim == 2 else init.sum())
-    return _inertia_start(inertia_init, inertia, full_tensor), scale_start
+            scale_start = float(np.trace(init) if full_tensor else init.sum())
+    return _inertia_start(init, inertia, full_tensor), scale_start
 
 
-def _inertia_start(inertia_init, estimate, full_tensor):
-    """``inertia_init`` (checked) or the estimate, normalised to trace 1."""
-    if inertia_init is None:
-        return estimate
-    start = np.asarray(inertia_init, float)
+_INERTIA_PROBLEMS = {
+    _TRIANGLE: "violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal moments",
+    _NOT_POSITIVE: "has a non-positive principal moment",
+    _NOT_SYMMETRIC: "is not symmetric",
+    _NOT_FINITE: "contains NaN or inf",
+}
+
+
+def _check_inertia_init(inertia_init, full_tensor):
+    """``inertia_init`` as a float array of the fit's shape, checked to be a physical inertia."""
+    start = _real_array(inertia_init, "inertia_init")
     expected = (3, 3) if full_tensor else (3,)
     if start.shape != expected:
-        raise ValueError(f"inertia_init must have shape {expected}, got {start.shape}.")
-    return start / (np.trace(start) if full_tensor else start.sum())
+        form = "a (3, 3) tensor (full_tensor=True)" if full_tensor else "principal moments (3,)"
+        raise ValueError(f"inertia_init must be {form}, got shape {start.shape}.")
+    code = int(_inertia_failure(start))
+    if code != _OK:
+        raise ValueError(
+            f"inertia_init {_INERTIA_PROBLEMS[code]}: it is not the inertia of a rigid body; got "
+            f"{start.tolist()}. Any positive scale will do (only ratios matter)."
+        )
+    return start
+
+
+def _inertia_start(init, estimate, full_tensor):
+    """The checked ``inertia_init`` or the estimate, normalised to trace 1."""
+    if init is None:
+        return estimate
+    return init / (np.trace(init) if full_tensor else init.sum())
+
+
+def _per_window(init, segments, name, size):
+    """A starting value per window: ``init`` of shape ``(size,)`` or ``(segments, size)``, finite."""
+    values = _real_array(init, name)
+    if values.shape == (size,):
+        values = values[None]
+    if values.shape != (segments, size):
+        raise ValueError(f"{name} must have shape ({size},) or ({segments}, {size}), got {values.shape}.")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{name} contains NaN or inf; a starting value must be finite.")
+    return values
 
 
 def _window_start_values(windows, smoothed, fallback, init, segments, name):
     """``init`` per window (checked), or the first complete smoothed (else raw) sample of each."""
     if init is not None:
-        values = np.asarray(init, float).reshape(-1, 3)
-        if values.shape[0] != segments:
-            raise ValueError(f"{name} must have shape (3,) or ({segments}, 3), got {np.shape(init)}.")
-        return values
+        return _per_window(init, segments, name, 3)
     values = []
     for a, b in windows:
         rows = [r for r in range(a, b) if np.all(np.isfinite(smoothed[r]))]
