@@ -318,7 +318,9 @@ def test_bench_rejects_unknown_method():
 
 def test_cli_uses_public_rigidjax_names_only():
     """The command line imports rigidjax as a user would: ``import rigidjax as rj``, no private module,
-    no ``rj._name`` and no top-level name that has moved (those warn)."""
+    no ``rj._name`` and no top-level name that has moved (those warn). One exception, in
+    ``common.py`` only: the atomic file writer of ``Trajectory.save`` (``_integrate/storage.py``), so
+    that the commands' output files are written by the same code rather than a copy of it."""
     import ast
     import warnings
     from pathlib import Path
@@ -327,6 +329,8 @@ def test_cli_uses_public_rigidjax_names_only():
     for path in sorted(package.glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.ImportFrom):
+                if (path.name, node.level, node.module) == ("common.py", 2, "_integrate.storage"):
+                    continue
                 assert node.level in (0, 1), f"{path.name}: import from outside the CLI package"
                 assert node.level == 1 or not (node.module or "").startswith("rigidjax"), path.name
             if isinstance(node, ast.Import):
@@ -337,3 +341,111 @@ def test_cli_uses_public_rigidjax_names_only():
                 with warnings.catch_warnings():
                     warnings.simplefilter("error", DeprecationWarning)
                     getattr(rigidjax, name)
+
+
+# ---------------------------------------------------------------------------------------------
+# Nothing lost on disk: output paths checked before the run, atomic writes, Ctrl-C
+
+
+def _fail_if_run(*args, **kwargs):
+    raise AssertionError("the job started before its output paths were checked")
+
+
+def _assert_one_line_error(code, out, err, command, message):
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith(f"rigidjax {command}: error: "), err
+    assert message in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--out", "missing/x.npz"], "--out: cannot write 'missing/x.npz': the directory"),
+        (["--out", "x.csv"], "--out 'x.csv': the file name must end in .npz"),
+        (["--out", "result"], "--out 'result': the file name must end in .npz"),
+        (["--out", "adir.npz"], "--out: 'adir.npz' is a directory"),
+        (["--plot", "missing/x.png"], "--plot: cannot write 'missing/x.png': the directory"),
+        (["--plot", "x.txt"], "--plot 'x.txt': the file name must end in .png or .pdf or .svg"),
+    ],
+)
+def test_simulate_checks_output_paths_before_the_run(tmp_path, monkeypatch, options, message):
+    """``--out missing_dir/x.npz`` once ran the whole job, then died with a raw FileNotFoundError."""
+    from rigidjax._cli import simulate as cli_simulate
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "adir.npz").mkdir()
+    monkeypatch.setattr(cli_simulate, "plan_run", _fail_if_run)
+    code, out, err = _run(["simulate", *options])
+    _assert_one_line_error(code, out, err, "simulate", message)
+
+
+def test_simulate_skipped_outputs_are_not_checked(tmp_path, monkeypatch):
+    """``--out ''`` and ``--no-plot`` write nothing, so their paths are not checked."""
+    from rigidjax._cli import simulate as cli_simulate
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli_simulate, "plan_run", _fail_if_run)
+    with pytest.raises(AssertionError, match="the job started"):
+        _run(["simulate", "--out", "", "--plot", "missing/x.txt", "--no-plot"])
+
+
+def test_bench_checks_its_json_path_before_the_run(tmp_path, monkeypatch):
+    from rigidjax._cli import bench as cli_bench
+
+    monkeypatch.setattr(cli_bench, "tennis_racket_scene", _fail_if_run)
+    code, out, err = _run(["bench", "--json", str(tmp_path / "missing" / "b.json")])
+    _assert_one_line_error(code, out, err, "bench", "--json: cannot write")
+    code, out, err = _run(["bench", "--json", str(tmp_path / "b.txt")])
+    _assert_one_line_error(code, out, err, "bench", "the file name must end in .json")
+
+
+def test_ctrl_c_exits_130_with_one_line(monkeypatch, tmp_path):
+    from rigidjax._cli import simulate as cli_simulate
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli_simulate, "plan_run", interrupted)
+    code, out, err = _run(["simulate", "-q"])
+    assert code == 130 and out == ""
+    assert err == "rigidjax simulate: interrupted (Ctrl-C); no output file is left half-written.\n"
+
+
+def test_ctrl_c_while_writing_leaves_the_old_file(tmp_path, monkeypatch):
+    """An interrupted write of the .npz (the writer of Trajectory.save, here interrupted halfway)
+    leaves the previous file intact and no temporary file behind. The same small float32 run as
+    test_quiet_prints_nothing (no new compile)."""
+    from rigidjax._integrate import storage
+
+    def half_then_interrupt(file, arrays):
+        file.write(b"PK\x03\x04 half an archive")
+        raise KeyboardInterrupt
+
+    out_path = tmp_path / "q.npz"
+    out_path.write_bytes(b"the previous result")
+    monkeypatch.setattr(storage, "_write_arrays", half_then_interrupt)
+    argv = ["simulate", "--scene", "free", "-n", "5", "--duration", "1", "--samples", "10"]
+    argv += ["--dtype", "float32", "--out", str(out_path), "--no-plot", "--quiet"]
+    code, out, err = _run(argv)
+    assert code == 130 and "interrupted (Ctrl-C)" in err
+    assert out_path.read_bytes() == b"the previous result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["q.npz"]
+
+
+def test_interrupted_text_and_figure_writes_leave_nothing(tmp_path):
+    """The JSON and figure writers of the commands: the old file or the complete new one."""
+    from rigidjax._cli.common import write_figure, write_text
+
+    class Figure:
+        def savefig(self, handle, format, dpi):
+            assert format == "png"
+            handle.write(b"\x89PNG partial")
+            raise KeyboardInterrupt
+
+    target = tmp_path / "result.json"
+    write_text(str(target), '{"old": 1}')
+    with pytest.raises(KeyboardInterrupt):
+        write_figure(str(tmp_path / "plot.png"), Figure())
+    assert target.read_text() == '{"old": 1}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json"]

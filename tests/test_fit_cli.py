@@ -93,3 +93,112 @@ def test_bad_options_are_named_on_stderr(tmp_path, capsys, options, message):
     assert run_fit([str(data), "--quiet", *options]) == 2
     captured = capsys.readouterr()
     assert message in captured.err and captured.out == ""
+
+
+@pytest.fixture
+def no_fit(monkeypatch):
+    """The fit replaced by a failure: a bad option must be reported before any fitting."""
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the fit ran instead of rejecting the command line")
+
+    monkeypatch.setattr(rj, "fit_inertia", fail)
+
+
+def _one_line_error(captured, message):
+    assert captured.out == ""
+    assert captured.err.count("\n") == 1 and captured.err.startswith("rigidjax fit: error: "), captured.err
+    assert message in captured.err and "Traceback" not in captured.err
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--trace", "-1"], "--trace must be a positive finite number (kg m^2), got -1.0"),
+        (["--trace", "0"], "--trace must be a positive finite number"),
+        (["--trace", "nan"], "--trace must be a positive finite number (kg m^2), got nan"),
+        (["--trace", "inf"], "--trace must be a positive finite number (kg m^2), got inf"),
+        (["--known-moment", "z", "-1"], "--known-moment: the moment must be a positive finite number"),
+        (["--known-moment", "z", "nan"], "--known-moment: the moment must be a positive finite number"),
+        (["--known-moment", "x", "0"], "--known-moment: the moment must be a positive finite number"),
+        (["--known-moment", "5", "1.0"], "--known-moment needs an axis (x, y, z) and a number, got '5'"),
+        (["--known-moment", "y", "big"], "--known-moment needs an axis (x, y, z) and a number"),
+        (["--trace", "2", "--known-moment", "z", "1"], "at most one scale"),
+        (["--segments", "0"], "--segments must be a positive integer or 'auto', got 0"),
+        (["--segments", "many"], "--segments must be a positive integer or 'auto', got 'many'"),
+    ],
+)
+def test_bad_scale_options_are_one_line_errors(tmp_path, capsys, no_fit, options, message):
+    """--trace -1 and --known-moment z -1 once fitted a negative inertia and exited 0."""
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), np.ones((12, 3)))
+    assert run_fit([str(data), "-q", *options]) == 2
+    _one_line_error(capsys.readouterr(), message)
+    assert not (tmp_path / "gyro_fit.json").exists()
+
+
+def test_short_quiet_flag_is_accepted(tmp_path, capsys):
+    """``-q`` is ``--quiet``, as for ``rigidjax simulate`` (it was an unrecognised argument)."""
+    data = tmp_path / "empty.csv"
+    data.write_text("t,wx,wy,wz\n")
+    assert run_fit([str(data), "-q"]) == 2
+    _one_line_error(capsys.readouterr(), "no data rows")
+
+
+def test_steps_must_be_positive(tmp_path, capsys, no_fit):
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), np.ones((12, 3)))
+    assert run_fit([str(data), "-q", "--steps", "0"]) == 2
+    assert "argument --steps: must be a positive integer, got 0" in capsys.readouterr().err
+
+
+def test_infinite_value_is_reported_with_its_row(tmp_path, capsys, no_fit):
+    omega = np.ones((12, 3))
+    omega[6, 2] = np.inf
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), omega)
+    assert run_fit([str(data), "-q"]) == 2
+    _one_line_error(capsys.readouterr(), "data row 7 has an infinite wz (inf)")
+
+
+@pytest.mark.parametrize(
+    "out, message",
+    [
+        ("missing/result", "--out: cannot write"),
+        ("missing/result.json", "the directory"),
+    ],
+)
+def test_output_paths_are_checked_before_the_fit(tmp_path, capsys, no_fit, out, message):
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), np.ones((12, 3)))
+    assert run_fit([str(data), "-q", "--out", str(tmp_path / out)]) == 2
+    captured = capsys.readouterr()
+    _one_line_error(captured, message)
+    assert "does not exist; create it first" in captured.err
+
+
+def test_unwritable_directory_is_reported(tmp_path, capsys, no_fit, monkeypatch):
+    """(The test runs as any user: the permission answer is replaced, not the file system's.)"""
+    import os
+
+    from rigidjax._integrate import storage
+
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), np.ones((12, 3)))
+    monkeypatch.setattr(storage.os, "access", lambda path, mode: False)
+    assert run_fit([str(data), "-q"]) == 2
+    _one_line_error(capsys.readouterr(), f"the directory {os.fspath(tmp_path)!r} is not writable")
+
+
+def test_ctrl_c_during_the_fit_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rj, "fit_inertia", interrupted)
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), np.ones((12, 3)))
+    (tmp_path / "gyro_fit.json").write_text("previous result")
+    assert run_fit([str(data), "-q"]) == 130
+    captured = capsys.readouterr()
+    assert captured.err.strip() == "rigidjax fit: interrupted (Ctrl-C); no output file is left half-written."
+    assert (tmp_path / "gyro_fit.json").read_text() == "previous result"

@@ -28,7 +28,7 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import StatusLine, bar, positive_float, positive_int
+from .common import StatusLine, bar, check_output, positive_float, positive_int, write_text
 
 METHODS = ("fast", "balanced", "precise", "exact")
 
@@ -111,6 +111,8 @@ def run(args) -> int:
         print(f"rigidjax bench: unknown --methods {bad}; choose from {','.join(METHODS)}", file=sys.stderr)
         return 2
     methods = list(dict.fromkeys(methods))
+    if args.json:
+        check_output(args.json, "--json", (".json",))  # before the run, so a typo cannot cost it
     inertia, omega0 = tennis_racket_scene(args.bodies, args.seed)
     dtype = jnp.dtype(args.dtype)
     calls = {
@@ -178,9 +180,11 @@ def run(args) -> int:
     print()
     print("The full comparison with other integrators: benchmarks/work_precision.py in the source tree.")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            meta = {k: getattr(args, k) for k in ("bodies", "duration", "dtype", "seed", "repeats")}
-            json.dump({**meta, "devices": [str(d) for d in jax.devices()], "rows": rows}, fh, indent=1)
+        meta = {k: getattr(args, k) for k in ("bodies", "duration", "dtype", "seed", "repeats")}
+        write_text(
+            args.json,
+            json.dumps({**meta, "devices": [str(d) for d in jax.devices()], "rows": rows}, indent=1),
+        )
     return 0
 
 
@@ -201,6 +205,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--repeats", type=positive_int, default=3, help="timed calls per setting after the first")
     p.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="simulation dtype")
     p.add_argument("--seed", type=int, default=0, help="seed of numpy.random.default_rng for the scene")
-    p.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    p.add_argument(
+        "--json", default=None, help="also write the rows to this .json file (checked before the run)"
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=run)

@@ -1,4 +1,5 @@
-"""Pieces the commands share: argument types, messages and progress lines on stderr, file sizes."""
+"""Pieces the commands share: argument types, output paths checked before a run and written
+atomically, messages and progress lines on stderr, file sizes."""
 
 from __future__ import annotations
 
@@ -6,6 +7,69 @@ import argparse
 import math
 import os
 import sys
+from collections.abc import Callable
+
+from .._integrate.storage import check_writable, write_atomic, write_file_atomic
+
+# The figure formats every command writes (matplotlib's savefig, chosen by the extension).
+FIGURE_EXTENSIONS = (".png", ".pdf", ".svg")
+
+
+class UsageError(Exception):
+    """A problem with the command line found before any work: one line on stderr, exit status 2."""
+
+
+def check_output(path: str, option: str, extensions: tuple[str, ...]) -> str:
+    """``path`` checked before the run: its extension is one of ``extensions`` and a file can be
+    created there (the directory exists and is writable); a :class:`UsageError` naming ``option``
+    otherwise."""
+    extension = os.path.splitext(path)[1].lower()
+    if extension not in extensions:
+        choices = " or ".join(extensions)
+        raise UsageError(f"{option} {path!r}: the file name must end in {choices}.")
+    try:
+        return check_writable(path, where=option)
+    except OSError as error:
+        raise UsageError(str(error)) from None
+
+
+def write_npz(path: str, arrays: dict) -> None:
+    """The arrays as an ``.npz`` at ``path``, atomically (the writer of ``Trajectory.save``)."""
+    write_atomic(path, arrays)
+
+
+def write_text(path: str, text: str) -> None:
+    """``text`` (UTF-8) at ``path``, atomically: the old file or the complete new one, never a part."""
+    write_file_atomic(path, lambda handle: handle.write(text.encode("utf-8")))
+
+
+def write_figure(path: str, fig) -> None:
+    """A matplotlib figure at ``path`` (format from the extension), atomically."""
+    extension = os.path.splitext(path)[1].lower().lstrip(".")
+    write_file_atomic(path, lambda handle: fig.savefig(handle, format=extension, dpi=110))
+
+
+def interrupted(command: str) -> int:
+    """The one line printed when Ctrl-C ends a command; returns the conventional exit status 130."""
+    fresh_line = "\n" if hasattr(sys.stderr, "isatty") and sys.stderr.isatty() else ""  # after a progress bar
+    print(
+        f"{fresh_line}rigidjax {command}: interrupted (Ctrl-C); no output file is left half-written.",
+        file=sys.stderr,
+        flush=True,
+    )
+    return 130
+
+
+def run_command(func: Callable, args) -> int:
+    """Runs a command's ``run(args)``: a :class:`UsageError` is one line on stderr (exit status 2),
+    Ctrl-C one line (exit status 130); neither shows a traceback."""
+    try:
+        return func(args)
+    except UsageError as error:
+        print(f"rigidjax {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return interrupted(args.command)
 
 
 def positive_int(text: str) -> int:

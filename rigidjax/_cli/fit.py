@@ -21,7 +21,7 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import bar
+from .common import UsageError, bar, check_output, positive_int, write_figure, write_text
 
 OMEGA_COLUMNS = ("t", "wx", "wy", "wz")
 QUATERNION_COLUMNS = ("t", "qw", "qx", "qy", "qz")
@@ -61,12 +61,21 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
     ts, omega = data[:, 0], data[:, 1:4]
     if not np.all(np.isfinite(ts)):
         row = int(np.argmin(np.isfinite(ts)))
-        raise DataError(f"{path}: the time in data row {row + 1} is missing or not a number.")
+        raise DataError(
+            f"{path}: the time in data row {row + 1} is missing or not a finite number ({ts[row]})."
+        )
     if ts.shape[0] > 1 and not np.all(np.diff(ts) > 0):
         row = int(np.argmin(np.diff(ts) > 0))
         raise DataError(
             f"{path}: time must increase strictly; data row {row + 2} (t = {ts[row + 1]}) does not come "
             f"after row {row + 1} (t = {ts[row]}). Sort the rows and drop duplicates."
+        )
+    infinite = np.isinf(omega)
+    if infinite.any():
+        row, column = (int(i[0]) for i in np.nonzero(infinite))
+        raise DataError(
+            f"{path}: data row {row + 1} has an infinite {OMEGA_COLUMNS[column + 1]} "
+            f"({omega[row, column]}); leave the cell empty (or write nan) for a missing sample."
         )
     if np.isfinite(omega).all(axis=1).sum() < 10:
         raise DataError(
@@ -123,8 +132,10 @@ def _plot(path: str, ts, omega, fit) -> None:
     axes[3].set_xlabel("t (s)")
     fig.suptitle("rigidjax fit: observed and fitted body-frame angular velocity")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        write_figure(path, fig)
+    finally:
+        plt.close(fig)
 
 
 def add_parser(subparsers) -> None:
@@ -143,7 +154,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--full-tensor", action="store_true", help="fit a full tensor (sensor axes not principal)")
     p.add_argument("--loss", default="squared", choices=("squared", "huber", "soft_l1", "cauchy"))
     p.add_argument("--method", default="optax", choices=("optax", "levenberg-marquardt"))
-    p.add_argument("--steps", type=int, default=None, help="iteration limit")
+    p.add_argument("--steps", type=positive_int, default=None, help="iteration limit")
     p.add_argument("--trace", type=float, default=None, help="known trace of the inertia (kg m^2)")
     p.add_argument(
         "--known-moment",
@@ -152,42 +163,73 @@ def add_parser(subparsers) -> None:
         default=None,
         help="known diagonal entry: sensor axis (x, y, z or 0, 1, 2) and its value (kg m^2)",
     )
-    p.add_argument("--out", default=None, help="output stem (default: the data file's stem + '_fit')")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="output stem: writes STEM.json and STEM.png, checked before the fit (a trailing .json or "
+        ".png is dropped; default: the data file's stem + '_fit')",
+    )
     p.add_argument("--no-plot", action="store_true", help="do not write the PNG")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     p.set_defaults(func=run)
+
+
+def _options(args) -> tuple[int | str, tuple[int, float] | None]:
+    """``--segments`` and ``--known-moment`` as fit_inertia takes them, with ``--trace`` checked; a
+    :class:`UsageError` naming the option otherwise."""
+    segments: int | str = args.segments
+    if segments != "auto":
+        try:
+            segments = int(segments)
+        except ValueError:
+            raise UsageError(f"--segments must be a positive integer or 'auto', got {segments!r}.") from None
+        if segments < 1:
+            raise UsageError(f"--segments must be a positive integer or 'auto', got {segments}.")
+    if args.trace is not None and not (math.isfinite(args.trace) and args.trace > 0):
+        raise UsageError(f"--trace must be a positive finite number (kg m^2), got {args.trace}.")
+    known_moment = None
+    if args.known_moment is not None:
+        axis_text, value_text = args.known_moment
+        axis = {"x": 0, "y": 1, "z": 2, "0": 0, "1": 1, "2": 2}.get(axis_text.strip().lower())
+        try:
+            value = float(value_text)
+        except ValueError:
+            value = None
+        if axis is None or value is None:
+            raise UsageError(
+                f"--known-moment needs an axis (x, y, z) and a number, got {axis_text!r} {value_text!r}."
+            )
+        if not (math.isfinite(value) and value > 0):
+            raise UsageError(
+                f"--known-moment: the moment must be a positive finite number (kg m^2), got {value}."
+            )
+        known_moment = (axis, value)
+    if args.trace is not None and known_moment is not None:
+        raise UsageError("give at most one scale: --trace or --known-moment, not both.")
+    return segments, known_moment
+
+
+def _outputs(args) -> tuple[str, str | None]:
+    """The JSON and figure paths (None with ``--no-plot``), checked before the fit."""
+    stem = args.out or os.path.splitext(args.data)[0] + "_fit"
+    if os.path.splitext(stem)[1].lower() in (".json", ".png"):
+        stem = os.path.splitext(stem)[0]
+    json_path = check_output(stem + ".json", "--out", (".json",))
+    png_path = None if args.no_plot else check_output(stem + ".png", "--out", (".png",))
+    return json_path, png_path
 
 
 def run(args) -> int:
     """The ``fit`` command: read the record, fit, print, write the JSON and the figure."""
     jax.config.update("jax_enable_x64", True)
 
+    segments, known_moment = _options(args)
+    json_path, png_path = _outputs(args)
     try:
         ts, omega = read_record(args.data)
     except DataError as error:
         print(f"rigidjax fit: error: {error}", file=sys.stderr)
         return 2
-    segments: int | str = args.segments
-    if segments != "auto":
-        try:
-            segments = int(segments)
-        except ValueError:
-            print(
-                f"rigidjax fit: error: --segments must be a positive integer or 'auto', got {segments!r}.",
-                file=sys.stderr,
-            )
-            return 2
-    known_moment = None
-    if args.known_moment is not None:
-        axis_text, value_text = args.known_moment
-        axis = {"x": 0, "y": 1, "z": 2}.get(axis_text.lower(), axis_text)
-        try:
-            known_moment = (int(axis), float(value_text))
-        except ValueError:
-            print(
-                "rigidjax fit: error: --known-moment needs an axis (x, y, z) and a number.", file=sys.stderr
-            )
-            return 2
     stream = sys.stderr
     if not args.quiet:
         stream.write(
@@ -245,7 +287,6 @@ def run(args) -> int:
     )
     print("\n".join(lines))
 
-    stem = args.out or os.path.splitext(args.data)[0] + "_fit"
     result = {
         "data": args.data,
         "inertia": inertia.tolist(),
@@ -265,13 +306,12 @@ def run(args) -> int:
         "seconds": seconds,
     }
     result = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
-    with open(stem + ".json", "w", encoding="utf-8") as handle:
-        json.dump(result, handle, indent=2)
-    written = [stem + ".json"]
-    if not args.no_plot:
+    write_text(json_path, json.dumps(result, indent=2))
+    written = [json_path]
+    if png_path is not None:
         try:
-            _plot(stem + ".png", ts, omega, fit)
-            written.append(stem + ".png")
+            _plot(png_path, ts, omega, fit)
+            written.append(png_path)
         except ImportError:
             print("(matplotlib is not installed: no figure; pip install 'rigidjax[plot]')", file=sys.stderr)
     print("wrote " + ", ".join(written))

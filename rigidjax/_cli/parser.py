@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import rigidjax as rj
 
 from . import bench, fit, simulate
+from .common import run_command
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,4 +34,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    return args.func(args)
+    return run_command(args.func, args)

@@ -43,7 +43,16 @@ import numpy as np
 import rigidjax as rj
 
 from .batch import Batch, Plan, plan_run, run_block, simulate_blocks
-from .common import file_size, info, positive_float, positive_int
+from .common import (
+    FIGURE_EXTENSIONS,
+    check_output,
+    file_size,
+    info,
+    positive_float,
+    positive_int,
+    write_figure,
+    write_npz,
+)
 from .scenes import DAY, SCENE_BUILDERS
 
 SCENES = tuple(SCENE_BUILDERS)
@@ -111,7 +120,7 @@ def _write_npz(plan: Plan, batch: Batch, args, summary: dict) -> None:
         save_every=np.array(plan.save_every),
         summary_json=np.array(json.dumps(summary)),
     )
-    np.savez(args.out, **arrays)
+    write_npz(args.out, arrays)
 
 
 def _plot(plan: Plan, batch: Batch, args) -> bool:
@@ -143,8 +152,10 @@ def _plot(plan: Plan, batch: Batch, args) -> bool:
     )
     fig.suptitle(f"rigidjax simulate --scene {args.scene}: {plan.scene.description}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(args.plot, dpi=110)
-    plt.close(fig)
+    try:
+        write_figure(args.plot, fig)
+    finally:
+        plt.close(fig)
     return True
 
 
@@ -198,6 +209,11 @@ def run(args) -> int:
     """The ``simulate`` command: plan, compile, simulate block by block, write, summarise."""
     if args.dtype == "float64" and not jax.config.read("jax_enable_x64"):
         jax.config.update("jax_enable_x64", True)  # before any array of this run is made
+    # Every output path is checked before the run, so a typo cannot cost the results.
+    if args.out:
+        check_output(args.out, "--out", (".npz",))
+    if args.plot and not args.no_plot:
+        check_output(args.plot, "--plot", FIGURE_EXTENSIONS)
     t_start = time.perf_counter()
     plan = plan_run(args)
     info(
@@ -299,7 +315,11 @@ def add_parser(subparsers) -> None:
         default=1024,
         help="bodies per shared-step chunk inside rigidjax.simulate",
     )
-    sim.add_argument("--out", default=DEFAULT_OUT, help="output .npz path ('' to skip)")
+    sim.add_argument(
+        "--out",
+        default=DEFAULT_OUT,
+        help="output .npz path ('' to skip); checked before the run, written atomically",
+    )
     sim.add_argument(
         "--save-every",
         type=_save_every,
@@ -314,7 +334,11 @@ def add_parser(subparsers) -> None:
         default="float32",
         help="dtype of the stored trajectories",
     )
-    sim.add_argument("--plot", default=DEFAULT_PLOT, help="output .png path (needs matplotlib)")
+    sim.add_argument(
+        "--plot",
+        default=DEFAULT_PLOT,
+        help="output figure path: .png, .pdf or .svg (needs matplotlib); checked before the run",
+    )
     sim.add_argument("--no-plot", action="store_true", help="do not write the figure")
     sim.add_argument("-q", "--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=run)

@@ -22,7 +22,8 @@ names:
 
 Loading rebuilds the scene with its public constructor (so a damaged file meets the usual checks) and
 checks that every array comes back with its dtype and shape. The write goes to a temporary file in the
-target's directory that replaces the target only once it is complete.
+target's directory that replaces the target only once it is complete (:func:`write_file_atomic`, which
+the ``rigidjax`` command uses for its own output files too).
 """
 
 import contextlib
@@ -31,8 +32,9 @@ import os
 import secrets
 import stat
 import warnings
+from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
-from typing import Any
+from typing import Any, BinaryIO
 
 import equinox as eqx
 import jax
@@ -189,25 +191,23 @@ def encode(traj: eqx.Module) -> dict[str, np.ndarray]:
     return enc.arrays
 
 
-def check_writable(path) -> str:
+def check_writable(path, where: str = "Trajectory.save") -> str:
     """``path`` as a string, after checking that a file can be created there: a ``FileNotFoundError``,
-    ``IsADirectoryError`` or ``PermissionError`` naming the path otherwise."""
+    ``IsADirectoryError`` or ``PermissionError`` whose message starts with ``where`` and names the
+    path otherwise."""
     path = os.fsdecode(os.fspath(path))
     if os.path.isdir(path):
         raise IsADirectoryError(
-            f"Trajectory.save: {path!r} is a directory; give a file path such as "
+            f"{where}: {path!r} is a directory; give a file path such as "
             f"{os.path.join(path, 'trajectory.npz')!r}."
         )
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise FileNotFoundError(
-            f"Trajectory.save: cannot write {path!r}: the directory {directory!r} does not exist; "
-            "create it first."
+            f"{where}: cannot write {path!r}: the directory {directory!r} does not exist; create it first."
         )
     if not os.access(directory, os.W_OK | os.X_OK):
-        raise PermissionError(
-            f"Trajectory.save: cannot write {path!r}: the directory {directory!r} is not writable."
-        )
+        raise PermissionError(f"{where}: cannot write {path!r}: the directory {directory!r} is not writable.")
     return path
 
 
@@ -224,17 +224,19 @@ def _open_temporary(directory: str, name: str) -> tuple[int, str]:
             return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666), tmp
         except FileExistsError:
             continue
-    raise FileExistsError(f"Trajectory.save: could not create a temporary file in {directory!r}.")
+    raise FileExistsError(f"could not create a temporary file in {directory!r} to write {name!r}.")
 
 
-def write_atomic(path: str, arrays: dict[str, np.ndarray]) -> None:
-    """Writes ``arrays`` as a ``.npz`` to a temporary file in ``path``'s directory, then moves it onto
-    ``path``: a reader sees the old file or the complete new one, never a part."""
+def write_file_atomic(path: str, write: Callable[[BinaryIO], object]) -> None:
+    """Calls ``write(file)`` on a temporary file in ``path``'s directory, then moves it onto ``path``:
+    a reader sees the old file or the complete new one, never a part. If ``write`` raises (or the
+    process is interrupted, ``KeyboardInterrupt`` included) the temporary file is removed and
+    ``path`` is untouched."""
     directory, name = os.path.split(os.path.abspath(path))
     fd, tmp = _open_temporary(directory, name)
     try:
         with os.fdopen(fd, "wb") as f:
-            _write_arrays(f, arrays)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         if os.path.isfile(path):  # an overwrite keeps the file's permissions
@@ -250,6 +252,11 @@ def write_atomic(path: str, arrays: dict[str, np.ndarray]) -> None:
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def write_atomic(path: str, arrays: dict[str, np.ndarray]) -> None:
+    """Writes ``arrays`` as a ``.npz`` (no pickles) through :func:`write_file_atomic`."""
+    write_file_atomic(path, lambda f: _write_arrays(f, arrays))
 
 
 # ---------------------------------------------------------------------------------------------
