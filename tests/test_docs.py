@@ -116,3 +116,18 @@ def test_extremes_page_shows_the_recorded_table(tmp_path):
     assert page.read_text() == f"head\n{extremes_table.BEGIN}\n| new |\n{extremes_table.END}\ntail\n"
     page.write_text("no markers")
     assert not extremes_table.insert_table("| new |\n", page)
+
+
+def test_readme_is_short_and_its_links_resolve():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.encode()) <= 10_000, f"README.md is {len(readme.encode())} bytes; keep it under 10 KB"
+    for command in (
+        'pip install -e ".[plot]" && rigidjax simulate',
+        'pip install -e ".[test]" && python -m pytest -q',
+        'python -m pytest -m "not slow"',
+    ):
+        assert command in readme, command
+    links = [link for link in re.findall(r"\]\(([^)#\s]+)", readme) if "://" not in link]
+    assert links
+    broken = [link for link in links if not (ROOT / link).exists()]
+    assert not broken, f"README.md links to missing files: {broken}"
