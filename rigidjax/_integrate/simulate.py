@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_model, check_state, check_times, check_times_shape, float_dtype, is_full_tensor
+from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, State
 from .._kinematics.euler import is_proper_sequence
@@ -36,7 +37,17 @@ def _exact(model, omega0, q0, ts):
     batch = batching.batch_shape(model, omega0, q0)
     inertia = jnp.broadcast_to(model.inertia, batch + (3,))
     omega0 = jnp.broadcast_to(omega0, batch + (3,))
-    if q0 is None:
+    if isinstance(model, HeavyTop):
+        inertia, com = _lagrange_checked(inertia, jnp.broadcast_to(model.com, batch + (3,)))
+        mass = jnp.broadcast_to(model.mass, batch)[..., None]
+        gravity = jnp.broadcast_to(model.gravity, batch)[..., None]
+        q0 = jnp.broadcast_to(q0, batch + (4,))
+        omega, orientation = lagrange_top_motion(
+            inertia[..., None, :], mass, com[..., None, :], gravity, omega0[..., None, :],
+            q0[..., None, :], ts - ts[0],
+        )  # fmt: skip
+        q_norm_error = jnp.max(jnp.abs(jnp.linalg.norm(orientation, axis=-1) - 1.0), axis=-1)
+    elif q0 is None:
         omega = torque_free_omega(inertia[..., None, :], omega0[..., None, :], ts - ts[0])
         orientation = q_norm_error = None
     else:
@@ -55,12 +66,90 @@ def _exact(model, omega0, q0, ts):
     )
 
 
+def _lagrange_failures(inertia, com):
+    """The conditions of Lagrange's top that ``inertia`` and ``com`` violate (elementwise masks).
+
+    ``|I1 - I2| <= 100 eps max(I1, I2)`` and ``|(com_x, com_y)| <= 100 eps |com|``: roundoff in moments
+    or positions computed by the user passes, a physical asymmetry does not.
+    """
+    tol = 100 * float(jnp.finfo(inertia.dtype).eps)
+    asymmetric = jnp.abs(inertia[..., 0] - inertia[..., 1]) > tol * jnp.maximum(
+        jnp.abs(inertia[..., 0]), jnp.abs(inertia[..., 1])
+    )
+    off_axis = jnp.hypot(com[..., 0], com[..., 1]) > tol * jnp.linalg.norm(com, axis=-1)
+    return asymmetric, off_axis
+
+
+_ASYMMETRIC = (
+    "accuracy='exact' for a HeavyTop is Lagrange's top: it needs equal transverse moments I1 = I2 "
+    "(inertia about the pivot, (I1, I1, I3) with body z the symmetry axis){}. Use "
+    "accuracy='precise' (or 'balanced') to integrate an asymmetric top."
+)
+_OFF_AXIS = (
+    "accuracy='exact' for a HeavyTop is Lagrange's top: it needs the centre of mass on the body z "
+    "axis, com = (0, 0, l) with l of either sign{}. Use accuracy='precise' (or 'balanced') to "
+    "integrate a top whose centre of mass is off the symmetry axis."
+)
+
+
+def _lagrange_checked(inertia, com):
+    """``inertia`` and ``com`` with the conditions of Lagrange's top checked at run time (traced values
+    under jit or grad; concrete ones are checked earlier, in :func:`_simulate_exact`)."""
+    asymmetric, off_axis = _lagrange_failures(inertia, com)
+    inertia = eqx.error_if(inertia, jnp.any(asymmetric), _ASYMMETRIC.format(""))
+    com = eqx.error_if(com, jnp.any(off_axis), _OFF_AXIS.format(""))
+    return inertia, com
+
+
+def _check_lagrange_top(model, state0):
+    """Trace-time checks of ``accuracy='exact'`` for a :class:`HeavyTop` (concrete values only)."""
+    if model.torques:
+        raise ValueError(
+            "accuracy='exact' for a HeavyTop is Lagrange's top under gravity alone; it has no closed "
+            "form with extra torques. Use accuracy='precise' (or 'balanced')."
+        )
+    if is_full_tensor(model.inertia):
+        raise ValueError(
+            "accuracy='exact' for a HeavyTop needs principal moments (..., 3) about the pivot, with "
+            "body z the symmetry axis; diagonalise the tensor with rigidjax.principal_axes and express "
+            "com and omega in those axes first."
+        )
+    if state0.orientation is None:
+        raise ValueError(
+            "HeavyTop needs an orientation: pass State(omega, orientation=q) with a unit quaternion q "
+            "(e.g. rigidjax.quat_from_euler(angles))."
+        )
+    try:
+        inertia = np.asarray(model.inertia, np.float64)
+        com = np.asarray(model.com, np.float64)
+    except jax.errors.TracerArrayConversionError:
+        return  # traced: checked at run time by _lagrange_checked
+    dtype = float_dtype(model.inertia, model.com)
+    asymmetric, off_axis = (
+        np.asarray(x) for x in _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
+    )
+    if np.any(asymmetric):
+        bad = np.broadcast_to(inertia, asymmetric.shape + (3,))[asymmetric][0]
+        raise ValueError(_ASYMMETRIC.format(f"; got I1 = {bad[0]:g}, I2 = {bad[1]:g}"))
+    if np.any(off_axis):
+        bad = np.broadcast_to(com, off_axis.shape + (3,))[off_axis][0]
+        raise ValueError(_OFF_AXIS.format(f"; got com = ({bad[0]:g}, {bad[1]:g}, {bad[2]:g})"))
+
+
 def _simulate_exact(model, state0, ts):
-    """``accuracy="exact"``: the closed-form torque-free solution, no integration."""
+    """``accuracy="exact"``: a closed form, no integration (torque-free bodies, Lagrange's top)."""
+    if isinstance(model, HeavyTop):
+        _check_lagrange_top(model, state0)
+        ts = check_times_shape(ts)
+        leaves = (model.inertia, model.mass, model.com, model.gravity)
+        dtype = float_dtype(state0.omega, state0.orientation, *leaves)
+        top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
+        return _exact(top, state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype))
     if not model.torque_free:
         raise ValueError(
-            "accuracy='exact' is the closed-form torque-free solution: it needs a FreeBody (or a "
-            f"RigidBody without torques), got {type(model).__name__} with torques or a field."
+            "accuracy='exact' is a closed form: for torque-free bodies (a FreeBody, or a RigidBody "
+            "without torques) and for Lagrange's top (a HeavyTop with I1 = I2 and the centre of mass on "
+            f"the body z axis); got {type(model).__name__} with torques or a field."
         )
     if is_full_tensor(model.inertia):
         raise ValueError(
@@ -156,11 +245,16 @@ def simulate(
       body) are integrated.
     - `ts`: strictly increasing sample times (s), shape ``(T,)``; ``ts[0]`` is the initial time.
     - `accuracy`: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8, 1e-8) or ``"precise"``
-      (Dopri8, 1e-11, a step on every sample time), or ``"exact"``: the closed-form torque-free
-      solution, no integration (FreeBody with principal moments; omega by Jacobi elliptic functions
-      and, when ``state0`` has an orientation, the orientation by Carlson's ``R_J``: see
-      :func:`rigidjax.torque_free_motion`). Accurate to roundoff at any time; the cost does not
-      grow with the duration. ``rigidjax.solvers.PRESETS`` lists the presets.
+      (Dopri8, 1e-11, a step on every sample time), or ``"exact"``: a closed form, no
+      integration. For a torque-free body with principal moments, omega by Jacobi elliptic
+      functions and, when ``state0`` has an orientation, the orientation by Carlson's ``R_J`` (see
+      :func:`rigidjax.torque_free_motion`). For Lagrange's top, a :class:`HeavyTop` with principal
+      moments ``I1 = I2`` about the pivot, the centre of mass on the body z axis (above or below
+      the pivot) and no extra torques, the nutation by Jacobi functions and the precession and
+      spin by third-kind integrals, including tops that pass through the vertical; any other
+      HeavyTop is a ``ValueError`` naming the condition it fails. Accurate to roundoff at any
+      time (up to the conditioning of the motion); the cost does not grow with the duration.
+      ``rigidjax.solvers.PRESETS`` lists the presets.
     - `solver`: any diffrax solver instead of the preset's; or a structure-preserving solver from
       ``rigidjax.solvers`` (:class:`RKMK`, :class:`LiePoissonSplitting`,
       :class:`HeavyTopSplitting`), which runs at the fixed step ``dt0``: each interval

@@ -1,0 +1,307 @@
+"""Lagrange's top in closed form: a heavy symmetric top (``I1 = I2`` about the pivot, centre of
+mass on the body z axis) under gravity along space -Z.
+
+Classical solution (Goldstein, Classical Mechanics, section 5.7; Whittaker, Analytical Dynamics,
+section 71) in a form that never goes through the 3-1-3 angles themselves. With ``A = I1``,
+``C = I3``, ``a = C w3 / A``, ``b = L_z / A`` and ``beta = 2 m g l / A``, ``u = cos theta`` obeys
+``du/dt^2 = f(u) = (1 - u^2)(alpha - beta u) - (b - a u)^2``, a cubic. Its coefficients are taken about
+the initial ``u0`` from body-frame quantities (``f(u0) = (e1 w2 - e2 w1)^2`` with ``e`` the body-frame
+vertical), so that nothing cancels for a fast top whose nutation is tiny. Factoring
+``f(u0 + x) = -(x - x1)(x - x2) g(u0 + x)`` with ``g`` linear and positive on the motion,
+``g(u0)`` is the largest root of a monic resolvent cubic that stays regular as ``beta -> 0``, and
+``x1 <= 0 <= x2`` (the turning circles) come from a quadratic whose discriminant is the nutation
+amplitude ``u2 - u1`` itself. Then ``u = u_s + sigma (u2 - u1) sn^2(lambda t + tau0 | m)``, expanded about
+the lower turning circle for a standing top and the upper one for a hanging top, so that
+``0 <= m < 1`` for either sign of ``l``; ``tau0`` enters by the addition theorem, as in
+:mod:`.torque_free`.
+
+The orientation is built from its Cayley-Klein halves ``w + i z = cos(theta/2) e^{i(phi + psi)/2}``
+and ``x + i y = sin(theta/2) e^{i(phi - psi)/2}``: their moduli are ``sqrt((1 +- u)/2)`` and their phases
+obey ``d(phi + k psi)/dt = k (w3 - a) + (b + k a) / (1 + k u)`` (``k = +-1``), whose integrals are
+Carlson ``R_F``/``R_J`` forms of the third kind, each singular only at its own pole (``u = -k``). A
+half whose pole is a turning point (a top started exactly upright, or swinging through the
+vertical) has ``b + k a = 0``: there the half is a signed Jacobi function times a uniformly
+rotating phase, smooth through the pole, where the 3-1-3 angles lock and jump by pi. The
+body-frame ``omega`` follows from ``(w1 + i w2) = (i/2)(h + i du/dt) / (conj(x + i y)(w + i z))``,
+``h = b - a u``, written so that it stays finite at either pole.
+"""
+
+import jax
+import jax.numpy as jnp
+
+from .._numerics import safe_norm
+from .carlson import _carlson_rf_rj
+from .elliptic import _ellipj_checked
+
+
+def _safe_div(num, den):
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+def _safe_sqrt(x):
+    """``sqrt(max(x, 0))`` with a zero (not infinite) derivative at 0."""
+    ok = x > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+
+def _unit(z):
+    """``z / |z|`` for a complex ``z``, 1 at ``z = 0`` (finite derivative there)."""
+    r2 = jnp.real(z) ** 2 + jnp.imag(z) ** 2
+    ok = r2 > 0
+    return jnp.where(ok, z / jnp.sqrt(jnp.where(ok, r2, 1.0)), jnp.ones_like(z))
+
+
+def _largest_root(c2, c1, c0):
+    """Largest root of ``G^3 + c2 G^2 + c1 G + c0`` whose roots are all real.
+
+    Trigonometric formula on the scaled cubic, polished by Newton steps without derivatives, then
+    one Newton step with them: the implicit-function derivative ``-dh / h'(G)`` of a simple root.
+    """
+    dtype = c2.dtype
+    scale = jnp.abs(c2) + jnp.sqrt(jnp.abs(c1)) + jnp.cbrt(jnp.abs(c0))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    s2, s1, s0 = (jax.lax.stop_gradient(c) for c in (c2 / scale, c1 / scale**2, c0 / scale**3))
+    p = s1 - s2 * s2 / 3
+    q = 2 * s2**3 / 27 - s2 * s1 / 3 + s0
+    r = _safe_sqrt(-p / 3)
+    ratio = jnp.clip(_safe_div(-q, 2 * r**3), -1.0, 1.0)
+    t = jnp.where(r > 0, 2 * r * jnp.cos(jnp.arccos(ratio) / 3), jnp.cbrt(-q))
+    g = t - s2 / 3
+
+    def newton(g, coeffs):
+        a2, a1, a0 = coeffs
+        value = ((g + a2) * g + a1) * g + a0
+        slope = (3 * g + 2 * a2) * g + a1
+        return g - _safe_div(value, slope)
+
+    for _ in range(3):
+        g_new = newton(g, (s2, s1, s0))
+        g = jnp.where(jnp.isfinite(g_new), g_new, g)
+    g = jax.lax.stop_gradient(g) * scale
+    return newton(g, (c2, c1, c0)).astype(dtype)
+
+
+def _third_kind(sn, cn, dn, m, p, n, n1, quarter=None):
+    """Reduced phase ``rho`` and ``G(rho) = int_0^rho dtau / (1 + n sn^2)`` of the point ``(sn, cn, dn)``.
+
+    The point fixes ``tau = rho + 2 j K`` (``|rho| <= K``); ``G(tau) = G(rho) + 2 j G(K)``. ``n1 = 1 + n``
+    is passed on its own (``n > -1``). Carlson forms (DLMF 19.25.5, 19.25.14) for ``sn^2 <= 1/2``, else
+    measured back from ``K`` so that the arguments stay accurate as ``p = 1 - m -> 0`` (the same
+    construction as in :mod:`.torque_free`). Near the pole (``n1 < 1/2``, a turning circle close to
+    the vertical) ``R_J``'s last argument would grow like ``1 / n1``; there the characteristic
+    ``N = -n`` is exchanged for ``N' = m / N`` (DLMF 19.7.9), which leaves the near-singular part as
+    an arctangent: ``G = -(N'/3) s^3 R_J(c^2, dn^2, 1, 1 - N' s^2) + atan2(s r, c dn) / r`` with
+    ``r = sqrt(n1 (1 - N'))``. Returns ``rho``, ``G(rho)`` and ``quarter = (K, G(K))``.
+    """
+    c, s = jnp.abs(cn), jnp.abs(sn)
+    sign_s = jnp.where(sn < 0, -1.0, 1.0).astype(sn.dtype)
+    sign_c = jnp.where(cn < 0, -1.0, 1.0).astype(sn.dtype)
+    direct = s * s <= 0.5
+    pc = jnp.where(p > 0, p, jnp.ones_like(p))
+    big_n = -n
+    near_pole = (n1 < 0.5) & (m <= 0.5 * big_n)
+    swapped = jnp.where(near_pole, _safe_div(m, big_n), 0.0)  # N'
+    r = _safe_sqrt(n1 * (1 - swapped))
+    r = jnp.where(r > 0, r, 1.0)
+    pole = c * c + n1 * s * s  # 1 + n sn^2 as a sum of nonnegative terms
+    plain = direct | near_pole
+    args = (
+        jnp.where(plain, c * c, pc * s * s),
+        dn * dn,
+        jnp.where(plain, jnp.ones_like(s), pc),
+        jnp.where(near_pole, 1 - swapped * s * s, jnp.where(direct, pole, pc * pole / n1)),
+    )
+    weight = n / n1 * pc / 3
+    if quarter is None:
+        last = jnp.where(near_pole, 1 - swapped, pc / n1)
+        extra = (jnp.zeros_like(pc), jnp.ones_like(pc), pc, last)
+        rf, rj = _carlson_rf_rj(
+            *(jnp.stack(jnp.broadcast_arrays(x, y)) for x, y in zip(args, extra, strict=True))
+        )
+        quarter_g = jnp.where(
+            near_pole, -(swapped / 3) * rj[1] + (jnp.pi / 2) / r, (rf[1] + weight * rj[1]) / n1
+        )
+        quarter = rf[1], quarter_g
+        rf, rj = rf[0], rj[0]
+    else:
+        rf, rj = _carlson_rf_rj(*args)
+    quarter_f, quarter_g = quarter
+    f = sign_s * jnp.where(plain, s * rf, quarter_f - c * rf)
+    g_pole = -(swapped / 3) * s**3 * rj + jnp.arctan2(s * r, c * dn) / r
+    g_plain = jnp.where(direct, s * rf - (n / 3) * s**3 * rj, quarter_g - (c * rf + weight * c**3 * rj) / n1)
+    g = sign_s * jnp.where(near_pole, g_pole, g_plain)
+    return sign_c * f, sign_c * g, quarter
+
+
+def _body(A, C, weight_l, omega0, q0):
+    """Everything that depends on the body only (not on time): roots, elliptic parameters, phases."""
+    dtype = omega0.dtype
+    q0 = q0 / safe_norm(q0, keepdims=True)
+    w, x, y, z = (q0[..., i] for i in range(4))
+    w1, w2, w3 = omega0[..., 0], omega0[..., 1], omega0[..., 2]
+    # e: the space vertical in body components (third row of R).
+    e1, e2 = 2 * (x * z - w * y), 2 * (y * z + w * x)
+    up, down = w * w + z * z, x * x + y * y  # (1 + u0) / 2 and (1 - u0) / 2, without cancellation
+    u0 = up - down
+    a = C * w3 / A
+    beta = 2 * weight_l / A
+    perp2 = w1 * w1 + w2 * w2  # alpha - beta u0
+    h = w1 * e1 + w2 * e2  # b - a u0
+    sin2 = 4 * up * down  # 1 - u0^2
+    udot = e1 * w2 - e2 * w1
+    # f(u0 + x) = f0 + f1 x + f2 x^2 + beta x^3.
+    f0 = udot * udot
+    f1 = 2 * a * h - 2 * u0 * perp2 - beta * sin2
+    f2 = 2 * u0 * beta - perp2 - a * a
+    # f(u0 + x) = -(x^2 + k1 x + k0) (G0 - beta x), G0 = g(u0) > 0 the largest root of the resolvent.
+    g0 = _largest_root(f2, beta * f1, beta * beta * f0)
+    k0 = -_safe_div(f0, g0)
+    k1 = -_safe_div(f1 + beta * _safe_div(f0, g0), g0)
+    amp = _safe_sqrt(k1 * k1 - 4 * k0)  # u2 - u1
+    big = -(k1 + jnp.where(k1 >= 0, amp, -amp)) / 2
+    small = _safe_div(k0, big)
+    x1 = jnp.where(k1 >= 0, big, small)
+    x2 = jnp.where(k1 >= 0, small, big)
+    x1, x2 = jnp.minimum(x1, 0.0), jnp.maximum(x2, 0.0)
+    standing = beta >= 0
+    sigma = jnp.where(standing, 1.0, -1.0).astype(dtype)
+    x_s = jnp.where(standing, x1, x2)  # the turning circle the expansion starts from
+    x_o = jnp.where(standing, x2, x1)
+    g_s = g0 - beta * x_s
+    g_o = g0 - beta * x_o
+    rate = _safe_sqrt(g_s) / 2  # lambda
+    m = _safe_div(jnp.abs(beta) * amp, g_s)
+    p = jnp.where(g_s > 0, jnp.maximum(_safe_div(g_o, g_s), 0.0), 1.0)
+    moving = amp > 0
+    sn0 = jnp.where(moving, _safe_sqrt(_safe_div(jnp.abs(x_s), amp)), 0.0)
+    cn0 = jnp.where(moving, _safe_sqrt(_safe_div(jnp.abs(x_o), amp)), 1.0)
+    cn0 = cn0 * jnp.where(sigma * udot < 0, -1.0, 1.0)
+    dn0 = jnp.where(g_s > 0, _safe_sqrt(_safe_div(g0, g_s)), 1.0)
+    # The time derivative of q0 (for the phase of a half that starts at its pole).
+    qdot0 = _quat_times_omega(q0, omega0)
+    halves = []
+    for k, z0, zdot0, dist0 in (
+        (1.0, jax.lax.complex(w, z), jax.lax.complex(qdot0[..., 0], qdot0[..., 3]), 2 * up),
+        (-1.0, jax.lax.complex(x, y), jax.lax.complex(qdot0[..., 1], qdot0[..., 2]), 2 * down),
+    ):
+        coeff = h + k * a * dist0  # b + k a
+        near = dist0 + k * x_s  # 1 + k u at the start circle (P) and at the other (P')
+        far = dist0 + k * x_o
+        near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
+        # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
+        third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
+        reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) <= third)
+        halves.append(dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached))
+    return dict(
+        a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
+        start=(sn0, cn0, dn0), halves=halves,
+    )  # fmt: skip
+
+
+def _quat_times_omega(q, omega):
+    """``dq/dt = q (0, omega) / 2``."""
+    w, x, y, z = (q[..., i] for i in range(4))
+    w1, w2, w3 = omega[..., 0], omega[..., 1], omega[..., 2]
+    return 0.5 * jnp.stack(
+        [
+            -x * w1 - y * w2 - z * w3,
+            w * w1 + y * w3 - z * w2,
+            w * w2 - x * w3 + z * w1,
+            w * w3 + x * w2 - y * w1,
+        ],
+        axis=-1,
+    )
+
+
+def _half(half, body, t, now, reduced):
+    """One Cayley-Klein half at time ``t``: its signed modulus, unit phase and modulus rate."""
+    k, coeff, near, far = half["k"], half["coeff"], half["near"], half["far"]
+    sn, cn, dn = now
+    rate, amp, sigma = body["rate"], body["amp"], body["sigma"]
+    spin = k * (body["w3"] - body["a"])
+    dist = near * cn * cn + far * sn * sn  # 1 + k u(t), a sum of nonnegative terms
+    udot = 2 * sigma * amp * rate * sn * cn * dn
+    modulus = _safe_sqrt(dist / 2)
+    modulus_rate = _safe_div(k * udot, 4 * modulus)
+    # The phase: (1/2) [k (w3 - a) t + (b + k a) int_0^t dt / (1 + k u)].
+    p, m = body["p"], body["m"]
+    nn = _safe_div(k * sigma * amp, near)
+    n1 = jnp.where(near > 0, _safe_div(far, near), 1.0)
+    n1 = jnp.where(n1 > 0, n1, 1.0)
+    (sn0, cn0, dn0), v = body["start"], reduced
+    rho0, g0, quarter = _third_kind(sn0, cn0, dn0, m, p, nn, n1)
+    rho1, g1, _ = _third_kind(sn, cn, dn, m, p, nn, n1, quarter)
+    turns = jnp.round(_safe_div(v + rho0 - rho1, 2 * quarter[0]))
+    delta_g = g1 - g0 + 2 * turns * quarter[1]
+    moving = (amp > 0) & (rate > 0)
+    integral = jnp.where(moving, _safe_div(delta_g, near * jnp.where(moving, rate, 1.0)), _safe_div(t, near))
+    regular_coeff = jnp.where(half["reached"], 0.0, coeff)
+    phase = 0.5 * (spin * t + regular_coeff * integral)
+    rotor = jax.lax.complex(jnp.cos(phase), jnp.sin(phase))
+    regular = (_unit(half["z0"]), modulus, modulus_rate)
+    # A pole on a turning circle: the modulus is sqrt(P_far / 2) J(tau) with J = sn when the start
+    # circle is the pole (cn otherwise), and the phase turns uniformly.
+    start_is_pole = near <= far
+    scale = _safe_sqrt(jnp.maximum(near, far) / 2)
+    j_now = jnp.where(start_is_pole, sn, cn)
+    jdot_now = jnp.where(start_is_pole, cn * dn, -sn * dn)
+    j0 = jnp.where(start_is_pole, sn0, cn0)
+    jdot0 = jnp.where(start_is_pole, cn0 * dn0, -sn0 * dn0)
+    # q0's half is Z (scale J0) and its rate Z (scale (lambda J0' + i spin J0 / 2)): a positive
+    # multiple of the unit phase Z is  z0 J0 + (zdot0 - i spin z0 / 2) J0' / lambda.
+    z0, zdot0 = half["z0"], half["zdot0"]
+    drift = zdot0 - 0.5j * spin * z0
+    direction = _unit(z0 * j0 + _safe_div(1.0, rate) * drift * jdot0)
+    pole = (direction, scale * j_now, scale * jdot_now * rate)
+    chosen = [jnp.where(half["reached"], x, y) for x, y in zip(pole, regular, strict=True)]
+    return chosen[0] * rotor, chosen[1], chosen[2], udot
+
+
+def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
+    """Body-frame ``omega(t)`` and orientation ``q(t)`` of Lagrange's top, in closed form.
+
+    **Arguments:**
+
+    - `inertia`: principal moments about the pivot ``(..., 3)`` with ``I1 = I2`` (their mean is
+      used, so a derivative with respect to ``I1`` and ``I2`` is split between them).
+    - `mass`, `gravity`: ``(...)``; `com`: ``(..., 3)`` on the body z axis (only ``com_z`` is used).
+    - `omega0`: body-frame angular velocity at ``t = 0`` ``(..., 3)``; `q0`: unit quaternion ``(..., 4)``.
+    - `t`: times ``(..., T)`` or anything that broadcasts against the bodies' batch axes.
+
+    **Returns:** ``(omega, q)`` with shapes ``batch + (3,)`` and ``batch + (4,)``.
+    """
+    A = 0.5 * (inertia[..., 0] + inertia[..., 1])
+    C = inertia[..., 2]
+    body = _body(A, C, mass * gravity * com[..., 2], omega0, q0)
+    sn0, cn0, dn0 = body["start"]
+    v = body["rate"] * t
+    sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
+    m = body["m"]
+    # Addition theorem, written without cancellation where sn and sn0 are both near 1.
+    den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
+    sn = (sn_v * cn0 * dn0 + sn0 * cn_v * dn_v) / den
+    cn = (cn_v * cn0 - sn_v * sn0 * dn_v * dn0) / den
+    dn = (dn_v * dn0 - m * sn_v * sn0 * cn_v * cn0) / den
+    now = (sn, cn, dn)
+    (ph_p, mod_p, rate_p, udot), (ph_m, mod_m, rate_m, _) = (
+        _half(half, body, t, now, v) for half in body["halves"]
+    )
+    q = jnp.stack(
+        [mod_p * jnp.real(ph_p), mod_m * jnp.real(ph_m), mod_m * jnp.imag(ph_m), mod_p * jnp.imag(ph_p)],
+        axis=-1,
+    )
+    # omega_1 + i omega_2 = (i/2)(h + i du/dt) / (A_- A_+) * E_- conj(E_+); at a reached pole the
+    # ratio (h + i du/dt) / A_pole is taken from its limit form.
+    a = body["a"]
+    up_pole, down_pole = body["halves"][0]["reached"], body["halves"][1]["reached"]
+    dist_m = 2 * mod_m * mod_m
+    h = body["halves"][1]["coeff"] + a * dist_m  # b - a u = (b - a) + a (1 - u)
+    regular = _safe_div(1.0, mod_m * mod_p) * jax.lax.complex(h, udot)
+    at_down = _safe_div(1.0, mod_p) * jax.lax.complex(2 * a * mod_m, -4 * rate_m)
+    at_up = _safe_div(1.0, mod_m) * jax.lax.complex(-2 * a * mod_p, 4 * rate_p)
+    ratio = jnp.where(down_pole, at_down, jnp.where(up_pole, at_up, regular))
+    transverse = 0.5j * ratio * ph_m * jnp.conj(ph_p)
+    w3 = jnp.broadcast_to(body["w3"], transverse.shape)
+    omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
+    return omega, q
