@@ -122,7 +122,7 @@ def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = Non
 
     Principal moments: ``I1 w1' = (I2 - I3) w2 w3 + tau1`` and cyclic. Full tensor:
     ``I w' = tau - w x (I w)``, solved for ``w'``. This is a pointwise formula: the moments are not
-    checked for physical validity here (see the module docstring).
+    checked for physical validity here (``check_inertia`` and ``simulate`` do that).
 
     **Arguments:**
 
