@@ -47,6 +47,12 @@ def test_site_builds_strictly_without_warnings(tmp_path):
     html = (tmp_path / "site" / "api" / "simulate" / "index.html").read_text()
     assert "rigidjax.simulate" in html and "Arguments:" in html  # the docstring was rendered
     assert ":func:" not in html and ":class:" not in html  # Sphinx roles became links or code
+    cli = (tmp_path / "site" / "cli" / "index.html").read_text()
+    for command in ("simulate", "fit", "bench"):  # the help texts, generated from the parsers
+        assert f"usage: rigidjax {command}" in cli, command
+    for notebook in (ROOT / "notebooks").glob("*.ipynb"):  # each notebook as a page, and its file
+        assert (tmp_path / "site" / "notebooks" / notebook.stem / "index.html").is_file(), notebook.name
+        assert (tmp_path / "site" / "notebooks" / notebook.name).is_file(), notebook.name
 
 
 def test_every_public_name_has_a_reference_entry():
