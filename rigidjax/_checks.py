@@ -114,6 +114,7 @@ def check_rotation_matrix(R, name: str, where: str):
 
 # --- inertia ---------------------------------------------------------------------------------
 
+
 def _check_inertia_shape(inertia, name: str) -> bool:
     return is_full_tensor(inertia, name)
 
@@ -182,21 +183,41 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
     tensor = _check_inertia_shape(inertia, name)
     code = _inertia_failure(inertia)
     what = "tensor" if tensor else "principal moments"
-    msgs = [
+    problems = [
         "",
         f"{name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "
         "moments: no distribution of mass has these moments. Each moment must be at most the sum of "
         "the other two (equality is a flat plate).",
         f"{name} has a non-positive principal moment: every moment of inertia of a rigid body must "
-        "be > 0 kg m^2. (A thin rod has a zero moment about its axis: it is only valid as a part of "
-        "a composite body.)",
-        f"{name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its "
-        "transpose. If you meant a batch of three bodies' principal moments, note that a trailing "
-        "(3, 3) shape is always read as a tensor: pass them as shape (3, 1, 3), e.g. "
-        "inertia[:, None, :].",
+        "be > 0 kg m^2.",
+        f"{name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its transpose.",
+    ]
+    msgs = [
+        *problems[:2],
+        problems[2] + " (A thin rod has a zero moment about its axis: it is only valid as a part of a "
+        "composite body.)",
+        problems[3] + " If you meant a batch of principal moments, note that a trailing (3, 3) shape "
+        "is always read as a tensor: add an axis (three bodies: shape (3, 1, 3), moments[:, None, :]) "
+        "and the same to the state's arrays.",
         f"{name} ({what}) contains NaN or infinite values.",
     ]
-    return eqx.branched_error_if(inertia, code != _OK, jnp.max(code), msgs)
+    index = jnp.max(code)
+    if tensor and inertia.ndim == 2:
+        # A (3, 3) array is ambiguous: one tensor, or the principal moments of three bodies (three
+        # identical spheres even give a symmetric one). It is read as a tensor; when that tensor is
+        # not physical but each row is a valid set of moments, say how to pass a batch of three.
+        rows_physical = jnp.all(_inertia_failure(inertia[:, None, :]) == _OK)
+        ambiguous = rows_physical & (index != _OK) & (index != _NOT_FINITE)
+        index = jnp.where(ambiguous, index + _NOT_FINITE, index)
+        msgs += [
+            problem + f" Note: {name} has shape (3, 3), which is read as ONE inertia tensor, while each "
+            "of its rows is a valid set of principal moments. If you meant the principal moments of a "
+            "batch of three bodies, pass them as tensors, moments[..., None] * jnp.eye(3) (shape "
+            "(3, 3, 3), with omega of shape (3, 3)), or as shape (3, 1, 3), moments[:, None, :], with "
+            "the state's arrays of shape (3, 1, 3) too."
+            for problem in problems[1:]
+        ]
+    return eqx.branched_error_if(inertia, code != _OK, index, msgs)
 
 
 # --- the dtype rule, sample times, states and scenes ---------------------------------------------

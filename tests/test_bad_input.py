@@ -886,3 +886,117 @@ def test_fit_scale_options_reject_every_bad_value(value, index):
     if not 0 <= index <= 2:
         with pytest.raises(ValueError, match=f"index {index}, which is out of range"):
             rj.fit_inertia(_TS_FIT, _W_FIT, known_moment=(index, 1.0))
+
+
+# ----------------------------------------------------------------------------------------------
+# Batch shapes: the ambiguous (3, 3) inertia, model/state batches that do not broadcast, and a
+# torque that returns the wrong shape -- each named, never a raw broadcasting error or a silent
+# broadcast.
+# ----------------------------------------------------------------------------------------------
+
+_SPHERES = np.full((3, 3), 0.4)  # three identical spheres' principal moments, read as one tensor
+
+
+@pytest.mark.parametrize("mode", ["eager", "jit"])
+def test_three_spheres_as_a_3x3_array_get_the_batch_hint(mode):
+    """``(3, 3)`` principal moments of three identical spheres are a symmetric tensor (eigenvalues
+    1.2, 0, 0): the error once said only "non-positive moment ... thin rod"; it now says that the
+    shape is read as one tensor and how to pass a batch of three."""
+    fn = rj.check_inertia if mode == "eager" else jax.jit(rj.check_inertia)
+    with pytest.raises(RUNTIME, match="non-positive") as info:
+        jax.block_until_ready(fn(_SPHERES))
+    message = str(info.value)
+    assert "read as ONE inertia tensor" in message and "batch of three bodies" in message
+    assert "moments[..., None] * jnp.eye(3)" in message and "(3, 1, 3)" in message
+    assert "thin rod" not in message
+
+
+@pytest.mark.parametrize(
+    ("inertia", "words"),
+    [
+        (np.diag([1.0, 1.0, -0.5]), ["non-positive", "thin rod"]),
+        (np.diag([3.5, 1.0, 2.0]), ["triangle inequality"]),
+        (np.array([[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), ["not symmetric", "(3, 1, 3)"]),
+    ],
+    ids=["negative", "triangle", "asymmetric"],
+)
+def test_a_non_physical_tensor_whose_rows_are_not_moments_gets_no_batch_hint(inertia, words):
+    """The hint is for (3, 3) arrays whose rows are valid moments; a plain bad tensor keeps its message."""
+    with pytest.raises(RUNTIME) as info:
+        rj.check_inertia(inertia)
+    message = str(info.value)
+    assert all(w in message for w in words) and "read as ONE inertia tensor" not in message
+
+
+def test_the_suggested_tensor_form_is_the_batch_of_three():
+    """The hint's spelling, ``moments[..., None] * eye(3)``, is three diagonal tensors: physical, and
+    Euler's equations in tensor form give the principal-form result body by body (the independent
+    reference: I1 w1' = (I2 - I3) w2 w3 + tau1, cyclic, written out here)."""
+    moments = np.array([[0.4, 0.4, 0.4], [1.0, 2.0, 2.5], [2.0, 2.0, 1.0]])
+    tensors = moments[..., None] * np.eye(3)
+    assert tensors.shape == (3, 3, 3)
+    np.testing.assert_array_equal(rj.check_inertia(tensors), tensors)
+    omega = np.array([[0.1, 1.0, 0.2], [0.3, -0.2, 1.1], [1.0, 0.5, -0.4]])
+    i1, i2, i3 = moments.T
+    w1, w2, w3 = omega.T
+    expected = np.stack([(i2 - i3) * w2 * w3 / i1, (i3 - i1) * w3 * w1 / i2, (i1 - i2) * w1 * w2 / i3], -1)
+    np.testing.assert_allclose(rj.euler_equations(tensors, omega), expected, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.slow
+def test_three_spheres_hint_inside_simulate():
+    """The same hint from inside the compiled simulation (the model's run-time check)."""
+    with pytest.raises(RUNTIME, match="read as ONE inertia tensor"):
+        rj.simulate(rj.FreeBody(_SPHERES), rj.State(np.ones((3, 3))), TS, accuracy="fast")
+
+
+_QS = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+BATCH_MISMATCH = {
+    "inertia-vs-omega": (
+        lambda: rj.simulate(rj.FreeBody(np.tile(I3, (2, 1))), rj.State(np.ones((3, 3))), TS),
+        [r"model.inertia has shape (2, 3) (batch (2,))", r"state0.omega has shape (3, 3) (batch (3,))"],
+    ),
+    "omega-vs-orientation": (
+        lambda: rj.simulate(rj.FreeBody(I3), rj.State(np.ones((2, 3)), _QS), TS),
+        ["state0.omega has shape (2, 3)", "state0.orientation has shape (3, 4) (batch (3,))"],
+    ),
+    "within-the-model": (
+        lambda: rj.simulate(rj.HeavyTop(np.tile(I3, (2, 1)), np.ones(3), COM), rj.State(np.ones(3), Q), TS),
+        ["model.inertia has shape (2, 3)", "model.mass has shape (3,) (batch (3,))"],
+    ),
+    "torque-batch": (
+        lambda: rj.simulate(
+            rj.RigidBody(I3, torque=rj.ConstantTorque(np.ones((4, 3)))), rj.State(np.ones((2, 3))), TS
+        ),
+        ["model.torques[0].torque has shape (4, 3) (batch (4,))", "state0.omega has shape (2, 3)"],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(BATCH_MISMATCH))
+def test_mismatched_batch_shapes_name_every_array(case, without_runtime_typecheck):
+    """Once a raw ``Incompatible shapes for broadcasting``; now every array with its shape, before
+    anything compiles."""
+    fn, words = BATCH_MISMATCH[case]
+    with pytest.raises(ValueError, match="batch shapes of the model and the state do not broadcast") as info:
+        fn()
+    for word in words:
+        assert word in str(info.value)
+
+
+def _wrong_torque(shape):
+    def wrong_shape_torque(t, state, args):
+        return jnp.zeros(shape, state.omega.dtype)
+
+    return rj.RigidBody(I3, torque=rj.Torque(wrong_shape_torque, needs_orientation=False))
+
+
+@pytest.mark.parametrize("shape", [(2,), (2, 3), (), (1, 3)], ids=str)
+def test_torque_of_the_wrong_shape_is_named(shape, without_runtime_typecheck):
+    """A user torque must return the one body's (3,) torque. (2,) was a raw broadcasting error;
+    a scalar, (1, 3) and (2, 3) were broadcast silently into a different torque or state shape."""
+    with pytest.raises(
+        ValueError, match=r"torque 0 \(Torque\(.*wrong_shape_torque\)\) returned shape"
+    ) as info:
+        rj.simulate(_wrong_torque(shape), rj.State(W), TS, accuracy="fast")
+    assert f"returned shape {shape}" in str(info.value) and "shape (3,)" in str(info.value)

@@ -192,10 +192,33 @@ class GravityTorque(AbstractTorque):
         return gravity_torque(state.orientation, weight[..., None] * jnp.asarray(self.com, dtype))
 
 
+def _torque_name(i: int, torque) -> str:
+    if isinstance(torque, Torque):
+        fn = getattr(torque.fn, "__qualname__", None) or type(torque.fn).__name__
+        return f"torque {i} (Torque({fn}))"
+    return f"torque {i} ({type(torque).__name__})"
+
+
 def _total_torque(torques, t, state, args):
+    """The sum of the torques on ``state``; each must return a body-frame vector of the state's
+    shape (or one that broadcasts to it without changing it): a ``ValueError`` naming the torque and
+    the shapes otherwise, while tracing (a scalar, or a batch returned for one body, would otherwise
+    be broadcast silently into a wrong torque)."""
     total = jnp.zeros_like(state.omega)
-    for torque in torques:
-        total = total + torque(t, state, args)
+    for i, torque in enumerate(torques):
+        tau = torque(t, state, args)
+        shape, expected = jnp.shape(tau), jnp.shape(state.omega)
+        try:
+            fits = len(shape) >= 1 and shape[-1] == 3 and jnp.broadcast_shapes(shape, expected) == expected
+        except ValueError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"{_torque_name(i, torque)} returned shape {tuple(shape)}; a torque returns the "
+                f"body-frame torque (N m) on the body it is given, shape {tuple(expected)} (state.omega's "
+                "shape: a torque function sees one body, batching is done for it)."
+            )
+        total = total + tau
     return total
 
 

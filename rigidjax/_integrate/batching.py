@@ -22,10 +22,29 @@ from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 
-def batch_shape(model, *state_arrays) -> tuple[int, ...]:
-    """The broadcast batch shape of a scene and state arrays (each ``(..., k)``: one core axis)."""
-    shapes = [model.batch_shape()] + [x.shape[:-1] for x in state_arrays if x is not None]
-    return jnp.broadcast_shapes(*shapes)
+def batch_shape(model, *state_arrays, names=("state0.omega", "state0.orientation")) -> tuple[int, ...]:
+    """The broadcast batch shape of a scene and state arrays (each ``(..., k)``: one core axis).
+
+    A ``ValueError`` (while tracing) when they do not broadcast, naming every per-body array with its
+    shape and batch shape (``names`` names the state arrays, in order)."""
+    named = []
+    for leaf in model.body_leaves():
+        shape = tuple(jnp.shape(leaf.get(model)))
+        named.append((f"model.{leaf.label}", shape, shape[: len(shape) - leaf.core]))
+    for i, x in enumerate(state_arrays):
+        if x is not None:
+            name = names[i] if i < len(names) else f"state array {i}"
+            named.append((name, tuple(x.shape), tuple(x.shape[:-1])))
+    try:
+        return tuple(jnp.broadcast_shapes(*[batch for _, _, batch in named]))
+    except ValueError:
+        pass
+    arrays = "; ".join(f"{name} has shape {shape} (batch {batch})" for name, shape, batch in named)
+    raise ValueError(
+        f"The batch shapes of the model and the state do not broadcast: {arrays}. Leading axes are "
+        "batch axes and must broadcast against each other as NumPy's do: e.g. inertia (N, 3) with "
+        "omega (N, 3) for N bodies, or one inertia (3,) shared by omega (N, 3)."
+    )
 
 
 def flatten(x, batch: tuple[int, ...], core_ndim: int = 1):
