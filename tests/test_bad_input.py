@@ -760,12 +760,12 @@ FIT_OPTION_CASES = {
     "inertia_init-shape": (
         {"inertia_init": np.ones(4)},
         ValueError,
-        r"inertia_init must be principal moments",
+        r"inertia_init must have shape \(3,\) \(principal moments\)",
     ),
     "inertia_init-tensor-shape": (
         {"inertia_init": I3, "full_tensor": True},
         ValueError,
-        r"inertia_init must be a \(3, 3\) tensor",
+        r"inertia_init must have shape \(3, 3\) \(a tensor",
     ),
     "inertia_init-asymmetric": (
         {"inertia_init": TENSOR + np.triu(np.ones((3, 3)), 1), "full_tensor": True},
@@ -1000,3 +1000,53 @@ def test_torque_of_the_wrong_shape_is_named(shape, without_runtime_typecheck):
     ) as info:
         rj.simulate(_wrong_torque(shape), rj.State(W), TS, accuracy="fast")
     assert f"returned shape {shape}" in str(info.value) and "shape (3,)" in str(info.value)
+
+
+def _interleaved(w):
+    """Each sample observes one component (an interleaving sensor): no complete row anywhere."""
+    out = np.full_like(w, nan)
+    for i in range(w.shape[0]):
+        out[i, i % 3] = w[i, i % 3]
+    return out
+
+
+_W_NO_Z = with_value(_W_FIT, nan) * np.where(np.arange(3) == 2, nan, 1.0)
+ESTIMATE_CASES = {
+    # Each returned a made-up inertia (1/3, 1/3, 1/3) silently: there was no equation to solve.
+    "estimate-axis-never-observed": (
+        lambda: rj.estimate_inertia(_TS_FIT, _W_NO_Z),
+        "estimate_inertia: no sample",
+    ),
+    "estimate-half_width-1": (
+        lambda: rj.estimate_inertia(_TS_FIT, _W_FIT, half_width=1),
+        "half_width must be",
+    ),
+    "estimate-half_width-float": (
+        lambda: rj.estimate_inertia(_TS_FIT, _W_FIT, half_width=3.0),
+        "half_width must be an integer >= 2",
+    ),
+    "fit-axis-never-observed": (
+        lambda: rj.fit_inertia(_TS_FIT, _W_NO_Z),
+        r"omega_observed has no finite sample of wz \(column 2\)",
+    ),
+    "fit-interleaved-without-start": (
+        lambda: rj.fit_inertia(_TS_FIT, _interleaved(_W_FIT)),
+        "Cannot estimate a starting inertia: .* Give inertia_init",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(ESTIMATE_CASES))
+def test_no_made_up_starting_inertia(case, monkeypatch, without_runtime_typecheck):
+    _stop_at_the_fit(monkeypatch)
+    fn, match = ESTIMATE_CASES[case]
+    with pytest.raises(ValueError, match=match):
+        fn()
+
+
+def test_interleaved_record_with_a_start_reaches_the_fit(monkeypatch):
+    """With inertia_init, a record whose samples each observe one component starts every window from
+    observed values (it was a raw IndexError: no complete sample in a window)."""
+    _stop_at_the_fit(monkeypatch)
+    with pytest.raises(_FitReached):
+        rj.fit_inertia(_TS_FIT, _interleaved(_W_FIT), inertia_init=I3, segments=3)

@@ -333,7 +333,7 @@ def test_orientation_input_errors():
         (np.array([0.0, 1.0, np.nan, 3.0, 4.0]), np.ones((5, 3)), {}, "NaN or inf"),
         (np.arange(5.0), np.full((5, 3), np.inf), {}, "inf"),
         (np.arange(2.0), np.ones((2, 3)), {}, "Too few samples"),
-        (np.arange(40.0), np.ones((40, 3)), {"segments": 30}, "Too few samples"),
+        (np.arange(40.0), np.ones((40, 3)), {"segments": 30}, "segments=30 is too many for 40 samples"),
         (np.arange(40.0), np.ones((40, 3)), {"loss": "l1"}, "loss must be one of"),
         (np.arange(40.0), np.ones((40, 3)), {"method": "newton"}, "method must be one of"),
         (np.arange(40.0), np.ones((40, 3)), {"segments": 0}, "positive integer"),

@@ -83,17 +83,36 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     and the smoothed record ``(T, 3)`` (NaN where too few neighbours were observed).
     """
     ts, omega = _check_data(ts, omega_observed)
+    if not isinstance(full_tensor, bool | np.bool_):
+        raise TypeError(f"full_tensor must be True or False, got {full_tensor!r}.")
+    if half_width is not None and (
+        not isinstance(half_width, int | np.integer) or isinstance(half_width, bool) or half_width < 2
+    ):
+        raise ValueError(
+            "half_width must be an integer >= 2 (each local quadratic fit needs at least 4 observed "
+            f"samples), got {half_width!r}."
+        )
     estimate = _estimate(ts, omega, full_tensor=full_tensor, half_width=half_width)
+    if estimate.inertia is None:
+        raise ValueError(f"estimate_inertia: {_NO_EQUATIONS}; widen half_width (now {estimate.half_width}).")
     return estimate.inertia, estimate.smoothed
 
 
+_NO_EQUATIONS = (
+    "no sample of omega_observed has enough observed neighbours in all three components for a local "
+    "fit (at least 4 finite values of each of wx, wy, wz nearby), so there is no equation to estimate "
+    "the inertia from"
+)
+
+
 class _Estimate(NamedTuple):
-    inertia: np.ndarray  # trace 1: moments (3,) or tensor (3, 3)
+    inertia: np.ndarray | None  # trace 1: moments (3,) or tensor (3, 3); None without equations
     smoothed: np.ndarray  # (T, 3): the local fits' values, outliers rejected
     noise: np.ndarray  # (3,): noise per component, from the scatter about the local fits
     # (value, slope) of the local fits to the record as given (before outlier rejection): the
     # equations with a known torque are solved with these.
     raw_fits: tuple[np.ndarray, np.ndarray]
+    half_width: int
 
 
 def _estimate(ts, omega_observed, *, full_tensor: bool = False, half_width: int | None = None):
@@ -121,8 +140,9 @@ def _estimate(ts, omega_observed, *, full_tensor: bool = False, half_width: int 
     w, wd = value[ok], slope[ok]
     scale = np.sqrt(np.mean(np.sum(w * w, axis=1))) if w.size else 1.0
     w, wd = w / scale, wd / scale**2  # omega_dot scales as omega^2 in the torque-free equations
-    inertia = _torque_free_inertia(w, wd, full_tensor)
-    return _Estimate(inertia, value, noise, raw_fits)
+    # No complete local fit: no equation, no estimate (the caller says so, or has its own start).
+    inertia = _torque_free_inertia(w, wd, full_tensor) if w.shape[0] else None
+    return _Estimate(inertia, value, noise, raw_fits, half_width)
 
 
 def _torque_free_inertia(w, wd, full_tensor):

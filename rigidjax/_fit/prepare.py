@@ -10,7 +10,7 @@ import numpy as np
 
 from .._checks import _NOT_FINITE, _NOT_POSITIVE, _NOT_SYMMETRIC, _OK, _TRIANGLE, _inertia_failure
 from .data import _align_signs, _real_array, omega_from_orientations
-from .estimate import _dominant_period, _estimate, _torque_estimate
+from .estimate import _NO_EQUATIONS, _dominant_period, _estimate, _torque_estimate
 from .problem import _inertia_params, _Problem
 
 
@@ -46,6 +46,14 @@ def _prepare_omega(
         raise ValueError(
             f"Too few samples: {int(valid.sum())} observed components in {ts.shape[0]} samples for "
             f"{n_params} parameters ({segments} window(s)); need more than the number of parameters."
+        )
+    unobserved = [
+        f"{name} (column {c})" for c, name in enumerate(("wx", "wy", "wz")) if not valid[:, c].any()
+    ]
+    if unobserved:
+        raise ValueError(
+            f"omega_observed has no finite sample of {', '.join(unobserved)}: every body axis needs "
+            "observations to fix the inertia."
         )
     bounds, windows = _windows(ts, valid.all(axis=1) | valid.any(axis=1), segments, n_params)
     estimate = _estimate(ts, omega, full_tensor=full_tensor)
@@ -207,6 +215,8 @@ def _start_inertia(ts, estimate, torques, inertia_init, full_tensor, orientation
     """The starting inertia with trace 1, and with a known torque the starting trace (kg m^2)."""
     inertia, scale_start = estimate.inertia, None
     init = None if inertia_init is None else _check_inertia_init(inertia_init, full_tensor)
+    if init is None and inertia is None:
+        raise ValueError(f"Cannot estimate a starting inertia: {_NO_EQUATIONS}. Give inertia_init.")
     if torques is not None:
         if init is None:
             inertia, scale_start = _torque_estimate(
@@ -230,8 +240,8 @@ def _check_inertia_init(inertia_init, full_tensor):
     start = _real_array(inertia_init, "inertia_init")
     expected = (3, 3) if full_tensor else (3,)
     if start.shape != expected:
-        form = "a (3, 3) tensor (full_tensor=True)" if full_tensor else "principal moments (3,)"
-        raise ValueError(f"inertia_init must be {form}, got shape {start.shape}.")
+        form = "a tensor, as full_tensor=True" if full_tensor else "principal moments"
+        raise ValueError(f"inertia_init must have shape {expected} ({form}), got shape {start.shape}.")
     code = int(_inertia_failure(start))
     if code != _OK:
         raise ValueError(
@@ -268,7 +278,21 @@ def _window_start_values(windows, smoothed, fallback, init, segments, name):
     for a, b in windows:
         rows = [r for r in range(a, b) if np.all(np.isfinite(smoothed[r]))]
         rows = rows or [r for r in range(a, b) if np.all(np.isfinite(fallback[r]))]
-        values.append(smoothed[rows[0]] if np.all(np.isfinite(smoothed[rows[0]])) else fallback[rows[0]])
+        if rows:
+            values.append(smoothed[rows[0]] if np.all(np.isfinite(smoothed[rows[0]])) else fallback[rows[0]])
+            continue
+        # No complete sample in the window (components sampled at different times): per component,
+        # its first value in the window, else in the record.
+        value = []
+        for c in range(smoothed.shape[1]):
+            for column in (smoothed[a:b, c], fallback[a:b, c], smoothed[:, c], fallback[:, c]):
+                finite = column[np.isfinite(column)]
+                if finite.size:
+                    value.append(finite[0])
+                    break
+            else:
+                raise ValueError(f"{name}: component {c} is never observed; give {name} explicitly.")
+        values.append(np.array(value))
     return np.stack(values)
 
 
