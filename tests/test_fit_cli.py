@@ -202,3 +202,14 @@ def test_ctrl_c_during_the_fit_exits_130_with_one_line(tmp_path, capsys, monkeyp
     captured = capsys.readouterr()
     assert captured.err.strip() == "rigidjax fit: interrupted (Ctrl-C); no output file is left half-written."
     assert (tmp_path / "gyro_fit.json").read_text() == "previous result"
+
+
+def test_text_that_is_not_a_number_is_reported_not_read_as_missing(tmp_path, capsys, no_fit):
+    """Empty cells and ``nan`` are missing samples; ``abc`` was read as one too, silently."""
+    rows = ["t,wx,wy,wz", "# a comment line", *(f"{t},1,2,3" for t in range(12))]
+    rows[5] = "3,,2,nan"  # missing samples: fine
+    rows[8] = "6,1,abc,3"
+    data = tmp_path / "gyro.csv"
+    data.write_text("\n".join(rows) + "\n")
+    assert run_fit([str(data), "-q"]) == 2
+    _one_line_error(capsys.readouterr(), "data row 7, column wy: 'abc' is not a number")

@@ -9,6 +9,7 @@ are missing samples. The fitted inertia is printed with its standard errors, and
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import os
@@ -58,6 +59,8 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
         raise DataError(f"{path}: cannot read the numbers: {error}") from None
     if data.size == 0:
         raise DataError(f"{path}: no data rows after the header.")
+    if np.isnan(data).any():
+        _check_missing_cells(path, data, index)
     ts, omega = data[:, 0], data[:, 1:4]
     if not np.all(np.isfinite(ts)):
         row = int(np.argmin(np.isfinite(ts)))
@@ -83,6 +86,28 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
             "a fit needs at least 10 (and several wobble cycles to be well determined)."
         )
     return ts, omega
+
+
+def _check_missing_cells(path: str, data: np.ndarray, index: list[int]) -> None:
+    """A NaN read from the file must be an empty cell or ``nan`` (a missing sample), not text that
+    is not a number (which the reader would also turn into NaN): a :class:`DataError` naming it."""
+    with open(path, encoding="utf-8", newline="") as handle:
+        rows = csv.reader(handle)
+        next(rows, None)  # the header
+        row_number = 0
+        for cells in rows:
+            if not cells or all(not c.strip() for c in cells) or cells[0].lstrip().startswith("#"):
+                continue  # the reader skips blank and comment lines too
+            row_number += 1
+            if row_number > data.shape[0]:
+                break
+            for k, column in enumerate(index):
+                text = cells[column].split("#")[0].strip() if column < len(cells) else ""
+                if np.isnan(data[row_number - 1, k]) and text and text.lower() != "nan":
+                    raise DataError(
+                        f"{path}: data row {row_number}, column {OMEGA_COLUMNS[k]}: {text!r} is not a "
+                        "number; leave the cell empty (or write nan) for a missing sample."
+                    )
 
 
 class _Progress:
