@@ -1050,3 +1050,22 @@ def test_interleaved_record_with_a_start_reaches_the_fit(monkeypatch):
     _stop_at_the_fit(monkeypatch)
     with pytest.raises(_FitReached):
         rj.fit_inertia(_TS_FIT, _interleaved(_W_FIT), inertia_init=I3, segments=3)
+
+
+def test_shape_errors_are_the_same_inside_a_users_jit(without_runtime_typecheck):
+    """Batch and torque shapes are known while tracing: inside a user's ``jax.jit`` the same
+    ValueError comes out, before anything compiles."""
+
+    @jax.jit
+    def run(inertia, omega):
+        return rj.simulate(rj.FreeBody(inertia), rj.State(omega), TS).omega
+
+    with pytest.raises(ValueError, match=r"model.inertia has shape \(2, 3\) \(batch \(2,\)\)"):
+        run(np.tile(I3, (2, 1)), np.ones((3, 3)))
+
+    @jax.jit
+    def run_torque(omega):
+        return rj.simulate(_wrong_torque(()), rj.State(omega), TS, accuracy="fast").omega
+
+    with pytest.raises(ValueError, match=r"returned shape \(\); a torque returns"):
+        run_torque(W)
