@@ -449,3 +449,30 @@ def test_interrupted_text_and_figure_writes_leave_nothing(tmp_path):
         write_figure(str(tmp_path / "plot.png"), Figure())
     assert target.read_text() == '{"old": 1}'
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json"]
+
+
+@pytest.mark.slow
+def test_a_real_sigint_exits_130_with_one_line(tmp_path):
+    """The real signal, in a child process: Ctrl-C once the run has started (after the
+    'compiling' line) gives one line, exit status 130 and no file, complete or partial."""
+    import signal
+    import subprocess
+
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    argv = [sys.executable, "-m", "rigidjax._cli", "simulate", "-n", "2000", "--duration", "50"]
+    argv += ["--out", str(out_dir / "x.npz"), "--plot", str(out_dir / "x.png")]
+    child = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        lines = []
+        while not lines or "compiling" not in lines[-1]:
+            lines.append(child.stderr.readline())
+            assert lines[-1], f"the run ended before it started compiling: {lines}"
+        child.send_signal(signal.SIGINT)
+        out, err = child.communicate(timeout=600)  # a guard against a hang, not a timing
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 130, err
+    assert err == "rigidjax simulate: interrupted (Ctrl-C); no output file is left half-written.\n"
+    assert out == "" and list(out_dir.iterdir()) == []
