@@ -476,3 +476,31 @@ def test_a_real_sigint_exits_130_with_one_line(tmp_path):
     assert child.returncode == 130, err
     assert err == "rigidjax simulate: interrupted (Ctrl-C); no output file is left half-written.\n"
     assert out == "" and list(out_dir.iterdir()) == []
+
+
+def test_ctrl_c_in_the_command_itself_ends_the_process_at_once(monkeypatch, tmp_path):
+    """As the command (``main()`` with no arguments) Ctrl-C ends the process with ``os._exit(130)``:
+    interpreter shutdown under a compiled computation still running in JAX's threads waited for it
+    to finish or crashed (a fit interrupted with -q exited with SIGSEGV). Called with arguments, as
+    here above, main returns 130 instead."""
+    from rigidjax._cli import parser
+    from rigidjax._cli import simulate as cli_simulate
+
+    class Exited(Exception):
+        pass
+
+    def fake_exit(code):
+        raise Exited(code)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli_simulate, "plan_run", interrupted)
+    monkeypatch.setattr(parser.os, "_exit", fake_exit)
+    monkeypatch.setattr(sys, "argv", ["rigidjax", "simulate", "-q"])
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), pytest.raises(Exited) as exited:
+        main()
+    assert exited.value.args == (130,)
+    assert err.getvalue() == "rigidjax simulate: interrupted (Ctrl-C); no output file is left half-written.\n"

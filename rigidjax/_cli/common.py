@@ -49,6 +49,9 @@ def write_figure(path: str, fig) -> None:
     write_file_atomic(path, lambda handle: fig.savefig(handle, format=extension, dpi=110))
 
 
+INTERRUPTED = 130  # the exit status after Ctrl-C (128 + SIGINT), as shells report it
+
+
 def interrupted(command: str) -> int:
     """The one line printed when Ctrl-C ends a command; returns the conventional exit status 130."""
     fresh_line = "\n" if hasattr(sys.stderr, "isatty") and sys.stderr.isatty() else ""  # after a progress bar
@@ -57,7 +60,7 @@ def interrupted(command: str) -> int:
         file=sys.stderr,
         flush=True,
     )
-    return 130
+    return INTERRUPTED
 
 
 def run_command(func: Callable, args) -> int:

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from collections.abc import Sequence
 
 import rigidjax as rj
 
 from . import bench, fit, simulate
-from .common import run_command
+from .common import INTERRUPTED, run_command
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``rigidjax`` command; returns the exit status."""
+    """Entry point of the ``rigidjax`` command; returns the exit status (130 after Ctrl-C, which
+    ends the process at once when ``argv`` is None, i.e. when this is the command itself)."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -34,4 +37,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    return run_command(args.func, args)
+    code = run_command(args.func, args)
+    if code == INTERRUPTED and argv is None:
+        # Ctrl-C in the command itself: a compiled JAX computation may still be running in JAX's
+        # threads, and interpreter shutdown under it waits for it to finish or crashes. Everything
+        # this process writes is already complete or removed, so it ends here.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
