@@ -504,3 +504,24 @@ def test_ctrl_c_in_the_command_itself_ends_the_process_at_once(monkeypatch, tmp_
         main()
     assert exited.value.args == (130,)
     assert err.getvalue() == "rigidjax simulate: interrupted (Ctrl-C); no output file is left half-written.\n"
+
+
+@pytest.mark.parametrize("extension", [".png", ".pdf", ".svg"])
+def test_figures_are_written_in_the_format_of_their_extension(tmp_path, extension):
+    """--plot accepts .png, .pdf and .svg; the atomic writer passes the format on (a temporary file's
+    name does not end in it)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rigidjax._cli.common import write_figure
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    path = tmp_path / f"figure{extension}"
+    write_figure(str(path), fig)
+    plt.close(fig)
+    magic = {".png": b"\x89PNG", ".pdf": b"%PDF", ".svg": b"<?xml"}[extension]
+    assert path.read_bytes().startswith(magic)
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]

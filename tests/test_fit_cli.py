@@ -213,3 +213,24 @@ def test_text_that_is_not_a_number_is_reported_not_read_as_missing(tmp_path, cap
     data.write_text("\n".join(rows) + "\n")
     assert run_fit([str(data), "-q"]) == 2
     _one_line_error(capsys.readouterr(), "data row 7, column wy: 'abc' is not a number")
+
+
+@pytest.mark.parametrize(
+    "out, expected",
+    [
+        (None, ("gyro_fit.json", "gyro_fit.png")),
+        ("res", ("res.json", "res.png")),
+        ("res.json", ("res.json", "res.png")),  # a trailing extension is dropped, not doubled
+        ("res.png", ("res.json", "res.png")),
+    ],
+)
+def test_output_stem(tmp_path, out, expected):
+    import argparse
+
+    from rigidjax._cli.fit import _outputs
+
+    data = str(tmp_path / "gyro.csv")
+    args = argparse.Namespace(data=data, out=None if out is None else str(tmp_path / out), no_plot=False)
+    assert _outputs(args) == tuple(str(tmp_path / name) for name in expected)
+    args.no_plot = True
+    assert _outputs(args) == (str(tmp_path / expected[0]), None)
