@@ -1069,3 +1069,39 @@ def test_shape_errors_are_the_same_inside_a_users_jit(without_runtime_typecheck)
 
     with pytest.raises(ValueError, match=r"returned shape \(\); a torque returns"):
         run_torque(W)
+
+
+KNOWN_TORQUE_CASES = {
+    # Each was integrated into a NaN loss (or a negative weight) with no error before the fit.
+    "constant-nan": (
+        lambda: rj.fit_inertia(_TS_FIT, _W_FIT, torque=rj.ConstantTorque(with_value(W, nan))),
+        "NaN",
+    ),
+    "damping-inf": (lambda: rj.fit_inertia(_TS_FIT, _W_FIT, torque=rj.ViscousDamping(inf)), "NaN or inf"),
+    "user-params-nan": (
+        lambda: rj.fit_inertia(
+            _TS_FIT,
+            _W_FIT,
+            torque=rj.Torque(lambda t, s, p: -p * s.omega, params=jnp.asarray(nan), needs_orientation=False),
+        ),
+        r"torque \(Torque\) holds NaN or inf",
+    ),
+    "gravity-negative-mass": (
+        lambda: rj.fit_inertia_to_orientation(_TS_FIT, _Q_FIT, torque=rj.GravityTorque(-1.0, COM)),
+        r"the mass must be positive",
+    ),
+    "gravity-nan-com": (
+        lambda: rj.fit_inertia_to_orientation(
+            _TS_FIT, _Q_FIT, torque=rj.GravityTorque(1.0, with_value(COM, nan))
+        ),
+        r"torque \(GravityTorque\) holds NaN or inf",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(KNOWN_TORQUE_CASES))
+def test_fit_rejects_a_non_finite_known_torque(case, monkeypatch, without_runtime_typecheck):
+    _stop_at_the_fit(monkeypatch)
+    fn, match = KNOWN_TORQUE_CASES[case]
+    with pytest.raises(ValueError, match=match):
+        fn()

@@ -15,12 +15,13 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._dynamics.models import _as_torque_tuple
+from .._dynamics.models import GravityTorque, _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _default_optimizer, _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
@@ -44,6 +45,15 @@ def _known_torques(torque, inertia_trace, known_moment, *, orientation_data: boo
         )
     if inertia_trace is not None or known_moment is not None:
         raise ValueError("A known torque already fixes the scale; drop inertia_trace / known_moment.")
+    for i, known in enumerate(torques):
+        name = (
+            f"torque {i} ({type(known).__name__})" if len(torques) > 1 else f"torque ({type(known).__name__})"
+        )
+        for value in jax.tree.leaves(eqx.filter(known, eqx.is_array_like)):
+            if not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"{name} holds NaN or inf; a known torque must be finite.")
+        if isinstance(known, GravityTorque) and np.any(np.asarray(known.mass) <= 0):
+            raise ValueError(f"{name}: the mass must be positive (kg), got {np.asarray(known.mass)}.")
     return torques
 
 
