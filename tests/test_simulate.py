@@ -381,7 +381,10 @@ def test_step_limit_is_reported():
         rj.simulate(model, state, ts, max_steps=5).omega.block_until_ready()
     traj = rj.simulate(model, state, ts, max_steps=5, throw=False)
     assert not bool(traj.success)
-    assert np.all(np.isnan(np.asarray(traj.omega)))
+    # The initial state is all the run reached: kept; the samples it never reached are NaN.
+    assert int(traj.stats["first_failed_sample"]) == 1
+    np.testing.assert_array_equal(np.asarray(traj.omega[0]), [0.1, 3.0, 0.1])
+    assert np.all(np.isnan(np.asarray(traj.omega[1:])))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -405,10 +408,18 @@ def test_euler_angle_state_agrees_with_quaternions_and_stops_at_gimbal_lock():
     with pytest.raises(Exception, match="gimbal lock"):
         rj.simulate(free, through_lock, ts, representation="euler").omega.block_until_ready()
     flagged = rj.simulate(free, through_lock, ts, representation="euler", throw=False)
-    assert not bool(flagged.success) and np.all(np.isnan(np.asarray(flagged.omega)))
     # The quaternion state goes through the same motion without trouble.
     ok = rj.simulate(free, through_lock, ts)
     assert bool(ok.success) and float(ok.invariants()["energy"]) < 1e-7
+    # theta = 1 + 3 t reaches pi at t = (pi - 1) / 3. The lock is seen at the end of the step that
+    # crosses it (at most 0.5 rad of turn, 1/6 s, per step): the samples before the lock are kept and
+    # agree with the quaternion run, the run is NaN from at most one step after it.
+    first = int(flagged.stats["first_failed_sample"])
+    t_lock = (np.pi - 1.0) / 3.0
+    assert not bool(flagged.success) and t_lock < float(ts[first]) <= t_lock + 1.0 / 6.0 + 0.1
+    before = np.asarray(ts) < t_lock
+    np.testing.assert_allclose(np.asarray(flagged.omega)[before], np.asarray(ok.omega)[before], atol=1e-7)
+    assert np.all(np.isnan(np.asarray(flagged.omega[first:])))
 
 
 _SHARD_SCRIPT = """

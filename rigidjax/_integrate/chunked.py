@@ -18,11 +18,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import check_model, check_state, check_times
 from .._dynamics.models import State
-from .._kinematics.euler import _euler_from_quat
 from . import batching, driver
-from .formulations import ScaledODE, lock_distance
 from .trajectory import Trajectory
 
 
@@ -32,6 +29,11 @@ def max_norm(x):
     of turning the step size into NaN for good."""
     norm = jnp.max(jnp.abs(jnp.concatenate([jnp.ravel(leaf) for leaf in jax.tree_util.tree_leaves(x)])))
     return jnp.where(jnp.isnan(norm), jnp.inf, norm)
+
+
+NON_FINITE = -1
+"""A body's result code when its state turned non-finite although its chunk's solve went on (a
+fixed-step solver has no error estimate to stop it)."""
 
 
 def _omega_scales(model, leaves, flat, omega0, q0, duration, args):
@@ -64,11 +66,7 @@ def _integrate_traced(
     max_steps,
     chunk_size,
     sort,
-    throw,
 ):
-    model = check_model(model, "simulate")
-    omega0, q0 = check_state(omega0, q0, "simulate")
-    ts = check_times(ts, "simulate")
     dtype = omega0.dtype
     batch = batching.batch_shape(model, omega0, q0)
     n = math.prod(batch)
@@ -77,15 +75,6 @@ def _integrate_traced(
     q0 = None if q0 is None else batching.flatten(q0, batch)
     has_orientation = q0 is not None
     n_times = ts.shape[0]
-    euler_seq = formulation.euler_seq if isinstance(formulation, ScaledODE) else None
-    if euler_seq is not None:
-        tolerance = formulation.lock_tolerance
-        q0 = eqx.error_if(
-            q0,
-            jnp.any(lock_distance(_euler_from_quat(q0, euler_seq), euler_seq) < tolerance),
-            f"simulate: the initial orientation is within {tolerance:g} of gimbal lock for the "
-            f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
-        )
     if formulation.uses_scale:
         sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
     else:
@@ -99,8 +88,6 @@ def _integrate_traced(
         q_all = None if q0 is None else q0[:, None, :]
         codes = jnp.zeros((plan.n_chunks,), jnp.int32)
         steps = jnp.zeros((plan.n_chunks,), jnp.int32)
-        ok_chunk = jnp.ones((plan.n_chunks,), bool)
-        ok = jnp.ones((n,), bool)
     else:
         chunks = tuple(batching.to_chunks(plan, x) for x in (omega0, q0, sigma))
         chunks = ([batching.to_chunks(plan, v) for v in flat], *chunks)
@@ -132,44 +119,25 @@ def _integrate_traced(
             return omega, q, solution.result, solution.num_steps
 
         omega_all, q_all, codes, steps = batching.map_chunks(solve_chunk, chunks, shared, plan)
-        ok_chunk = codes == driver.SUCCESSFUL
-        ok = batching.from_chunks(plan, jnp.broadcast_to(ok_chunk[:, None], (plan.n_chunks, plan.chunk)))
         omega_all = batching.from_chunks(plan, omega_all)
         q_all = batching.from_chunks(plan, q_all) if has_orientation else None
 
-    finite = jnp.all(jnp.isfinite(omega_all), axis=(-2, -1))
+    # Per body and sample: a failed chunk leaves its unreached samples at inf, a body whose state
+    # turned non-finite NaN from then on. Everything before the first bad sample is kept.
+    bad = ~jnp.all(jnp.isfinite(omega_all), axis=-1)
     if q_all is not None:
-        finite = finite & jnp.all(jnp.isfinite(q_all), axis=(-2, -1))
-    if throw:
-        if euler_seq is not None:
-            omega_all = eqx.error_if(
-                omega_all,
-                jnp.any(codes == driver.EVENT_OCCURRED),
-                f"simulate: the Euler-angle state (seq={euler_seq!r}) came within "
-                f"{formulation.lock_tolerance:g} of gimbal lock (first and third axes aligned), where "
-                "Euler-angle rates are unbounded. Use representation='quaternion' (the default), or "
-                "throw=False for NaN rows.",
-            )
-        omega_all = eqx.error_if(
-            omega_all,
-            jnp.any(codes == driver.MAX_STEPS_REACHED),
-            f"simulate: the integrator reached max_steps={max_steps} before the last time in ts. "
-            "Increase max_steps, choose a lower accuracy, or shorten ts.",
-        )
-        omega_all = eqx.error_if(
-            omega_all,
-            jnp.any(~ok_chunk) | jnp.any(~finite),
-            "simulate: the integration failed (step size underflow or a non-finite state, e.g. a "
-            "singular scene or too long a fixed step). Check the inputs, or pass throw=False to get "
-            "NaN rows and a success flag.",
-        )
-    ok = ok & finite
-    omega = jnp.where(ok[:, None, None], omega_all, jnp.nan)
+        bad = bad | ~jnp.all(jnp.isfinite(q_all), axis=-1)
+    first_bad = jnp.where(jnp.any(bad, axis=-1), jnp.argmax(bad, axis=-1), n_times)
+    code = batching.from_chunks(plan, jnp.broadcast_to(codes[:, None], (plan.n_chunks, plan.chunk)))
+    code = jnp.where((code == driver.SUCCESSFUL) & (first_bad < n_times), NON_FINITE, code)
+    ok = code == driver.SUCCESSFUL
+    keep = jnp.arange(n_times) < first_bad[:, None]
+    omega = jnp.where(keep[..., None], omega_all, jnp.nan)
     out_q = q_norm_error = None
     if q_all is not None:
         q_norm = jnp.linalg.norm(q_all, axis=-1, keepdims=True)
-        q_norm_error = jnp.max(jnp.abs(q_norm[..., 0] - 1.0), axis=-1).reshape(batch)
-        out_q = jnp.where(ok[:, None, None], q_all / q_norm, jnp.nan).reshape(batch + (n_times, 4))
+        q_norm_error = jnp.max(jnp.where(keep, jnp.abs(q_norm[..., 0] - 1.0), 0.0), axis=-1).reshape(batch)
+        out_q = jnp.where(keep[..., None], q_all / q_norm, jnp.nan).reshape(batch + (n_times, 4))
     return Trajectory(
         ts=ts,
         omega=omega.reshape(batch + (n_times, 3)),
@@ -178,10 +146,19 @@ def _integrate_traced(
         # would read as a (..., 3, 3) tensor.
         model=model,
         success=ok.reshape(batch),
-        stats={"num_steps": steps, "chunk_size": plan.chunk, "quaternion_norm_error": q_norm_error},
+        stats={
+            "num_steps": steps,
+            "chunk_size": plan.chunk,
+            "quaternion_norm_error": q_norm_error,
+            "result": code.reshape(batch),
+            "first_failed_sample": first_bad.reshape(batch),
+        },
     )
 
 
 integrate = eqx.filter_jit(_integrate_traced)
 """The compiled batch integration: ``integrate(model, omega0, q0, ts, args, controller, solver,
-adjoint, dt0, *, formulation, max_steps, chunk_size, sort, throw) -> Trajectory``."""
+adjoint, dt0, *, formulation, max_steps, chunk_size, sort) -> Trajectory``.
+
+It raises nothing: the caller checks the inputs first and reports failures from ``stats["result"]``
+(so the compiled program holds no error callbacks, and JAX's persistent cache can keep it)."""

@@ -26,9 +26,10 @@ class Solution(NamedTuple):
     """Steps taken, accepted and rejected."""
 
 
-SUCCESSFUL = diffrax.RESULTS.successful._value
-MAX_STEPS_REACHED = diffrax.RESULTS.max_steps_reached._value
-EVENT_OCCURRED = diffrax.RESULTS.event_occurred._value
+SUCCESSFUL = int(diffrax.RESULTS.successful._value)
+MAX_STEPS_REACHED = int(diffrax.RESULTS.max_steps_reached._value)
+EVENT_OCCURRED = int(diffrax.RESULTS.event_occurred._value)
+DT_MIN_REACHED = int(diffrax.RESULTS.dt_min_reached._value)
 
 
 def fixed_step_grid(ts, dt: float):

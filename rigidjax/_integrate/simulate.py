@@ -17,10 +17,10 @@ from .._checks import check_model, check_state, check_times, check_times_shape, 
 from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, State
-from .._kinematics.euler import is_proper_sequence
+from .._kinematics.euler import _euler_from_quat, is_proper_sequence
 from . import batching, driver
-from .chunked import integrate, max_norm
-from .formulations import LieGroupODE, ScaledODE, SplittingODE
+from .chunked import NON_FINITE, integrate, max_norm
+from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
 from .presets import PRESETS
 from .solvers.rkmk import RKMK
 from .solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
@@ -343,22 +343,156 @@ def simulate(
             controller = _preset_controller(
                 accuracy, solver_from_preset, preset_rtol, rtol, atol, ts, omega0, dtype, representation
             )
-    return integrate(
-        model,
-        omega0,
-        q0,
-        ts,
-        args,
-        controller,
-        solver,
-        adjoint,
-        dt0,
-        formulation=formulation,
-        max_steps=int(max_steps),
-        chunk_size=int(chunk_size),
-        sort=bool(sort_by_speed),
-        throw=bool(throw),
+    euler = formulation.euler_seq if isinstance(formulation, ScaledODE) else None
+    model, omega0, q0, ts = _checked_inputs(model, omega0, q0, ts, euler, float(lock_tolerance))
+
+    def run(model, omega0, q0, chunk_size, sort):
+        return integrate(
+            model,
+            omega0,
+            q0,
+            ts,
+            args,
+            controller,
+            solver,
+            adjoint,
+            dt0,
+            formulation=formulation,
+            max_steps=int(max_steps),
+            chunk_size=int(chunk_size),
+            sort=bool(sort),
+        )
+
+    traj = run(model, omega0, q0, chunk_size, sort_by_speed)
+    if isinstance(traj.success, jax.core.Tracer):  # inside the user's jit: no values to look at
+        return _error_if_failed(traj, max_steps, formulation) if throw else traj
+    traj = _isolate_faults(traj, model, omega0, q0, run)
+    if throw:
+        _raise_if_failed(traj, max_steps, formulation)
+    return traj
+
+
+@eqx.filter_jit
+def _checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
+    """The run-time checks of simulate's inputs, as a program of their own: the integration program
+    then holds no error callbacks, so JAX's persistent cache can keep it."""
+    model = check_model(model, "simulate")
+    omega0, q0 = check_state(omega0, q0, "simulate")
+    ts = check_times(ts, "simulate")
+    if euler_seq is not None:
+        q0 = eqx.error_if(
+            q0,
+            jnp.any(lock_distance(_euler_from_quat(q0, euler_seq), euler_seq) < lock_tolerance),
+            f"simulate: the initial orientation is within {lock_tolerance:g} of gimbal lock for the "
+            f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
+        )
+    return model, omega0, q0, ts
+
+
+def _isolate_faults(traj, model, omega0, q0, run):
+    """Bodies share a step size within a chunk, so one body whose state or torque turns non-finite
+    (the step size collapses) stops its whole chunk. Those chunks' bodies are run again one by one:
+    each healthy body gets its full result, the faulty one is NaN from its fault on."""
+    code = np.asarray(traj.stats["result"]).ravel()
+    redo = np.flatnonzero(code == driver.DT_MIN_REACHED)
+    if redo.size == 0 or traj.stats["chunk_size"] == 1:
+        return traj
+    batch = traj.batch_shape
+    leaves, flat = batching.flatten_model(model, batch)
+    again = run(
+        model.replace_body_leaves(leaves, [v[redo] for v in flat]),
+        batching.flatten(omega0, batch)[redo],
+        None if q0 is None else batching.flatten(q0, batch)[redo],
+        1,
+        False,
     )
+    n, n_times = code.size, traj.ts.shape[0]
+
+    def merge(old, new):
+        if old is None:
+            return None
+        core = old.shape[len(batch) :]
+        return old.reshape((n,) + core).at[redo].set(new).reshape(old.shape)
+
+    stats = dict(traj.stats)
+    for name in ("result", "first_failed_sample", "quaternion_norm_error"):
+        stats[name] = merge(traj.stats[name], again.stats[name])
+    return Trajectory(
+        ts=traj.ts,
+        omega=merge(traj.omega, again.omega.reshape(redo.size, n_times, 3)),
+        orientation=merge(traj.orientation, again.orientation),
+        model=traj.model,
+        success=merge(traj.success, again.success),
+        stats=stats,
+    )
+
+
+def _failure_reason(code: int, max_steps: int, formulation) -> str:
+    if code == driver.MAX_STEPS_REACHED:
+        return f"reached max_steps={max_steps}. Increase max_steps, choose a lower accuracy, or shorten ts"
+    if code == driver.EVENT_OCCURRED and isinstance(formulation, ScaledODE):
+        return (
+            f"came within {formulation.lock_tolerance:g} of gimbal lock in its Euler-angle state "
+            f"(seq={formulation.euler_seq!r}: first and third axes aligned, where Euler-angle rates are "
+            "unbounded). Use representation='quaternion' (the default)"
+        )
+    if code == driver.DT_MIN_REACHED:
+        return (
+            "stopped because its state or torque became NaN or inf there (the step size collapsed; or "
+            "the scene is singular there). Check the torque functions and the inputs"
+        )
+    if code == NON_FINITE:
+        return (
+            "has a state that became NaN or inf (a torque returning NaN or inf, or too long a fixed step dt0)"
+        )
+    return f"ended with diffrax result code {code}"
+
+
+def _raise_if_failed(traj, max_steps, formulation):
+    """A failed run's error, naming the first failed body, where it failed and why."""
+    success = np.asarray(traj.success)
+    if success.all():
+        return
+    batch = traj.batch_shape
+    failed = np.flatnonzero(~success.ravel())
+    first = int(failed[0])
+    code = int(np.asarray(traj.stats["result"]).ravel()[first])
+    sample = int(np.asarray(traj.stats["first_failed_sample"]).ravel()[first])
+    ts = np.asarray(traj.ts)
+    if sample < ts.shape[0]:
+        when = f"between t = {ts[sample - 1]:.6g} s and t = {ts[sample]:.6g} s"
+    else:
+        when = "before the last sample time"
+    index = tuple(int(i) for i in np.unravel_index(first, batch))
+    who = "the body" if not batch else f"body {index[0] if len(batch) == 1 else index}"
+    others = (
+        f" ({failed.size} of {success.size} bodies failed; the first is named)" if failed.size > 1 else ""
+    )
+    raise eqx.EquinoxRuntimeError(
+        f"simulate: {who} failed {when}: it {_failure_reason(code, max_steps, formulation)}.{others} "
+        "With throw=False the other bodies keep their results, the failed ones are NaN from their "
+        "failure on and Trajectory.success says which."
+    )
+
+
+def _error_if_failed(traj, max_steps, formulation):
+    """Under the user's jit the failure is raised at run time, without the values to name the body."""
+    code = traj.stats["result"]
+    omega = traj.omega
+    for value in (driver.EVENT_OCCURRED, driver.MAX_STEPS_REACHED, driver.DT_MIN_REACHED, NON_FINITE):
+        omega = eqx.error_if(
+            omega,
+            jnp.any(code == value),
+            f"simulate: a body {_failure_reason(value, max_steps, formulation)}. Call simulate outside "
+            "jit to have the body and the time named, or pass throw=False for NaN rows and "
+            "Trajectory.success.",
+        )
+    omega = eqx.error_if(
+        omega,
+        ~jnp.all(traj.success),
+        "simulate: the integration failed. Pass throw=False for NaN rows and Trajectory.success.",
+    )
+    return eqx.tree_at(lambda t: t.omega, traj, omega)
 
 
 def _preset_controller(
@@ -380,4 +514,17 @@ def _preset_controller(
         # is integrated exactly, and the controller would otherwise take 1-2 s steps).
         speed = jnp.max(jnp.linalg.norm(omega0, axis=-1))
         dtmax = jnp.where(speed > 0, 0.5 / jnp.where(speed > 0, speed, 1.0), jnp.inf)
-    return diffrax.PIDController(rtol=rtol, atol=atol, norm=max_norm, step_ts=step_ts, dtmax=dtmax)
+    # A body whose torque or state turns NaN makes every trial step fail: with a floor on the step
+    # the chunk stops there at once (DT_MIN_REACHED, a fault) instead of after max_steps rejections.
+    span = ts[-1] - ts[0]
+    min_gap = jnp.min(jnp.diff(ts)) if ts.shape[0] > 1 else span
+    dtmin = jnp.minimum(1e-12 * span, 1e-3 * min_gap)
+    return diffrax.PIDController(
+        rtol=rtol,
+        atol=atol,
+        norm=max_norm,
+        step_ts=step_ts,
+        dtmax=dtmax,
+        dtmin=dtmin,
+        force_dtmin=False,
+    )
