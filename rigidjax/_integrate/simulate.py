@@ -273,8 +273,12 @@ def simulate(
       after another), 65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk
       than as ten; ``benchmarks/README.md``).
     - `sort_by_speed`: group bodies of similar angular-velocity scale into the same chunk.
-    - `throw`: raise on invalid input or failed integration (default). With ``throw=False`` a
-      failed integration gives NaN rows and ``Trajectory.success = False`` instead.
+    - `throw`: raise on invalid input or failed integration (default); the error names the first
+      failed body (its index in the batch), the sample times around the failure and the cause
+      (under the user's ``jit``: the cause). With ``throw=False`` a failed body is flagged in
+      ``Trajectory.success`` and is NaN from its failure on, while every other body keeps its
+      result: bodies share a step size within a chunk, so a chunk stopped by a body whose torque or
+      state turned NaN is run again body by body.
     - `args`: passed to user torques as ``fn(t, state, args)``.
     - `representation`: how the orientation is integrated when there is one: ``"quaternion"``
       (default; unit norm kept without drift) or ``"euler"`` (the Euler angles of ``euler_seq`` as

@@ -28,9 +28,13 @@ class Trajectory(eqx.Module):
 
     ``ts`` (T,) in s; ``omega`` (*batch, T, 3) body-frame rad/s; ``orientation`` (*batch, T, 4) unit
     quaternions (scalar first, body -> space) or None for an omega-only scene. ``success`` (*batch)
-    is False where the integration failed (only with ``throw=False``; those rows are NaN).
-    ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk), ``chunk_size``
-    and ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body).
+    is False where the integration failed (only with ``throw=False``): such a body keeps the samples
+    before its failure and is NaN from there on.
+    ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk),
+    ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body),
+    ``result`` (per body: 0 for success, otherwise diffrax's result code, or -1 for a state that turned
+    NaN or inf under a fixed-step solver) and ``first_failed_sample`` (per body: the index of its
+    first NaN sample, ``T`` when it has none).
     """
 
     ts: Float[Array, " T"]
