@@ -60,7 +60,7 @@ def _largest_root(c2, c1, c0):
     """
     dtype = c2.dtype
     scale = jnp.abs(c2) + jnp.sqrt(jnp.abs(c1)) + jnp.cbrt(jnp.abs(c0))
-    scale = jnp.where(scale > 0, scale, 1.0)
+    scale = jax.lax.stop_gradient(jnp.where(scale > 0, scale, 1.0))  # a unit only: no derivative
     s2, s1, s0 = (jax.lax.stop_gradient(c) for c in (c2 / scale, c1 / scale**2, c0 / scale**3))
     p = s1 - s2 * s2 / 3
     q = 2 * s2**3 / 27 - s2 * s1 / 3 + s0
@@ -100,9 +100,12 @@ def _third_kind(sn, cn, dn, m, p, n, n1, quarter=None):
     direct = s * s <= 0.5
     pc = jnp.where(p > 0, p, jnp.ones_like(p))
     big_n = -n
-    near_pole = (n1 < 0.5) & (m <= 0.5 * big_n)
-    swapped = jnp.where(near_pole, _safe_div(m, big_n), 0.0)  # N'
-    r = _safe_sqrt(n1 * (1 - swapped))
+    # N' = m / N < 1 needs p > n1; 1 - N' = (p - n1) / N and 1 - N' sn^2 = (dn^2 - n1) / N are
+    # formed from p and n1, which are accurate on their own.
+    near_pole = (n1 < 0.5) & (2 * n1 < p)
+    big_n = jnp.where(near_pole, big_n, 1.0)
+    swapped = jnp.where(near_pole, m / big_n, 0.0)  # N'
+    r = _safe_sqrt(n1 * (p - n1) / big_n)
     r = jnp.where(r > 0, r, 1.0)
     pole = c * c + n1 * s * s  # 1 + n sn^2 as a sum of nonnegative terms
     plain = direct | near_pole
@@ -110,11 +113,11 @@ def _third_kind(sn, cn, dn, m, p, n, n1, quarter=None):
         jnp.where(plain, c * c, pc * s * s),
         dn * dn,
         jnp.where(plain, jnp.ones_like(s), pc),
-        jnp.where(near_pole, 1 - swapped * s * s, jnp.where(direct, pole, pc * pole / n1)),
+        jnp.where(near_pole, (dn * dn - n1) / big_n, jnp.where(direct, pole, pc * pole / n1)),
     )
     weight = n / n1 * pc / 3
     if quarter is None:
-        last = jnp.where(near_pole, 1 - swapped, pc / n1)
+        last = jnp.where(near_pole, (p - n1) / big_n, pc / n1)
         extra = (jnp.zeros_like(pc), jnp.ones_like(pc), pc, last)
         rf, rj = _carlson_rf_rj(
             *(jnp.stack(jnp.broadcast_arrays(x, y)) for x, y in zip(args, extra, strict=True))
@@ -173,10 +176,16 @@ def _body(A, C, weight_l, omega0, q0):
     rate = _safe_sqrt(g_s) / 2  # lambda
     m = _safe_div(jnp.abs(beta) * amp, g_s)
     p = jnp.where(g_s > 0, jnp.maximum(_safe_div(g_o, g_s), 0.0), 1.0)
+    # sn0^2 = |x_s| / amp, cn0^2 = |x_o| / amp, sign(sn0 cn0) = sigma sign(du/dt). The smaller of the
+    # two is formed from |x_s x_o| = (du/dt)^2 / G0 with the sign of du/dt: smooth through a start on
+    # a turning circle (a top released with theta' = 0), where its square root alone is not.
     moving = amp > 0
-    sn0 = jnp.where(moving, _safe_sqrt(_safe_div(jnp.abs(x_s), amp)), 0.0)
-    cn0 = jnp.where(moving, _safe_sqrt(_safe_div(jnp.abs(x_o), amp)), 1.0)
-    cn0 = cn0 * jnp.where(sigma * udot < 0, -1.0, 1.0)
+    at_start = jnp.abs(x_s) <= jnp.abs(x_o)
+    larger = jnp.where(at_start, jnp.abs(x_o), jnp.abs(x_s))
+    root_large = _safe_sqrt(_safe_div(larger, amp))
+    root_small = sigma * _safe_div(udot, _safe_sqrt(g0 * larger * amp))
+    sn0 = jnp.where(moving, jnp.where(at_start, root_small, root_large), 0.0)
+    cn0 = jnp.where(moving, jnp.where(at_start, root_large, root_small), 1.0)
     dn0 = jnp.where(g_s > 0, _safe_sqrt(_safe_div(g0, g_s)), 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
@@ -191,7 +200,7 @@ def _body(A, C, weight_l, omega0, q0):
         near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
         # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
         third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
-        reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) <= third)
+        reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) < third)
         halves.append(dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached))
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
@@ -295,8 +304,11 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     # ratio (h + i du/dt) / A_pole is taken from its limit form.
     a = body["a"]
     up_pole, down_pole = body["halves"][0]["reached"], body["halves"][1]["reached"]
-    dist_m = 2 * mod_m * mod_m
-    h = body["halves"][1]["coeff"] + a * dist_m  # b - a u = (b - a) + a (1 - u)
+    # h = b - a u from the pole the top is nearer: (b - a) + a (1 - u) or (b + a) - a (1 + u).
+    dist_m, dist_p = 2 * mod_m * mod_m, 2 * mod_p * mod_p
+    h = jnp.where(
+        dist_m <= dist_p, body["halves"][1]["coeff"] + a * dist_m, body["halves"][0]["coeff"] - a * dist_p
+    )
     regular = _safe_div(1.0, mod_m * mod_p) * jax.lax.complex(h, udot)
     at_down = _safe_div(1.0, mod_p) * jax.lax.complex(2 * a * mod_m, -4 * rate_m)
     at_up = _safe_div(1.0, mod_m) * jax.lax.complex(-2 * a * mod_p, 4 * rate_p)
