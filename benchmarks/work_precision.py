@@ -235,10 +235,10 @@ def write_reports(meta, rows, targets, prefix, no_plot=False):
             print("matplotlib is not installed: no plot", file=sys.stderr)
 
 
-README = os.path.join(os.path.dirname(HERE), "README.md")
+README = os.path.join(os.path.dirname(HERE), "docs", "guides", "accuracy.md")
 README_MARKERS = ("<!-- work-precision-table -->", "<!-- /work-precision-table -->")
 
-# (label, family prefix, setting or None for any, dtype) of the rows the main README shows.
+# (label, family prefix, setting or None for any, dtype) of the rows the accuracy guide shows.
 README_ROWS = [
     ('`simulate` "fast"', "simulate 'fast'", "preset", "float64"),
     ('`simulate` "balanced"', "simulate 'balanced'", "preset", "float64"),
@@ -263,7 +263,7 @@ README_ROWS = [
 
 
 def readme_section(meta, rows, targets) -> str:
-    """The key rows and the targets, as the main README shows them (between README_MARKERS)."""
+    """The key rows and the targets, as the accuracy guide shows them (between README_MARKERS)."""
     load = f"load {meta['loadavg_start'][0]:.1f} -> {meta['loadavg_end'][0]:.1f}"
     lines = [
         f"Measured by `{meta['command']}` ({meta['devices'][0]}, {meta['cpu_count']} CPUs, {load}, "
@@ -306,7 +306,7 @@ def update_readme(meta, rows, targets, path=README):
         text = fh.read()
     start, end = README_MARKERS
     if start not in text or end not in text:
-        print(f"{path} has no {start} ... {end} markers: README not updated", file=sys.stderr)
+        print(f"{path} has no {start} ... {end} markers: table not updated", file=sys.stderr)
         return
     head, rest = text.split(start, 1)
     _, tail = rest.split(end, 1)
@@ -332,7 +332,8 @@ def main(argv=None):
     p.add_argument(
         "--no-readme",
         action="store_true",
-        help="do not rewrite the key-rows table of README.md (a full run with the default prefix does)",
+        help="do not rewrite the key-rows table of docs/guides/accuracy.md (a full run with the default "
+        "prefix does)",
     )
     p.add_argument(
         "--replot", action="store_true", help="only redo PREFIX.md and PREFIX.png from PREFIX.json"

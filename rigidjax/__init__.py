@@ -1,6 +1,6 @@
 """rigidjax: rotational dynamics of rigid bodies in JAX.
 
-Conventions (see the README): SI units, radians; quaternions are unit and scalar-first
+Conventions (docs/conventions.md): SI units, radians; quaternions are unit and scalar-first
 ``(w, x, y, z)``; orientations map body-frame to space-frame components; ``omega`` is in body-frame
 components; Euler angles default to the 3-1-3 (``"zxz"``) sequence.
 

@@ -48,7 +48,7 @@ def without_runtime_typecheck():
 # --- the published table of extremes -------------------------------------------------------------
 # Tests in the files listed in benchmarks/extremes_table.py (gimbal lock, bad input, extreme bodies,
 # long horizons) call `extreme(...)` with what they measured. The assertion in the test is the
-# check; the record is what `python benchmarks/extremes_table.py` turns into the README table (it
+# check; the record is what `python benchmarks/extremes_table.py` turns into the table of docs/extremes.md (it
 # runs those tests with RIGIDJAX_EXTREMES_REPORT set to a JSON path).
 _EXTREME_ROWS: list[dict] = []
 
