@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import rigidjax as rj
@@ -1105,3 +1105,40 @@ def test_fit_rejects_a_non_finite_known_torque(case, monkeypatch, without_runtim
     fn, match = KNOWN_TORQUE_CASES[case]
     with pytest.raises(ValueError, match=match):
         fn()
+
+
+_TS_LONG = np.linspace(0.0, 20.0, 81)
+_W_LONG = np.asarray(rj.torque_free_omega(I3, W, _TS_LONG))
+_Q_LONG = np.asarray(rj.torque_free_motion(I3, W, np.array([1.0, 0.0, 0.0, 0.0]), _TS_LONG)[1])
+
+
+@settings(max_examples=30, deadline=None)
+@example(T=0, seed=0, density=0.0, segments="auto", full_tensor=False, orientation=False)  # IndexError
+@example(T=1, seed=0, density=0.0, segments="auto", full_tensor=False, orientation=True)  # NaN -> int
+@given(
+    T=st.integers(0, 81),
+    seed=st.integers(0, 2**16),
+    density=st.sampled_from([0.0, 0.3, 0.7, 0.95, 1.0]),
+    segments=st.one_of(st.integers(-1, 45), st.just("auto")),
+    full_tensor=st.booleans(),
+    orientation=st.booleans(),
+)
+def test_any_record_is_named_or_fitted(T, seed, density, segments, full_tensor, orientation):
+    """Generated records (any length, any fraction of missing samples, any number of windows): the
+    fit either names the problem (ValueError/TypeError) or reaches the optimiser -- never a raw
+    IndexError, ZeroDivisionError or LinAlgError from the preparation. (segments='auto' on an empty
+    or one-sample record was a raw IndexError / 'cannot convert float NaN to integer'.)"""
+    drop = np.random.default_rng(seed).random((81, 3)) < density
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # numpy's 'mean of empty slice'
+            with pytest.MonkeyPatch.context() as patch:
+                _stop_at_the_fit(patch)
+                if orientation:
+                    q = np.where(drop[:T, :1], nan, _Q_LONG[:T])
+                    rj.fit_inertia_to_orientation(_TS_LONG[:T], q, segments=segments, full_tensor=full_tensor)
+                else:
+                    w = np.where(drop[:T], nan, _W_LONG[:T])
+                    rj.fit_inertia(_TS_LONG[:T], w, segments=segments, full_tensor=full_tensor)
+    except (ValueError, TypeError, _FitReached):
+        pass

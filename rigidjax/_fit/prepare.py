@@ -196,6 +196,8 @@ def _windows(ts, valid_rows, segments, n_params):
 
 def _resolve_segments(segments, ts, omega):
     """The number of windows: ``segments``, checked, or for ``"auto"`` about one per wobble."""
+    if isinstance(segments, str) and segments == "auto" and ts.shape[0] < 16:
+        segments = 1  # at most T // 8 windows: one (and too short a record is reported as such)
     if isinstance(segments, str) and segments == "auto":
         # About one dominant oscillation per window: short enough that a poor start's frequency
         # error cannot slip by a whole cycle within a window, long enough to see the cycle.
