@@ -234,3 +234,13 @@ def test_output_stem(tmp_path, out, expected):
     assert _outputs(args) == tuple(str(tmp_path / name) for name in expected)
     args.no_plot = True
     assert _outputs(args) == (str(tmp_path / expected[0]), None)
+
+
+def test_ragged_rows_are_one_line(tmp_path, capsys, no_fit):
+    """numpy's message for a row with too few cells spans several lines; the report is one."""
+    rows = ["t,wx,wy,wz", *(f"{t},1,2,3" for t in range(12))]
+    rows[4] = "3,1"
+    data = tmp_path / "gyro.csv"
+    data.write_text("\n".join(rows) + "\n")
+    assert run_fit([str(data), "-q"]) == 2
+    _one_line_error(capsys.readouterr(), "cannot read the numbers: Some errors were detected ! Line #5")

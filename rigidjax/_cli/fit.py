@@ -56,7 +56,8 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
             warnings.simplefilter("ignore")  # an empty body is reported below, by name
             data = np.genfromtxt(path, delimiter=",", skip_header=1, usecols=index, dtype=float, ndmin=2)
     except ValueError as error:
-        raise DataError(f"{path}: cannot read the numbers: {error}") from None
+        detail = " ".join(str(error).split())  # numpy's message spans lines; the report is one
+        raise DataError(f"{path}: cannot read the numbers: {detail}") from None
     if data.size == 0:
         raise DataError(f"{path}: no data rows after the header.")
     if np.isnan(data).any():
