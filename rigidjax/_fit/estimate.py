@@ -3,6 +3,7 @@ omega_dot and the noise per component), the dominant wobble period, and the iner
 equations, which are LINEAR in the inertia (torque-free: up to scale; with a known torque: in
 kg m^2)."""
 
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -117,6 +118,14 @@ class _Estimate(NamedTuple):
 
 def _estimate(ts, omega_observed, *, full_tensor: bool = False, half_width: int | None = None):
     """:func:`estimate_inertia` with the noise per component and the local fits it used."""
+    # NaN is a missing sample: a component with no local fit gives NaN statistics, which are
+    # handled below and by the callers, without NumPy's 'all-NaN slice' warnings.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return _estimate_quietly(ts, omega_observed, full_tensor, half_width)
+
+
+def _estimate_quietly(ts, omega_observed, full_tensor, half_width):
     ts = np.asarray(ts, float)
     omega = np.asarray(omega_observed, float)
     if half_width is None:

@@ -67,7 +67,8 @@ def _prepare_omega(
     # sees a smaller signal) is not drowned by a noisier one, and the standard errors stay honest.
     estimated = estimate.noise
     if noise is None:
-        sigma = np.where(np.isfinite(estimated) & (estimated > 0), estimated, np.nanmax(estimated))
+        usable = np.isfinite(estimated) & (estimated > 0)
+        sigma = np.where(usable, estimated, np.max(estimated[usable]) if usable.any() else np.nan)
     elif isinstance(noise, str) and noise == "equal":
         sigma = np.ones(3)
     else:
