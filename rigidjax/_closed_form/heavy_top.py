@@ -45,18 +45,27 @@ def _safe_sqrt(x):
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
 
+def _times(x, z):
+    """A real ``x`` times a complex ``z`` (explicit: no real/complex promotion)."""
+    return jax.lax.complex(x * jnp.real(z), x * jnp.imag(z))
+
+
 def _unit(z):
     """``z / |z|`` for a complex ``z``, 1 at ``z = 0`` (finite derivative there)."""
     r2 = jnp.real(z) ** 2 + jnp.imag(z) ** 2
     ok = r2 > 0
-    return jnp.where(ok, z / jnp.sqrt(jnp.where(ok, r2, 1.0)), jnp.ones_like(z))
+    return jnp.where(ok, _times(1 / jnp.sqrt(jnp.where(ok, r2, 1.0)), z), jnp.ones_like(z))
 
 
 def _largest_root(c2, c1, c0):
     """Largest root of ``G^3 + c2 G^2 + c1 G + c0`` whose roots are all real.
 
-    Trigonometric formula on the scaled cubic, polished by Newton steps without derivatives, then
-    one Newton step with them: the implicit-function derivative ``-dh / h'(G)`` of a simple root.
+    The trigonometric formula gives all three roots of the scaled cubic, but a root in a close pair
+    only to ~sqrt(eps) (a near-sleeping top: two roots 1e-11 apart next to one at -4). So only the
+    most isolated root, which is well conditioned, is kept (polished by Newton steps); the other two
+    come from the deflated quadratic by the stable formula. All without derivatives; then one
+    Newton step on the original coefficients with them: the implicit-function derivative
+    ``-dh / h'(G)`` of a simple root.
     """
     dtype = c2.dtype
     scale = jnp.abs(c2) + jnp.sqrt(jnp.abs(c1)) + jnp.cbrt(jnp.abs(c0))
@@ -65,9 +74,13 @@ def _largest_root(c2, c1, c0):
     p = s1 - s2 * s2 / 3
     q = 2 * s2**3 / 27 - s2 * s1 / 3 + s0
     r = _safe_sqrt(-p / 3)
-    ratio = jnp.clip(_safe_div(-q, 2 * r**3), -1.0, 1.0)
-    t = jnp.where(r > 0, 2 * r * jnp.cos(jnp.arccos(ratio) / 3), jnp.cbrt(-q))
-    g = t - s2 / 3
+    angle = jnp.arccos(jnp.clip(_safe_div(-q, 2 * r**3), -1.0, 1.0)) / 3
+    roots = [2 * r * jnp.cos(angle - 2 * jnp.pi * k / 3) - s2 / 3 for k in range(3)]
+    roots[0] = jnp.where(r > 0, roots[0], jnp.cbrt(-q) - s2 / 3)
+    gaps = [jnp.minimum(jnp.abs(roots[k] - roots[k - 1]), jnp.abs(roots[k] - roots[k - 2])) for k in range(3)]
+    lone = jnp.where(
+        gaps[0] >= jnp.maximum(gaps[1], gaps[2]), roots[0], jnp.where(gaps[1] >= gaps[2], roots[1], roots[2])
+    )
 
     def newton(g, coeffs):
         a2, a1, a0 = coeffs
@@ -75,10 +88,17 @@ def _largest_root(c2, c1, c0):
         slope = (3 * g + 2 * a2) * g + a1
         return g - _safe_div(value, slope)
 
-    for _ in range(3):
-        g_new = newton(g, (s2, s1, s0))
-        g = jnp.where(jnp.isfinite(g_new), g_new, g)
-    g = jax.lax.stop_gradient(g) * scale
+    for _ in range(2):
+        g_new = newton(lone, (s2, s1, s0))
+        lone = jnp.where(jnp.isfinite(g_new), g_new, lone)
+    # (G - lone)(G^2 + B G + C): B = s2 + lone, C = -s0 / lone (or s1 + lone B when lone = 0).
+    B = s2 + lone
+    C = jnp.where(lone != 0, -_safe_div(s0, lone), s1 + lone * B)
+    root_disc = _safe_sqrt(B * B - 4 * C)
+    big = -(B + jnp.where(B >= 0, root_disc, -root_disc)) / 2
+    pair_max = jnp.maximum(big, _safe_div(C, big))
+    pair_max = jnp.where(big != 0, pair_max, 0.0)
+    g = jax.lax.stop_gradient(jnp.maximum(lone, pair_max)) * scale
     return newton(g, (c2, c1, c0)).astype(dtype)
 
 
@@ -260,8 +280,8 @@ def _half(half, body, t, now, reduced):
     # q0's half is Z (scale J0) and its rate Z (scale (lambda J0' + i spin J0 / 2)): a positive
     # multiple of the unit phase Z is  z0 J0 + (zdot0 - i spin z0 / 2) J0' / lambda.
     z0, zdot0 = half["z0"], half["zdot0"]
-    drift = zdot0 - 0.5j * spin * z0
-    direction = _unit(z0 * j0 + _safe_div(1.0, rate) * drift * jdot0)
+    drift = zdot0 - _times(spin / 2, jax.lax.complex(-jnp.imag(z0), jnp.real(z0)))  # zdot0 - i spin z0 / 2
+    direction = _unit(_times(j0, z0) + _times(_safe_div(1.0, rate) * jdot0, drift))
     pole = (direction, scale * j_now, scale * jdot_now * rate)
     chosen = [jnp.where(half["reached"], x, y) for x, y in zip(pole, regular, strict=True)]
     return chosen[0] * rotor, chosen[1], chosen[2], udot
@@ -309,11 +329,12 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     h = jnp.where(
         dist_m <= dist_p, body["halves"][1]["coeff"] + a * dist_m, body["halves"][0]["coeff"] - a * dist_p
     )
-    regular = _safe_div(1.0, mod_m * mod_p) * jax.lax.complex(h, udot)
-    at_down = _safe_div(1.0, mod_p) * jax.lax.complex(2 * a * mod_m, -4 * rate_m)
-    at_up = _safe_div(1.0, mod_m) * jax.lax.complex(-2 * a * mod_p, 4 * rate_p)
+    regular = _times(_safe_div(1.0, mod_m * mod_p), jax.lax.complex(h, udot))
+    at_down = _times(_safe_div(1.0, mod_p), jax.lax.complex(2 * a * mod_m, -4 * rate_m))
+    at_up = _times(_safe_div(1.0, mod_m), jax.lax.complex(-2 * a * mod_p, 4 * rate_p))
     ratio = jnp.where(down_pole, at_down, jnp.where(up_pole, at_up, regular))
-    transverse = 0.5j * ratio * ph_m * jnp.conj(ph_p)
+    transverse = ratio * ph_m * jnp.conj(ph_p)
+    transverse = jax.lax.complex(-jnp.imag(transverse) / 2, jnp.real(transverse) / 2)  # times i/2
     w3 = jnp.broadcast_to(body["w3"], transverse.shape)
     omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
     return omega, q
