@@ -525,3 +525,16 @@ def test_figures_are_written_in_the_format_of_their_extension(tmp_path, extensio
     magic = {".png": b"\x89PNG", ".pdf": b"%PDF", ".svg": b"<?xml"}[extension]
     assert path.read_bytes().startswith(magic)
     assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+def test_save_every_beyond_the_samples_is_an_error(tmp_path, monkeypatch):
+    """--save-every 500 with 200 samples stored only t = 0, silently."""
+    from rigidjax._cli import simulate as cli_simulate
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli_simulate, "run_block", _fail_if_run)
+    code, out, err = _run(["simulate", "-n", "3", "--samples", "200", "--save-every", "500"])
+    _assert_one_line_error(
+        code, out, err, "simulate", "--save-every 500 would store only the first of the 200"
+    )
+    assert list(tmp_path.iterdir()) == []

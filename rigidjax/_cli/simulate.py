@@ -45,6 +45,7 @@ import rigidjax as rj
 from .batch import Batch, Plan, plan_run, run_block, simulate_blocks
 from .common import (
     FIGURE_EXTENSIONS,
+    UsageError,
     check_output,
     file_size,
     info,
@@ -216,6 +217,11 @@ def run(args) -> int:
         check_output(args.plot, "--plot", FIGURE_EXTENSIONS)
     t_start = time.perf_counter()
     plan = plan_run(args)
+    if args.out and plan.save_every >= plan.samples:
+        raise UsageError(
+            f"--save-every {plan.save_every} would store only the first of the {plan.samples} samples; "
+            f"give at most {plan.samples - 1} (or --out '' to store nothing)."
+        )
     info(
         args,
         f"rigidjax simulate: {plan.scene.description}; {plan.blocks} block(s) of {plan.block_size:,} bodies, "
