@@ -161,4 +161,5 @@ integrate = eqx.filter_jit(_integrate_traced)
 adjoint, dt0, *, formulation, max_steps, chunk_size, sort) -> Trajectory``.
 
 It raises nothing: the caller checks the inputs first and reports failures from ``stats["result"]``
-(so the compiled program holds no error callbacks, and JAX's persistent cache can keep it)."""
+: the program holds none of rigidjax's error callbacks, and a failure can be reported with the
+values (which body, when) outside it."""
