@@ -158,8 +158,16 @@ def _is_full_tensor(inertia):
 
 # Names of earlier releases, kept working for one release: each warns and names its replacement.
 _MOVED = {
-    **{name: ("rigidjax.kinematics", name) for name in
-       ("SEQUENCES", "PROPER_SEQUENCES", "TAIT_BRYAN_SEQUENCES", "is_proper_sequence", "quat_exp")},
+    **{
+        name: ("rigidjax.kinematics", name)
+        for name in (
+            "SEQUENCES",
+            "PROPER_SEQUENCES",
+            "TAIT_BRYAN_SEQUENCES",
+            "is_proper_sequence",
+            "quat_exp",
+        )
+    },
     **{name: ("rigidjax.elliptic", name) for name in elliptic.__all__},
     **{name: ("rigidjax.solvers", name) for name in solvers.__all__},
 }
@@ -182,8 +190,12 @@ def __getattr__(name):
             DeprecationWarning,
             stacklevel=2,
         )
-        return getattr({"rigidjax.kinematics": kinematics, "rigidjax.elliptic": elliptic,
-                        "rigidjax.solvers": solvers}[namespace], attr)
+        return getattr(
+            {"rigidjax.kinematics": kinematics, "rigidjax.elliptic": elliptic, "rigidjax.solvers": solvers}[
+                namespace
+            ],
+            attr,
+        )
     if name in _REPLACED:
         value, replacement = _REPLACED[name]
         _warnings.warn(
