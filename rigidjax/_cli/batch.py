@@ -71,7 +71,11 @@ def plan_run(args) -> Plan:
     n = args.bodies if args.bodies is not None else n_default
     duration = args.duration if args.duration is not None else duration_default
     samples = args.samples if args.samples is not None else samples_default
-    scene = SCENE_BUILDERS[args.scene](n, np.random.default_rng(args.seed))
+    rng = np.random.default_rng(args.seed)
+    if args.scene == "heavy-top" and args.accuracy == "exact":
+        scene = SCENE_BUILDERS[args.scene](n, rng, symmetric=True)  # the closed form is Lagrange's top
+    else:
+        scene = SCENE_BUILDERS[args.scene](n, rng)
     blocks = args.blocks if args.blocks is not None else min(10, max(1, math.ceil(n / 100)))
     block_size = math.ceil(n / min(blocks, n))
     blocks = math.ceil(n / block_size)
@@ -125,7 +129,7 @@ def _collect(plan: Plan, batch: Batch, b: int, index, traj, derived) -> None:
     """Counts, per-body results, stored samples and figure traces of block ``b``."""
     real = slice(0, min(plan.block_size, plan.n - b * plan.block_size))  # padding copies dropped
     index = index[real]
-    steps = np.asarray(traj.stats["num_steps"]).astype(np.int64)
+    steps = np.atleast_1d(np.asarray(traj.stats["num_steps"])).astype(np.int64)  # one per chunk
     batch.chunk_size = int(traj.stats["chunk_size"])
     per_chunk = np.minimum(batch.chunk_size, plan.block_size - batch.chunk_size * np.arange(len(steps)))
     batch.steps_total += int(steps.sum())

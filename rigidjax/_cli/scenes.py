@@ -67,12 +67,14 @@ def block_params(params: dict, index: np.ndarray, n: int) -> dict:
     return {k: (v[index] if np.ndim(v) and np.shape(v)[0] == n else v) for k, v in params.items()}
 
 
-def _heavy_top_scene(n: int, rng: np.random.Generator) -> Scene:
+def _heavy_top_scene(n: int, rng: np.random.Generator, symmetric: bool = False) -> Scene:
     """Toy tops on a pivot: I_perp ~ 1e-4 kg m^2 about the pivot, I3 = 0.5-0.7 I_perp, m ~ 0.1 kg,
     pivot-to-centre-of-mass l ~ 3 cm, so the sleeping-top spin is about 57 rad/s at the centre of
-    the ranges; spins of 30-150 rad/s put a fifth or so of the tops below it."""
+    the ranges; spins of 30-150 rad/s put a fifth or so of the tops below it. The tops are slightly
+    asymmetric (I2/I1 up to 1.02); ``symmetric=True`` makes them Lagrange tops (I1 = I2), which
+    have a closed form, with every other parameter the same."""
     i_perp = 1.0e-4 * rng.uniform(0.8, 1.2, n)
-    asym = rng.uniform(0.0, 0.02, n)  # I2/I1 - 1: a slightly asymmetric top
+    asym = rng.uniform(0.0, 0.02, n) * (0.0 if symmetric else 1.0)  # I2/I1 - 1
     inertia = np.stack(
         [i_perp * (1 - asym / 2), i_perp * (1 + asym / 2), i_perp * rng.uniform(0.5, 0.7, n)], -1
     )
@@ -137,7 +139,7 @@ def _heavy_top_scene(n: int, rng: np.random.Generator) -> Scene:
             (
                 "max theta error",
                 f"median {np.median(err) if err.size else float('nan'):.2e} rad vs closed form "
-                "(sampled maximum; tops are up to 2% asymmetric)",
+                f"(sampled maximum{'' if symmetric else '; tops are up to 2% asymmetric'})",
             ),
             (
                 "sleeping criterion",
@@ -168,7 +170,8 @@ def _heavy_top_scene(n: int, rng: np.random.Generator) -> Scene:
     plot_indices = _quantile_indices(omega3)
     return Scene(
         "heavy-top",
-        f"{n:,} heavy tops (slightly asymmetric, spin 30-150 rad/s, tilt 0.05-1 rad)",
+        f"{n:,} heavy tops ({'symmetric' if symmetric else 'slightly asymmetric'}, spin 30-150 rad/s, "
+        "tilt 0.05-1 rad)",
         params,
         omega0,
         orientation0,
