@@ -31,15 +31,14 @@ cusped, looping, hanging, sleeping at theta = 0 and 1e-5, falling through the ve
 precession, ``l = 0``); 1.4e-10 for a very slow top over 2e4 s. float32: ``q`` within 2e-5 over
 20 s (1.4e-4 for a looping top, 8e-5 for a fast top at ``|omega| t = 1600`` rad).
 
-Derivatives (forward and reverse) are those of the motion wherever the nutation is not degenerate,
-including a start on a turning circle (a top released with ``theta' = 0``) and tops passing close
-to the vertical. Where the two turning circles coincide (exactly steady precession, a top sleeping
-exactly upright) or the top starts exactly at a pole (``theta0 = 0`` or ``pi``), values are exact and
-derivatives finite, but the derivative in the directions that start a nutation (or tilt the
-upright start) is that of the steady motion, not of the perturbed one: differentiate an
-integrating ``simulate`` there. Only ``com_z`` and the mean of ``I1`` and ``I2`` enter, so the
-derivatives with respect to ``com_x``, ``com_y`` (zero) and ``I1 - I2`` are not the motion's.
-"""
+Derivatives (forward and reverse) are those of the motion, including a start on a turning circle
+(a top released with ``theta' = 0``), tops passing close to the vertical and steady precession
+(a nutation below ``eps^(2/3)`` is evaluated in its first-order form, which carries them). Where
+the top starts exactly at a pole (``theta0 = 0`` or ``pi``: a sleeping top), values are exact and
+derivatives finite, but the derivative in the directions that tilt the start or start a wobble
+there is not the motion's: differentiate an integrating ``simulate`` there. Only ``com_z`` and the
+mean of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``, ``com_y`` (zero) and
+``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
 
 import jax
 import jax.numpy as jnp
@@ -236,10 +235,12 @@ def _body(A, C, weight_l, omega0, q0):
         # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
         third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
         reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) < third)
-        halves.append(dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached))
+        halves.append(
+            dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0)
+        )
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
-        start=(sn0, cn0, dn0), halves=halves,
+        start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0,
     )  # fmt: skip
 
 
@@ -280,6 +281,21 @@ def _half(half, body, t, now, reduced):
     delta_g = g1 - g0 + 2 * turns * quarter[1]
     moving = (amp > 0) & (rate > 0)
     integral = jnp.where(moving, _safe_div(delta_g, near * jnp.where(moving, rate, 1.0)), _safe_div(t, near))
+    # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
+    # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
+    # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
+    linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3)) & (body["g0"] > 0)
+    nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
+    k1, udot0, dist0 = body["k1"], body["udot0"], half["dist0"]
+    cos_t, sin_t = jnp.cos(nu * t), jnp.sin(nu * t)
+    x_lin = -(k1 / 2) * (1 - cos_t) + udot0 * sin_t / nu
+    xdot_lin = -(k1 / 2) * nu * sin_t + udot0 * cos_t
+    xint_lin = -(k1 / 2) * (t - sin_t / nu) + udot0 * (1 - cos_t) / nu**2
+    dist = jnp.where(linear, dist0 + k * x_lin, dist)
+    udot = jnp.where(linear, xdot_lin, udot)
+    modulus = jnp.where(linear, _safe_sqrt(dist / 2), modulus)
+    modulus_rate = jnp.where(linear, _safe_div(k * udot, 4 * modulus), modulus_rate)
+    integral = jnp.where(linear, _safe_div(t, dist0) - k * _safe_div(xint_lin, dist0 * dist0), integral)
     regular_coeff = jnp.where(half["reached"], 0.0, coeff)
     phase = 0.5 * (spin * t + regular_coeff * integral)
     rotor = jax.lax.complex(jnp.cos(phase), jnp.sin(phase))
