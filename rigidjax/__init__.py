@@ -23,6 +23,7 @@ from ._dynamics.equations import euler_equations as euler_equations
 from ._dynamics.equations import free_precession_rate as free_precession_rate
 from ._dynamics.equations import kinetic_energy as kinetic_energy
 from ._dynamics.equations import space_angular_momentum as space_angular_momentum
+from ._dynamics.gyrostat import Gyrostat as Gyrostat
 from ._dynamics.inertia import check_inertia as check_inertia
 from ._dynamics.inertia import composite_inertia as composite_inertia
 from ._dynamics.inertia import hollow_cylinder as hollow_cylinder
@@ -117,6 +118,7 @@ __all__ = [
     "ConstantTorque",
     "FreeBody",
     "GravityTorque",
+    "Gyrostat",
     "HeavyTop",
     "RigidBody",
     "State",

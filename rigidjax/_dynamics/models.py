@@ -277,6 +277,18 @@ class AbstractModel(eqx.Module):
         return False
 
     @property
+    def conserves_angular_momentum(self) -> bool:
+        """True for scenes on which no external torque acts: ``|L|`` and the space-frame ``L`` (of
+        :meth:`angular_momentum`) are conserved."""
+        return self.torque_free
+
+    def angular_momentum(self, omega) -> Float[Array, "... 3"]:
+        """Body-frame angular momentum (kg m^2/s) at the body-frame ``omega`` (rad/s): ``I omega``.
+        A scene whose body carries momentum of its own (a :class:`rigidjax.Gyrostat`'s rotors) adds
+        it."""
+        return _inertia_times(self.inertia, omega)
+
+    @property
     def conserves_vertical_angular_momentum(self) -> bool:
         """True for scenes in a vertical field whose space-frame L_z is conserved (the heavy top);
         torque-free scenes report the whole space-frame L instead."""

@@ -10,8 +10,9 @@ names:
   trajectory's arrays, as they are in memory.
 - ``stats/<name>``: each entry of ``Trajectory.stats`` that is an array or a number (or None);
   ``meta/stats`` lists their names in order.
-- ``model/class``: the scene's class (``"FreeBody"``, ``"RigidBody"``, ``"HeavyTop"``); ``model/<field>``
-  each of its fields (``model/inertia``, ``model/mass``, ...). Its torques are
+- ``model/class``: the scene's class (``"FreeBody"``, ``"RigidBody"``, ``"HeavyTop"``,
+  ``"Gyrostat"``); ``model/<field>`` each of its fields (``model/inertia``, ``model/mass``,
+  ``model/rotor_momentum``, ...). Its torques are
   ``model/torques/length`` and, for the i-th, ``model/torques/<i>/class`` (``"ConstantTorque"``,
   ``"ViscousDamping"``, ``"GravityTorque"``) and ``model/torques/<i>/<field>``, static settings such
   as ``model/torques/<i>/frame`` included.
@@ -41,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._dynamics.gyrostat import Gyrostat
 from .._dynamics.models import (
     ConstantTorque,
     FreeBody,
@@ -58,7 +60,7 @@ FORMAT_VERSION = 1
 # settings, and their public constructor rebuilds them from those.
 _CLASSES = {
     cls.__name__: cls
-    for cls in (FreeBody, RigidBody, HeavyTop, ConstantTorque, ViscousDamping, GravityTorque)
+    for cls in (FreeBody, RigidBody, HeavyTop, Gyrostat, ConstantTorque, ViscousDamping, GravityTorque)
 }
 _PYTHON_SCALARS = (bool, int, float, str)
 _PYTHON_TYPES = {"b": bool, "i": int, "f": float, "U": str}  # dtype kind -> the Python type it came from
@@ -137,7 +139,7 @@ class _Encoder:
             raise ValueError(
                 f"Trajectory.save: the model's {where} is a {cls.__module__}.{cls.__qualname__}, which "
                 "rigidjax cannot rebuild from a file; only its own scenes (FreeBody, RigidBody, "
-                "HeavyTop) and torques (ConstantTorque, ViscousDamping, GravityTorque) are stored. "
+                "HeavyTop, Gyrostat) and torques (ConstantTorque, ViscousDamping, GravityTorque) are stored. "
                 "Save the arrays you need yourself (numpy.savez(path, ts=..., omega=...))."
             )
         self.arrays[f"{key}/class"] = np.asarray(cls.__name__)
