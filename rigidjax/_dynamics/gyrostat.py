@@ -80,7 +80,9 @@ class Gyrostat(AbstractModel):
         return all(t.conservative for t in self.torques)
 
     def angular_momentum(self, omega):
-        """Body-frame ``L = I omega + h`` (kg m^2/s)."""
+        """Body-frame ``L = I omega + h`` (kg m^2/s) at the body-frame ``omega`` (rad/s,
+        ``(..., 3)``, broadcast against the scene's batch axes: for batched samples
+        ``(*batch, T, 3)`` insert a time axis after the batch axes of both fields first)."""
         return _inertia_times(self.inertia, omega) + self.rotor_momentum.astype(omega.dtype)
 
     def angular_acceleration(self, t, state, args):

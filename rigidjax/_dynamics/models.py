@@ -283,9 +283,9 @@ class AbstractModel(eqx.Module):
         return self.torque_free
 
     def angular_momentum(self, omega) -> Float[Array, "... 3"]:
-        """Body-frame angular momentum (kg m^2/s) at the body-frame ``omega`` (rad/s): ``I omega``.
-        A scene whose body carries momentum of its own (a :class:`rigidjax.Gyrostat`'s rotors) adds
-        it."""
+        """Body-frame angular momentum (kg m^2/s) at the body-frame ``omega`` (rad/s, ``(..., 3)``,
+        broadcast against the scene's batch axes): ``I omega``. A scene whose body carries momentum
+        of its own (a :class:`rigidjax.Gyrostat`'s rotors) adds it."""
         return _inertia_times(self.inertia, omega)
 
     @property
