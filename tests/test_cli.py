@@ -287,7 +287,7 @@ def test_bench_small_run(tmp_path):
     assert fast["solver"] == "Tsit5, rtol 1e-05"
     for r in data["rows"]:
         assert r["run_s"] > 0 and len(r["runs_s"]) == 1 and r["run_s"] == r["runs_s"][0]
-        assert r["compile_s"] == pytest.approx(r["first_call_s"] - r["run_s"])
+        assert r["compile_s"] == pytest.approx(max(r["first_call_s"] - r["run_s"], 0.0))  # noise: >= 0
     # The printed table carries the numbers of the JSON.
     cells = _bench_table_row(out, "fast")
     assert float(cells[5]) == pytest.approx(fast["max_rel_omega"], rel=0.06)

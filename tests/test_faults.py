@@ -117,3 +117,39 @@ def test_ten_thousand_bodies_in_chunks_lose_only_the_bad_one():
     assert np.max(np.abs(np.delete(omega, bad, axis=0) - healthy)) < 1e-7
     first = int(traj.stats["first_failed_sample"][bad])
     assert np.all(np.isfinite(omega[bad, :first])) and np.all(np.isnan(omega[bad, first:]))
+
+
+@pytest.mark.slow
+def test_precise_keeps_healthy_bodies_whose_steps_land_on_sample_times():
+    """ "precise" lands a step on every sample time, which can clip a step to almost nothing; the
+    fault floor acts on rejected steps only, so no healthy body is stopped (300 random free bodies,
+    one per chunk: 5 stopped with a floor on every step), and each agrees with scipy's DOP853."""
+    rng = np.random.default_rng(0)
+    n = 300
+    inertia = np.array([2.0, 3.0, 4.0]) * (1 + 0.05 * rng.uniform(-1, 1, (n, 3)))
+    omega0 = np.array([0.7, -0.4, 1.1]) + 0.3 * rng.normal(size=(n, 3))
+    q0 = rng.normal(size=(n, 4))
+    q0 /= np.linalg.norm(q0, axis=-1, keepdims=True)
+    ts = np.linspace(0.0, 10.0, 51)
+    traj = rj.simulate(
+        rj.FreeBody(jnp.asarray(inertia)),
+        rj.State(jnp.asarray(omega0), jnp.asarray(q0)),
+        jnp.asarray(ts),
+        accuracy="precise",
+        throw=False,
+        chunk_size=1,
+    )
+    assert bool(np.all(np.asarray(traj.success)))
+    for body in (0, 137, 299):
+        reference, _ = dop853_free_body(inertia[body], omega0[body], ts, tol=1e-13)
+        np.testing.assert_allclose(np.asarray(traj.omega[body]), reference, rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_precise_reports_a_nan_torque_as_such():
+    """Steps land on the sample times: the sample at the fault (t = 1) is reached, the next not."""
+    model, state = _scene(8, bad=3)
+    with pytest.raises(
+        eqx.EquinoxRuntimeError, match="body 3 failed between t = 1 s and t = 1.1 s: it stopped"
+    ):
+        rj.simulate(model, state, TS, accuracy="precise")

@@ -21,7 +21,7 @@ from .._kinematics.euler import _euler_from_quat, is_proper_sequence
 from . import batching, driver
 from .chunked import NON_FINITE, integrate, max_norm
 from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
-from .presets import PRESETS
+from .presets import PRESETS, FaultStopPIDController
 from .solvers.rkmk import RKMK
 from .solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
 from .trajectory import Trajectory
@@ -520,17 +520,11 @@ def _preset_controller(
         # is integrated exactly, and the controller would otherwise take 1-2 s steps).
         speed = jnp.max(jnp.linalg.norm(omega0, axis=-1))
         dtmax = jnp.where(speed > 0, 0.5 / jnp.where(speed > 0, speed, 1.0), jnp.inf)
-    # A body whose torque or state turns NaN makes every trial step fail: with a floor on the step
-    # the chunk stops there at once (DT_MIN_REACHED, a fault) instead of after max_steps rejections.
+    # A body whose torque or state turns NaN makes every trial step fail: with a floor on rejected
+    # steps the chunk stops there at once (DT_MIN_REACHED, a fault) instead of after max_steps.
     span = ts[-1] - ts[0]
     min_gap = jnp.min(jnp.diff(ts)) if ts.shape[0] > 1 else span
-    dtmin = jnp.minimum(1e-12 * span, 1e-3 * min_gap)
-    return diffrax.PIDController(
-        rtol=rtol,
-        atol=atol,
-        norm=max_norm,
-        step_ts=step_ts,
-        dtmax=dtmax,
-        dtmin=dtmin,
-        force_dtmin=False,
+    fault_dtmin = jnp.minimum(1e-12 * span, 1e-3 * min_gap)
+    return FaultStopPIDController(
+        rtol=rtol, atol=atol, norm=max_norm, step_ts=step_ts, dtmax=dtmax, fault_dtmin=fault_dtmin
     )
