@@ -324,7 +324,6 @@ def test_invariants_with_damping():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="Trajectory computes L as I omega, without the model's rotors")
 def test_trajectory_angular_momentum_includes_the_rotors():
     """Reference: ``L = I omega + h`` in numpy. Trajectory.angular_momentum and the |L| invariants
     should use the model's angular momentum."""

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._dynamics.equations import _inertia_times, _kinetic_energy
+from .._dynamics.equations import _kinetic_energy
 from .._dynamics.models import AbstractModel
 from .._kinematics.euler import _euler_from_quat
 from .._kinematics.quaternion import _quat_rotate
@@ -142,11 +142,12 @@ class Trajectory(eqx.Module):
         return self.kinetic_energy() + self.potential_energy()
 
     def angular_momentum(self) -> Float[Array, "*batch T 3"]:
-        """Body-frame angular momentum ``I omega`` (kg m^2/s)."""
-        return _inertia_times(self._model_per_time().inertia, self.omega)
+        """Body-frame angular momentum (kg m^2/s): ``I omega``, plus the rotors' ``h`` for a
+        :class:`rigidjax.Gyrostat` (the scene's ``angular_momentum``)."""
+        return self._model_per_time().angular_momentum(self.omega)
 
     def space_angular_momentum(self) -> Float[Array, "*batch T 3"]:
-        """Space-frame angular momentum ``R I omega`` (kg m^2/s)."""
+        """Space-frame angular momentum ``R L`` (kg m^2/s), ``L`` of :meth:`angular_momentum`."""
         if self.orientation is None:
             raise ValueError("space_angular_momentum needs an orientation; simulate with one.")
         return _quat_rotate(self.orientation, self.angular_momentum())
@@ -154,8 +155,9 @@ class Trajectory(eqx.Module):
     def invariants(self) -> dict[str, Float[Array, "*batch"]]:
         """Largest relative drift of each quantity the scene conserves, per body.
 
-        ``energy`` (torque-free and conservative scenes), ``angular_momentum_norm`` (torque-free),
-        ``space_angular_momentum`` (torque-free with orientation, ``|L(t) - L(0)| / |L(0)|``),
+        ``energy`` (torque-free and conservative scenes), ``angular_momentum_norm`` (no external
+        torque, a gyrostat's rotors included: ``L = I omega + h``), ``space_angular_momentum`` (the
+        same, with orientation, ``|L(t) - L(0)| / |L(0)|``),
         ``vertical_angular_momentum`` (heavy top, relative to |L(0)|), ``quaternion_norm``
         (``| |q| - 1 |`` before the output was normalised).
         """
@@ -173,7 +175,7 @@ class Trajectory(eqx.Module):
             out["energy"] = drift(e, jnp.maximum(jnp.abs(e[..., 0]), ke0 + v0))
         L = self.angular_momentum()
         L_norm = _stable_norm(L)
-        if model.torque_free:
+        if model.conserves_angular_momentum:
             out["angular_momentum_norm"] = drift(L_norm, L_norm[..., 0])
             if self.orientation is not None:
                 Ls = self.space_angular_momentum()
