@@ -33,12 +33,12 @@ precession, ``l = 0``); 1.4e-10 for a very slow top over 2e4 s. float32: ``q`` w
 
 Derivatives (forward and reverse) are those of the motion, including a start on a turning circle
 (a top released with ``theta' = 0``), tops passing close to the vertical and steady precession
-(a nutation below ``eps^(2/3)`` is evaluated in its first-order form, which carries them). Where
-the top starts exactly at a pole (``theta0 = 0`` or ``pi``: a sleeping top), values are exact and
-derivatives finite, but the derivative in the directions that tilt the start or start a wobble
-there is not the motion's: differentiate an integrating ``simulate`` there. Only ``com_z`` and the
-mean of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``, ``com_y`` (zero) and
-``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
+(a nutation below ``eps^(2/3)`` is evaluated in its first-order form, which carries them) and a
+top sleeping exactly at a pole (the linearised tilt, two circular modes). A top started exactly at
+a pole with a finite wobble (``theta0 = 0``, ``omega0`` not along the axis) has exact values and
+finite derivatives, but the derivative with respect to the tilt of ``q0`` is not the motion's.
+Only ``com_z`` and the mean of ``I1`` and ``I2`` enter, so the derivatives with respect to
+``com_x``, ``com_y`` (zero) and ``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
 
 import jax
 import jax.numpy as jnp
@@ -240,7 +240,8 @@ def _body(A, C, weight_l, omega0, q0):
         )
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
-        start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0,
+        start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
+        pole_gap=2 * jnp.minimum(up, down),
     )  # fmt: skip
 
 
@@ -284,7 +285,8 @@ def _half(half, body, t, now, reduced):
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
     # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
     # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
-    linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3)) & (body["g0"] > 0)
+    # (Also small against both poles' distances: 1 / (1 + k u) is expanded to first order.)
+    linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3) * body["pole_gap"]) & (body["g0"] > 0)
     nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
     k1, udot0, dist0 = body["k1"], body["udot0"], half["dist0"]
     cos_t, sin_t = jnp.cos(nu * t), jnp.sin(nu * t)
@@ -369,6 +371,49 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     ratio = jnp.where(down_pole, at_down, jnp.where(up_pole, at_up, regular))
     transverse = ratio * ph_m * jnp.conj(ph_p)
     transverse = jax.lax.complex(-jnp.imag(transverse) / 2, jnp.real(transverse) / 2)  # times i/2
+    # A top sleeping at a pole up to a wobble below eps^(2/3): the linearised motion, zero in value
+    # at the equilibrium and carrying the derivatives that start a wobble (the pole form's direction
+    # of the wobble is undefined there). The tilt T = X + iY of the symmetry axis (T = -2i (x+iy)(w+iz))
+    # is a sum of circular modes exp(i lambda t), lambda^2 - s a lambda + s beta / 2 = 0, s = +1 upright
+    # (T' = -i W^2 Omega), s = -1 hanging straight down (T' = i Z^2 conj(Omega)).
+    tiny = body["amp"] <= jnp.finfo(body["amp"].dtype).eps ** (2 / 3)
+    halves = body["halves"]
+    tilt0 = -2 * _times_i(halves[1]["z0"] * halves[0]["z0"])
+    omega0_t = jax.lax.complex(body["w1"], body["w2"])
+    rate_up = -_times_i(halves[0]["z0"] ** 2 * omega0_t)
+    rate_down = _times_i(halves[1]["z0"] ** 2 * jnp.conj(omega0_t))
+    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, body["beta"], tilt0, rate_up, t)
+    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, body["beta"], tilt0, rate_down, t)
+    sleep_up, sleep_down = down_pole & tiny, up_pole & tiny & ~down_pole
+    zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
+    big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
+    q = jnp.where(
+        sleep_up[..., None], jnp.stack([q[..., 0], jnp.real(zeta), jnp.imag(zeta), q[..., 3]], -1), q
+    )
+    q = jnp.where(
+        sleep_down[..., None], jnp.stack([jnp.real(big_w), q[..., 1], q[..., 2], jnp.imag(big_w)], -1), q
+    )
+    transverse = jnp.where(sleep_up, _times_i(tilt_rate_up * jnp.conj(ph_p) ** 2), transverse)
+    transverse = jnp.where(sleep_down, _times_i(jnp.conj(tilt_rate_down) * ph_m**2), transverse)
     w3 = jnp.broadcast_to(body["w3"], transverse.shape)
     omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
     return omega, q
+
+
+def _times_i(z):
+    return jax.lax.complex(-jnp.imag(z), jnp.real(z))
+
+
+def _tilt_modes(s, a, beta, tilt0, rate0, t):
+    """``T(t)`` and ``T'(t)`` for ``T = c1 exp(i l1 t) + c2 exp(i l2 t)`` with ``T(0)``, ``T'(0)`` given and
+    ``l`` the roots of ``l^2 - s a l + s beta / 2 = 0`` (complex below the sleeping threshold)."""
+    disc = a * a - 2 * s * beta
+    disc = jnp.where(disc != 0, disc, 1.0)  # at the threshold itself the modes merge: not resolved
+    root = jnp.sqrt(jax.lax.complex(disc, jnp.zeros_like(disc)))
+    sa = jax.lax.complex(s * a, jnp.zeros_like(a))
+    l1, l2 = (sa + root) / 2, (sa - root) / 2
+    c1 = (rate0 - _times_i(l2 * tilt0)) / _times_i(root)
+    c2 = tilt0 - c1
+    tc = jax.lax.complex(t, jnp.zeros_like(t))
+    e1, e2 = jnp.exp(_times_i(l1 * tc)), jnp.exp(_times_i(l2 * tc))
+    return c1 * e1 + c2 * e2, _times_i(l1 * c1 * e1 + l2 * c2 * e2)
