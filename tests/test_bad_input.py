@@ -142,6 +142,7 @@ def replaced(name, arg, value):
     return args
 
 
+@pytest.mark.slow
 def test_good_inputs_give_finite_output():
     jitted = _all_calls(GOOD_ARGS)
     for name in CALLS:

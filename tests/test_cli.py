@@ -126,6 +126,7 @@ def test_earth_wobble_period(earth):
         assert np.max(data["wobble_amplitude_drift"]) < 1e-6
 
 
+@pytest.mark.slow
 def test_free_bodies(tmp_path):
     npz, png = tmp_path / "free.npz", tmp_path / "free.png"
     argv = [
@@ -157,6 +158,7 @@ def test_free_bodies(tmp_path):
     assert "spun near intermediate" in out
 
 
+@pytest.mark.slow
 def test_float32_without_matplotlib(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib raises ImportError
     npz, png = tmp_path / "f32.npz", tmp_path / "f32.png"
@@ -540,6 +542,7 @@ def test_save_every_beyond_the_samples_is_an_error(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_exact_runs_the_main_job_on_symmetric_tops(tmp_path):
     """--accuracy exact: the heavy-top scene made of Lagrange tops, evaluated in closed form; the
     stored motion agrees with rigidjax.simulate(accuracy="precise") integrating the same tops from

@@ -66,6 +66,7 @@ def test_one_bad_body_in_a_shared_step_chunk_keeps_the_others():
     _check_isolated(traj, 17)
 
 
+@pytest.mark.slow
 def test_a_nan_torque_is_named_with_body_and_time_not_as_max_steps():
     model, state = _scene(50, bad=17)
     with pytest.raises(eqx.EquinoxRuntimeError) as info:
@@ -76,6 +77,7 @@ def test_a_nan_torque_is_named_with_body_and_time_not_as_max_steps():
     assert "throw=False" in message
 
 
+@pytest.mark.slow
 def test_batch_index_is_named_in_the_batch_shape():
     model, state = _scene(12, bad=7, shape=(3, 4))
     with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape("body (1, 3) failed")):

@@ -209,6 +209,7 @@ def test_angular_velocity_near_lock(dtype, extreme):
     )
 
 
+@pytest.mark.slow
 def test_euler_rates_near_lock_float64(extreme):
     """The rates grow like 1/delta (the truth) and reproduce omega to about eps/delta; exactly at the
     lock an omega with a component the angles cannot follow gives NaN (throw=False) or an error."""

@@ -175,6 +175,7 @@ def test_batch_shapes_broadcast():
     np.testing.assert_allclose(np.asarray(traj.omega[1, 2]), np.asarray(traj.omega[0, 0]), rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_heavy_top_conservation_and_precession():
     inertia = jnp.array([1.0, 1.0, 0.5]) * 1e-2
     mass, l, g = 0.5, 0.05, 9.81
@@ -195,6 +196,7 @@ def test_heavy_top_conservation_and_precession():
     assert np.max(np.abs(angles[:, 1] - theta0)) < 0.05
 
 
+@pytest.mark.slow
 def test_sleeping_top_criterion():
     """(I3 w3)^2 > 4 I1 m g l: an upright top stays up; below it, it falls."""
     I1, I3, mass, l, g = 1e-2, 5e-3, 0.5, 0.05, 9.81
@@ -209,6 +211,7 @@ def test_sleeping_top_criterion():
     assert np.max(theta[1]) > 0.5
 
 
+@pytest.mark.slow
 def test_constant_and_damping_torques_on_a_sphere():
     """For a sphere the gyroscopic term vanishes: body torque gives w0 + tau t / I, damping gives
     w0 exp(-c t / I), and a space-fixed torque changes the space-frame momentum as L0 + tau t."""
@@ -307,6 +310,7 @@ def test_float32_earth_in_si_units():
     assert all(np.isfinite(float(v)) for v in traj.invariants().values())
 
 
+@pytest.mark.slow
 def test_gradient_matches_finite_differences():
     ts = jnp.array([0.0, 3.0])
     w0 = jnp.array([0.2, 1.0, 0.3])
@@ -462,6 +466,7 @@ def test_sharded_equals_unsharded(tmp_path):
     np.testing.assert_allclose(sharded, local, rtol=0, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_per_body_torques_in_a_batch():
     """Torque fields carry batch axes like the model's: each sphere gets its own torque."""
     I = 0.4
@@ -479,6 +484,7 @@ def test_per_body_torques_in_a_batch():
     np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(expected), rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_one_fast_body_cannot_hide_in_a_slow_batch():
     """63 slow symmetric tops and one 1000x faster (400 wobble cycles). The shared step is accepted
     only when the worst body is within tolerance, so the fast body is exactly as accurate in the
