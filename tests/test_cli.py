@@ -560,3 +560,12 @@ def test_exact_runs_the_main_job_on_symmetric_tops(tmp_path):
     np.testing.assert_allclose(
         data["omega"], precise.omega, rtol=0, atol=1e-7 * np.max(np.abs(data["omega"]))
     )
+
+
+@pytest.mark.parametrize("command", ["simulate", "fit", "bench"])
+def test_help_is_plain_text(command):
+    """Help a user reads: no '(default: None)' for options without a default, no docstring markup."""
+    code, out, _ = _run([command, "--help"])
+    assert code == 0 and f"usage: rigidjax {command}" in out
+    assert "default: None" not in out
+    assert "``" not in out and not re.search(r":[a-z]+:`", out), out

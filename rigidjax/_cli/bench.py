@@ -28,7 +28,7 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import StatusLine, bar, check_output, positive_float, positive_int, write_text
+from .common import StatusLine, bar, check_output, plain, positive_float, positive_int, write_text
 
 METHODS = ("fast", "balanced", "precise", "exact")
 
@@ -192,7 +192,7 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "bench",
         help="time and error of each accuracy setting of rigidjax.simulate on tennis-racket bodies",
-        description=__doc__,
+        description=plain(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("-n", "--bodies", type=positive_int, default=300, help="number of bodies (default 300)")

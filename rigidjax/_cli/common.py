@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import sys
 from collections.abc import Callable
 
@@ -13,6 +14,21 @@ from .._integrate.storage import check_writable, write_atomic, write_file_atomic
 
 # The figure formats every command writes (matplotlib's savefig, chosen by the extension).
 FIGURE_EXTENSIONS = (".png", ".pdf", ".svg")
+
+
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default in its help, except when there is none to show (``None``)."""
+
+    def _get_help_string(self, action):
+        if action.default is None:
+            return action.help
+        return super()._get_help_string(action)
+
+
+def plain(docstring: str) -> str:
+    """A module docstring as command-line help: ``code`` and :role:`name` markup become plain text."""
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", docstring)
+    return text.replace("``", "")
 
 
 class UsageError(Exception):

@@ -22,7 +22,7 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import UsageError, bar, check_output, positive_int, write_figure, write_text
+from .common import UsageError, bar, check_output, plain, positive_int, write_figure, write_text
 
 OMEGA_COLUMNS = ("t", "wx", "wy", "wz")
 QUATERNION_COLUMNS = ("t", "qw", "qx", "qy", "qz")
@@ -168,7 +168,7 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "fit",
         help="fit the inertia of a torque-free body to a CSV record of body-frame omega",
-        description=__doc__,
+        description=plain(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("data", help="CSV file with a header row and columns t, wx, wy, wz")

@@ -45,6 +45,7 @@ import rigidjax as rj
 from .batch import Batch, Plan, plan_run, run_block, simulate_blocks
 from .common import (
     FIGURE_EXTENSIONS,
+    DefaultsHelpFormatter,
     UsageError,
     check_output,
     file_size,
@@ -281,7 +282,7 @@ def add_parser(subparsers) -> None:
         description="Batch-simulate many rigid bodies with rigidjax.simulate, print a summary (timings, "
         "solver steps, invariant drift, the scene's physics against closed forms), and write the "
         "trajectories (.npz) and a figure (.png). Default: 10,000 heavy tops for 5 s.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
     sim.add_argument(
         "--scene",
