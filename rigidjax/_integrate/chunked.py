@@ -160,6 +160,6 @@ integrate = eqx.filter_jit(_integrate_traced)
 """The compiled batch integration: ``integrate(model, omega0, q0, ts, args, controller, solver,
 adjoint, dt0, *, formulation, max_steps, chunk_size, sort) -> Trajectory``.
 
-It raises nothing: the caller checks the inputs first and reports failures from ``stats["result"]``
-: the program holds none of rigidjax's error callbacks, and a failure can be reported with the
-values (which body, when) outside it."""
+It raises nothing: the caller checks the inputs first and reports failures from
+``stats["result"]``, so the program holds none of rigidjax's error callbacks and a failure can be
+reported with its values (which body, when) outside it."""

@@ -412,7 +412,7 @@ def _isolate_faults(traj, model, omega0, q0, run):
         1,
         False,
     )
-    n, n_times = code.size, traj.ts.shape[0]
+    n = code.size
 
     def merge(old, new):
         if old is None:
@@ -425,7 +425,7 @@ def _isolate_faults(traj, model, omega0, q0, run):
         stats[name] = merge(traj.stats[name], again.stats[name])
     return Trajectory(
         ts=traj.ts,
-        omega=merge(traj.omega, again.omega.reshape(redo.size, n_times, 3)),
+        omega=merge(traj.omega, again.omega),
         orientation=merge(traj.orientation, again.orientation),
         model=traj.model,
         success=merge(traj.success, again.success),
