@@ -7,10 +7,12 @@ takes a vector field, a solver, a step-size rule and sample times, and returns t
 times with a result code. Callers own the state layout, the checks and the batching.
 """
 
+import contextlib
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import diffrax
+import equinox._errors as _equinox_errors
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, PyTree
 
@@ -55,6 +57,25 @@ def fixed_step_grid(ts, dt: float):
     return grid, int(counts.sum())
 
 
+@contextlib.contextmanager
+def _without_diffrax_runtime_checks(switch_off: bool):
+    """diffrax checks ``ts`` and ``dt0`` at run time with equinox errors, which are host callbacks;
+    JAX keeps no program with a host callback in its persistent compilation cache, so every process
+    would compile every integration again. rigidjax's callers have checked both already (times
+    finite and increasing, ``dt0`` positive), so the checks are switched off while the solve is
+    traced. A solve asked to raise on failure (``throw=True``) keeps them all. Equinox reads its
+    default mode per call; if that global moves, the checks simply stay."""
+    default = getattr(_equinox_errors, "EQX_ON_ERROR", None)
+    if not switch_off or default != "raise":
+        yield
+        return
+    _equinox_errors.EQX_ON_ERROR = "off"
+    try:
+        yield
+    finally:
+        _equinox_errors.EQX_ON_ERROR = default
+
+
 def solve(
     vector_field: Callable[[Any, PyTree, Any], PyTree],
     solver: diffrax.AbstractSolver,
@@ -90,19 +111,20 @@ def solve(
 
     **Returns:** a :class:`Solution` with the states at ``ts``.
     """
-    solution = diffrax.diffeqsolve(
-        diffrax.ODETerm(vector_field),
-        solver,
-        ts[0] if t0 is None else t0,
-        ts[-1],
-        dt0,
-        y0,
-        args=args,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=stepsize_controller,
-        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-        max_steps=max_steps,
-        throw=throw,
-        event=event,
-    )
+    with _without_diffrax_runtime_checks(switch_off=not throw):
+        solution = diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field),
+            solver,
+            ts[0] if t0 is None else t0,
+            ts[-1],
+            dt0,
+            y0,
+            args=args,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=stepsize_controller,
+            adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+            max_steps=max_steps,
+            throw=throw,
+            event=event,
+        )
     return Solution(solution.ys, jnp.asarray(solution.result._value), solution.stats["num_steps"])
