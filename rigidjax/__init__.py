@@ -6,12 +6,14 @@ components; Euler angles default to the 3-1-3 (``"zxz"``) sequence.
 
 The top level holds what most users need. Families have their own namespaces:
 ``rigidjax.kinematics`` (every rotation helper, the Euler sequences), ``rigidjax.elliptic`` (elliptic
-integrals and functions), ``rigidjax.solvers`` (structure-preserving diffrax solvers, the presets).
+integrals and functions), ``rigidjax.solvers`` (structure-preserving diffrax solvers, the presets),
+``rigidjax.convert`` (to and from scipy's rotations and MuJoCo's free joint).
 """
 
 import warnings as _warnings
 from importlib.metadata import PackageNotFoundError, version
 
+from . import convert as convert
 from . import elliptic as elliptic
 from . import kinematics as kinematics
 from . import solvers as solvers
@@ -210,4 +212,4 @@ def __getattr__(name):
 
 
 def __dir__():
-    return sorted(__all__ + ["elliptic", "kinematics", "solvers", "__version__"])
+    return sorted(__all__ + ["convert", "elliptic", "kinematics", "solvers", "__version__"])
