@@ -31,8 +31,10 @@ smallest stride that keeps the stored trajectories under 32 MiB (``--save-every`
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
+import os
 import sys
 import time
 
@@ -55,12 +57,14 @@ from .common import (
     write_figure,
     write_npz,
 )
-from .scenes import DAY, SCENE_BUILDERS
+from .scenes import DAY, SCENE_BUILDERS, block_params
 
 SCENES = tuple(SCENE_BUILDERS)
 ACCURACIES = ("fast", "balanced", "precise", "exact")
 DEFAULT_OUT = "rigidjax_simulate.npz"
 DEFAULT_PLOT = "rigidjax_simulate.png"
+ANIMATION_EXTENSIONS = (".gif", ".mp4")
+ANIMATED_BODIES = 3  # --animate draws the first bodies of the scene
 
 
 def _summary(plan: Plan, batch: Batch, args, compile_time: float) -> tuple[dict, list]:
@@ -161,6 +165,46 @@ def _plot(plan: Plan, batch: Batch, args) -> bool:
     return True
 
 
+def _check_animate(args) -> None:
+    """``--animate PATH`` checked before the run: the extension, the directory, a scene with
+    orientations, matplotlib, and ffmpeg for ``.mp4``."""
+    path = check_output(args.animate, "--animate", ANIMATION_EXTENSIONS)
+    if args.scene == "earth":
+        raise UsageError(
+            "--animate needs orientations, and the earth scene integrates omega only (Euler's "
+            "equations); animate --scene heavy-top or --scene free."
+        )
+    try:
+        from matplotlib import animation
+    except ImportError:
+        raise UsageError(
+            "--animate needs matplotlib, which is not installed: pip install 'rigidjax[plot]'."
+        ) from None
+    if os.path.splitext(path)[1].lower() == ".mp4" and not animation.writers.is_available("ffmpeg"):
+        raise UsageError(
+            f"--animate {path!r}: writing .mp4 needs ffmpeg, which was not found; give a .gif path."
+        )
+
+
+def _animate(plan: Plan, batch: Batch, args) -> None:
+    """The first bodies of the scene, from the stored samples, animated to ``args.animate``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    plot = importlib.import_module("rigidjax.plot")
+    count = min(ANIMATED_BODIES, plan.n)
+    index = np.arange(count)
+    trajectory = rj.Trajectory(
+        ts=jnp.asarray(plan.ts[plan.keep], plan.dtype),
+        omega=jnp.asarray(batch.store["omega"][:count], plan.dtype),
+        orientation=jnp.asarray(batch.store["orientation"][:count], plan.dtype),
+        model=plan.scene.make_model(block_params(plan.scene.params, index, plan.n), plan.dtype),
+        success=jnp.asarray(batch.results["success"][:count]),
+        stats={},
+    )
+    plot.animate(trajectory, args.animate, bodies=tuple(range(count)))
+
+
 def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, out_files, t_start) -> None:
     blocks, block_size, padded = plan.blocks, plan.block_size, plan.padded
     mean_steps = batch.steps_total / max(1, blocks * math.ceil(block_size / max(batch.chunk_size, 1)))
@@ -222,6 +266,8 @@ def run(args) -> int:
         check_output(args.out, "--out", (".npz",))
     if args.plot and not args.no_plot:
         check_output(args.plot, "--plot", FIGURE_EXTENSIONS)
+    if args.animate:
+        _check_animate(args)
     t_start = time.perf_counter()
     plan = plan_run(args)
     if args.out and plan.save_every >= plan.samples:
@@ -248,6 +294,11 @@ def run(args) -> int:
         out_files.append(args.out)
     if args.plot and not args.no_plot and _plot(plan, batch, args):
         out_files.append(args.plot)
+    if args.animate:
+        count = min(ANIMATED_BODIES, plan.n)
+        info(args, "animating body 0..." if count == 1 else f"animating the first {count} bodies...")
+        _animate(plan, batch, args)
+        out_files.append(args.animate)
     if not args.quiet:
         _print_summary(plan, batch, args, summary, scene_rows, out_files, t_start)
     if summary["failed_bodies"]:
@@ -359,5 +410,12 @@ def add_parser(subparsers) -> None:
         help="output figure path: .png, .pdf or .svg (needs matplotlib); checked before the run",
     )
     sim.add_argument("--no-plot", action="store_true", help="do not write the figure")
+    sim.add_argument(
+        "--animate",
+        default=None,
+        metavar="PATH",
+        help=f"also write a 3-D animation of the first {ANIMATED_BODIES} bodies (from the stored samples) "
+        "to PATH: .gif, or .mp4 with ffmpeg (needs matplotlib); checked before the run",
+    )
     sim.add_argument("-q", "--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=run)
