@@ -170,7 +170,8 @@ def _heavy_top_scene(n: int, rng: np.random.Generator, symmetric: bool = False) 
     plot_indices = _quantile_indices(omega3)
     return Scene(
         "heavy-top",
-        f"{n:,} heavy tops ({'symmetric' if symmetric else 'slightly asymmetric'}, spin 30-150 rad/s, "
+        f"{n:,} heavy top{'' if n == 1 else 's'} ({'symmetric' if symmetric else 'slightly asymmetric'}, "
+        "spin 30-150 rad/s, "
         "tilt 0.05-1 rad)",
         params,
         omega0,
@@ -243,18 +244,34 @@ def _free_scene(n: int, rng: np.random.Generator) -> Scene:
         for k, i in enumerate(plot_indices):
             w = traces["omega"][k] / np.linalg.norm(omega0[i])
             target = axes[0] if axis[i] == 1 else axes[1]
-            target.plot(ts, w[:, axis[i]], lw=0.8, label=f"axis {axis[i] + 1}, |w0|={speed[i]:.1f} rad/s")
+            name = names[axis[i]]
+            target.plot(
+                ts, w[:, axis[i]], lw=0.8, label=f"{name} axis {axis[i] + 1}, |w0|={speed[i]:.1f} rad/s"
+            )
         axes[0].set(xlabel="t (s)", ylabel="w2 / |w0|", title="Spins near the intermediate axis (flips)")
-        axes[1].set(xlabel="t (s)", ylabel="w_axis / |w0|", title="Spins near the minor/major axis")
-        for ax in axes[:2]:
-            ax.legend(fontsize=6)
+        axes[1].set(
+            xlabel="t (s)", ylabel="w about the spin axis / |w0|", title="Spins near the minor or major axis"
+        )
+        for ax, near in zip(axes[:2], ("intermediate", "minor or major"), strict=True):
+            if ax.lines:
+                ax.legend(fontsize=6)
+            else:  # no body of this run was spun near these axes
+                ax.text(0.5, 0.5, f"no body of this run\nwas spun near the {near} axis", ha="center",
+                        va="center", transform=ax.transAxes, color="0.4")  # fmt: skip
 
+    names = ("minor", "intermediate", "major")
     inter = np.flatnonzero(axis == 1)
-    stable = np.flatnonzero(axis != 1)
-    plot_indices = np.array(sorted(set(inter[:3].tolist() + stable[:2].tolist())), dtype=np.int64)
+    minor, major = np.flatnonzero(axis == 0), np.flatnonzero(axis == 2)
+    # One spin near the minor axis and one near the major, where the run has both.
+    stable = (
+        (minor[:1].tolist() + major[:1].tolist())
+        if minor.size and major.size
+        else (minor[:2].tolist() + major[:2].tolist())
+    )
+    plot_indices = np.array(sorted(set(inter[:3].tolist() + stable)), dtype=np.int64)
     return Scene(
         "free",
-        f"{n:,} torque-free asymmetric bodies spun near a principal axis",
+        f"{n:,} torque-free asymmetric bod{'y' if n == 1 else 'ies'} spun near a principal axis",
         params,
         omega0,
         orientation0,
@@ -349,7 +366,7 @@ def _earth_scene(n: int, rng: np.random.Generator) -> Scene:
     plot_indices = _quantile_indices(amp, qs=(0.5, 0.95))
     return Scene(
         "earth",
-        f"{n:,} rigid Earths (SI units), free wobble of 1e-11-1e-10 rad/s",
+        f"{n:,} rigid Earth{'' if n == 1 else 's'} (SI units), free wobble of 1e-11-1e-10 rad/s",
         params,
         omega0,
         None,
