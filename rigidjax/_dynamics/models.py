@@ -20,6 +20,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import as_float_array, check_last_axis
 from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
+from .._repr import dataclass_fields, fields_repr, summarizing
 from .equations import _euler_equations, _inertia_times, is_full_tensor
 
 _Z = (0.0, 0.0, 1.0)
@@ -79,6 +80,11 @@ class AbstractTorque(eqx.Module):
 
     @abc.abstractmethod
     def __call__(self, t, state: State, args: Any) -> Float[Array, "3"]: ...
+
+    @summarizing
+    def __repr__(self) -> str:
+        """The class and its fields, arrays as dtype, shape and (when few) values: no array dumps."""
+        return fields_repr(type(self).__name__, dataclass_fields(self))
 
 
 class ConstantTorque(AbstractTorque):
@@ -275,6 +281,25 @@ class AbstractModel(eqx.Module):
     @property
     def conserves_energy(self) -> bool:
         return False
+
+    @summarizing
+    def __repr__(self) -> str:
+        """The scene, its arrays as dtype, shape and (when few) values, its torques and its batch
+        shape: one short line however many bodies, also for traced values inside ``jax.jit``."""
+        fields = []
+        for name, value in dataclass_fields(self):
+            if name == "torques":
+                if value:
+                    fields.append(("torque", value[0] if len(value) == 1 else tuple(value)))
+            else:
+                fields.append((name, value))
+        try:
+            batch = self.batch_shape()
+        except (ValueError, TypeError, AttributeError):  # fields that do not broadcast
+            batch = ()
+        if batch:
+            fields.append(("batch_shape", batch))
+        return fields_repr(type(self).__name__, fields)
 
     @property
     def conserves_angular_momentum(self) -> bool:

@@ -11,6 +11,7 @@ from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import RigidBody, State
 from .._integrate.simulate import simulate
 from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
+from .._repr import summarize
 
 
 class InertiaFit(eqx.Module):
@@ -66,6 +67,29 @@ class InertiaFit(eqx.Module):
     normalised: bool = eqx.field(static=True)
     method: str = eqx.field(static=True)
     torque: Any = None
+
+    def __repr__(self) -> str:
+        """A few lines: the fitted inertia and its standard errors, whether the optimiser converged,
+        in how many steps, the loss and residuals, the initial state; arrays as dtype, shape and (when
+        few) values, also for traced values inside ``jax.jit``."""
+
+        def show(x):
+            return summarize(x, digits=4)
+
+        gauge = "normalised to trace 1" if self.normalised else "kg m^2"
+        data = "angular velocity" if self.orientation0 is None else "orientation"
+        lines = [f"inertia={show(self.inertia)} ({gauge})", f"inertia_stderr={show(self.inertia_stderr)}"]
+        if self.inertia.ndim == 2:
+            lines.append(f"principal_moments={show(self.principal_moments)}")
+        lines += [
+            f"converged={show(self.converged)}, num_steps={show(self.num_steps)}, method={self.method!r}",
+            f"loss={show(self.loss)}, residual_rms={show(self.residual_rms)}",
+            f"noise_estimate={show(self.noise_estimate)}",
+            f"omega0={show(self.omega0)}, segments={self.segment_starts.shape[0]}, fitted to {data}",
+        ]
+        if self.torque is not None:
+            lines.append(f"torque={show(self.torque)}")
+        return "InertiaFit(\n" + "".join(f"    {line},\n" for line in lines) + ")"
 
     def _predict_with_torque(self, ts, with_orientation: bool):
         """Integrates the fitted model under its known torque from each window's start ("precise")."""
