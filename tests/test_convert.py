@@ -229,8 +229,9 @@ def test_mujoco_torque_free_motion_matches_closed_form():
         qvel_mj.append(data.qvel.copy())
     state_mj, pos_mj, vel_mj = convert.from_mujoco_free_joint(np.array(qpos_mj), np.array(qvel_mj))
     traj = rj.simulate(rj.FreeBody(INERTIA), rj.State(omega0, q0), np.array(ts), accuracy="exact")
-    np.testing.assert_allclose(np.asarray(state_mj.omega), np.asarray(traj.omega), atol=1e-6)
-    _same_up_to_sign(state_mj.orientation, traj.orientation, 1e-6)
+    # RK4 at omega dt = 4e-4 is accurate to ~1e-14 here; the margin is for other MuJoCo versions.
+    np.testing.assert_allclose(np.asarray(state_mj.omega), np.asarray(traj.omega), atol=1e-9)
+    _same_up_to_sign(state_mj.orientation, traj.orientation, 1e-9)
     # The centre of mass moves uniformly in a straight line.
     np.testing.assert_allclose(np.asarray(pos_mj), np.array(ts)[:, None] * velocity, atol=1e-12)
     np.testing.assert_allclose(np.asarray(vel_mj), np.broadcast_to(velocity, (len(ts), 3)), atol=1e-12)

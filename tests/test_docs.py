@@ -17,7 +17,7 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
-NAMESPACES = ("rigidjax", "rigidjax.kinematics", "rigidjax.elliptic", "rigidjax.solvers")
+NAMESPACES = ("rigidjax", "rigidjax.kinematics", "rigidjax.elliptic", "rigidjax.solvers", "rigidjax.convert")
 DIRECTIVE = re.compile(r"^:::\s+(\S+)", re.MULTILINE)
 
 
