@@ -126,6 +126,10 @@ def test_mujoco_round_trip_batched_and_jit():
     np.testing.assert_array_equal(np.asarray(back.omega), omega)
     np.testing.assert_array_equal(np.asarray(pos), np.asarray(qpos[:, :3]))
     assert vel.shape == (6, 3)
+    # vmap over bodies gives the same as the batched call.
+    qpos_v, qvel_v = jax.vmap(convert.to_mujoco_free_joint, in_axes=(0, None))(state, position)
+    np.testing.assert_array_equal(np.asarray(qpos_v), np.asarray(qpos))
+    np.testing.assert_array_equal(np.asarray(qvel_v), np.asarray(qvel))
     # float32 is kept.
     s32 = rj.State(omega.astype(np.float32), q.astype(np.float32))
     qpos32, qvel32 = convert.to_mujoco_free_joint(s32)
