@@ -78,7 +78,7 @@ def _shape(trajectory, i: int) -> tuple[np.ndarray, float]:
     return _box(moments) @ vectors.T, 1.3
 
 
-def animate(trajectory, path, bodies=(0,), *, fps: float = 20, frames: int = 60, dpi: int = 80) -> str:
+def animate(trajectory, path, bodies=(0,), *, fps=20, frames=60, dpi=80) -> str:
     """A 3-D animation of bodies turning, written to a ``.gif`` or ``.mp4`` file.
 
     Each body has its own panel, in space-frame axes: a box with the body's proportions (the

@@ -47,7 +47,7 @@ def _body_label(trajectory, i: int) -> str:
     return "" if data.n_bodies(trajectory) == 1 else f" (body {i})"
 
 
-def poinsot(trajectory, body: int = 0, *, fig=None):
+def poinsot(trajectory, body=0, *, fig=None):
     """Poinsot's construction of a torque-free body: the polhode on the energy ellipsoid and the
     herpolhode on the invariable plane.
 
@@ -113,7 +113,7 @@ def poinsot(trajectory, body: int = 0, *, fig=None):
     return fig
 
 
-def cones(trajectory, body: int = 0, *, fig=None):
+def cones(trajectory, body=0, *, fig=None):
     """The body cone and the space cone: the directions of ``omega`` in the body and in space.
 
     The left panel (3-D) draws the unit vector ``omega / |omega|`` in body-frame components over
@@ -171,7 +171,7 @@ def cones(trajectory, body: int = 0, *, fig=None):
     return fig
 
 
-def euler_angles(trajectory, body: int = 0, sequence: str = "zxz", *, fig=None):
+def euler_angles(trajectory, body=0, sequence: str = "zxz", *, fig=None):
     """The Euler angles ``phi``, ``theta``, ``psi`` of one body over time, one panel each.
 
     The angles are :func:`rigidjax.euler_from_quat` of the trajectory's orientations in the given
