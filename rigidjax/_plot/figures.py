@@ -53,18 +53,18 @@ def poinsot(trajectory, body=0, *, fig=None):
 
     The left panel (3-D, body frame) draws the energy ellipsoid ``omega . I omega = 2E`` and on it
     the polhode, the path of the body-frame ``omega``; torque-free, the polhode is also on the
-    momentum sphere ``|I omega| = |L|`` (``|I omega + h| = |L|`` for a gyrostat), and it is the
-    ellipsoid's intersection with it. The right panel (2-D, space frame) draws the herpolhode, the
-    path of the tip of the space-frame ``omega`` in the invariable plane: the plane perpendicular
-    to ``L`` at the distance ``2E / |L|`` from the fixed point, on which the ellipsoid rolls without
-    slipping. Its axes are two orthonormal directions of the plane; the origin is where ``L``
-    pierces it.
+    momentum sphere ``|I omega| = |L|``, and it is the ellipsoid's intersection with it. The right
+    panel (2-D, space frame) draws the herpolhode, the path of the tip of the space-frame ``omega``
+    in the invariable plane: the plane perpendicular to ``L`` at the distance ``2E / |L|`` from the
+    fixed point, on which the ellipsoid rolls without slipping. Its axes are two orthonormal
+    directions of the plane; the origin is where ``L`` pierces it.
 
     **Arguments:**
 
-    - `trajectory`: a :class:`rigidjax.Trajectory` of a torque-free scene (a
-      :class:`rigidjax.FreeBody`, a :class:`rigidjax.RigidBody` without torques, a torque-free
-      :class:`rigidjax.Gyrostat`) simulated with orientations.
+    - `trajectory`: a :class:`rigidjax.Trajectory` of a torque-free rigid body (a
+      :class:`rigidjax.FreeBody`, or a :class:`rigidjax.RigidBody` without torques) simulated with
+      orientations. (A gyrostat's rotors break the construction: its ``omega`` does not stay in a
+      fixed plane.)
     - `body`: the body to draw, an index into the flattened batch (``0`` for a single body;
       negative indices count from the end).
     - `fig`: a matplotlib Figure to draw into (it is cleared first); a new one by default.
@@ -77,8 +77,9 @@ def poinsot(trajectory, body=0, *, fig=None):
     """
     if not trajectory.model.torque_free:
         raise ValueError(
-            "poinsot: the trajectory's scene has torques; Poinsot's construction is for torque-free "
-            f"bodies (got {type(trajectory.model).__name__} with a torque or a field)."
+            "poinsot: Poinsot's construction is for a torque-free rigid body (a FreeBody, or a "
+            f"RigidBody without torques); the trajectory's scene is a {type(trajectory.model).__name__} "
+            "with torques, a field or rotors."
         )
     data.need_orientation(trajectory, "poinsot")
     i = data.body_index(trajectory, body)
