@@ -17,7 +17,14 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
-NAMESPACES = ("rigidjax", "rigidjax.kinematics", "rigidjax.elliptic", "rigidjax.solvers", "rigidjax.convert")
+NAMESPACES = (
+    "rigidjax",
+    "rigidjax.kinematics",
+    "rigidjax.elliptic",
+    "rigidjax.solvers",
+    "rigidjax.convert",
+    "rigidjax.plot",
+)
 DIRECTIVE = re.compile(r"^:::\s+(\S+)", re.MULTILINE)
 
 
