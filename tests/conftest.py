@@ -15,19 +15,9 @@ and other subprocesses started by the tests share the cache.
 import os
 import pathlib
 
-# XLA's CPU backend compiles the suite's programs 1.5-3x faster with its older fusion code generator
-# (the exact heavy top's reverse-mode program: 16 s instead of 46 s), and compiling is most of a
-# run. Results agree to rounding; the benchmarks measure the default. Set before jax's backend starts,
-# exported so the notebooks' kernels use it too; RIGIDJAX_TEST_XLA_DEFAULTS=1 runs the tests with
-# XLA's defaults.
-if not os.environ.get("RIGIDJAX_TEST_XLA_DEFAULTS"):
-    _flag = "--xla_cpu_use_fusion_emitters=false"
-    if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
-
-import jax  # noqa: E402
-import jaxtyping  # noqa: E402
-import pytest  # noqa: E402
+import jax
+import jaxtyping
+import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
