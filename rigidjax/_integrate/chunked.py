@@ -97,6 +97,7 @@ def _integrate_traced(
         def solve_chunk(chunk, shared):
             values, w0, cq0, s = chunk
             shell, args, ts, controller, solver, adjoint, dt0 = eqx.combine(shared, static)
+            values = formulation.prepare(values, leaves)
             y0 = formulation.initial_state(values, leaves, w0, cq0, s)
             vector_field = formulation.vector_field(shell, leaves, values, s)
             first_step = dt0

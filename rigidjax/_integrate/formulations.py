@@ -10,7 +10,7 @@ solver and the way back to angular velocity and orientation.
   the solver is built per chunk from the scene's parameters.
 """
 
-from typing import ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -57,6 +57,10 @@ class ScaledODE(eqx.Module):
     lock_tolerance: float = eqx.field(static=True, default=1e-3)
 
     uses_scale: ClassVar[bool] = True
+
+    def prepare(self, values, leaves):
+        """What the other methods take as ``values``: the chunk's per-body model values as given."""
+        return values
 
     def initial_state(self, values, leaves, omega0, q0, sigma):
         attitude = q0
@@ -124,6 +128,9 @@ class LieGroupODE(eqx.Module):
 
     uses_scale: ClassVar[bool] = False
 
+    def prepare(self, values, leaves):
+        return values
+
     def initial_state(self, values, leaves, omega0, q0, sigma):
         if q0 is None:
             q0 = jnp.zeros(omega0.shape[:-1] + (4,), omega0.dtype).at[..., 0].set(1.0)
@@ -150,6 +157,13 @@ class LieGroupODE(eqx.Module):
         return _time_first(omega), _time_first(q)
 
 
+class _Frame(NamedTuple):
+    named: dict[str, Any]  # the chunk's per-body parameters by field name
+    moments: Any  # (n, 3) principal moments
+    axes: Any  # (n, 3, 3) principal -> body components, None for principal moments given
+    axes_q: Any  # the same rotation as a quaternion
+
+
 class SplittingODE(eqx.Module):
     """The Lie–Poisson splittings on ``(L, q)`` in each body's principal axes (a tensor inertia is
     diagonalised once per body). The solver's parameters come from the scene, per chunk."""
@@ -159,17 +173,19 @@ class SplittingODE(eqx.Module):
 
     uses_scale: ClassVar[bool] = False
 
-    @staticmethod
-    def _frame(values, leaves):
+    def prepare(self, values, leaves):
+        """The chunk's parameters by name and its principal frame, computed once per chunk: a tensor
+        inertia ``(n, 3, 3)`` is diagonalised here, and the other methods take this in place of
+        ``values``."""
         named = dict(zip([leaf.label for leaf in leaves], values, strict=True))
         inertia = named["inertia"]
         if inertia.ndim == 3:  # (n, 3, 3) tensors: integrate in each body's principal axes
             moments, axes = principal_axes(inertia)  # axes: principal -> body components
-            return named, moments, axes, _quat_from_matrix(axes)
-        return named, inertia, None, None
+            return _Frame(named, moments, axes, _quat_from_matrix(axes))
+        return _Frame(named, inertia, None, None)
 
     def initial_state(self, values, leaves, omega0, q0, sigma):
-        _, moments, axes, axes_q = self._frame(values, leaves)
+        _, moments, axes, axes_q = values
         if q0 is None:
             q0 = jnp.zeros(omega0.shape[:-1] + (4,), omega0.dtype).at[..., 0].set(1.0)
         if axes is not None:
@@ -178,7 +194,7 @@ class SplittingODE(eqx.Module):
         return moments * omega0, q0
 
     def _parameters(self, values, leaves):
-        named, moments, axes, _ = self._frame(values, leaves)
+        named, moments, axes, _ = values
         if not self.heavy_top:
             return moments, None
         com = named["com"] if axes is None else jnp.einsum("nji,nj->ni", axes, named["com"])
@@ -200,7 +216,7 @@ class SplittingODE(eqx.Module):
         return None
 
     def outputs(self, ys, values, leaves, sigma):
-        _, moments, axes, axes_q = self._frame(values, leaves)
+        _, moments, axes, axes_q = values
         L, q = ys  # (T, bodies, 3), (T, bodies, 4)
         omega = L / moments
         if axes is not None:
