@@ -26,6 +26,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def use_compilation_cache() -> str | None:
+    """Keeps compiled programs on disk between invocations (JAX's persistent compilation cache), so
+    that a second ``rigidjax simulate`` of the same scene shape skips most compiling. The cache is
+    ``$XDG_CACHE_HOME/rigidjax/jax`` (``~/.cache/rigidjax/jax``); a cache directory already chosen
+    (``JAX_COMPILATION_CACHE_DIR`` or jax's config) is kept, and ``RIGIDJAX_NO_COMPILATION_CACHE=1``
+    turns it off. Returns the directory in use, or None."""
+    import jax
+
+    chosen = jax.config.jax_compilation_cache_dir or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if chosen or os.environ.get("RIGIDJAX_NO_COMPILATION_CACHE"):
+        return chosen or None
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    path = os.path.join(base, "rigidjax", "jax")
+    jax.config.update("jax_compilation_cache_dir", path)
+    # The scenes' integrations take seconds to compile; the many small programs around them add up too.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    return path
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rigidjax`` command; returns the exit status (130 after Ctrl-C, which
     ends the process at once when ``argv`` is None, i.e. when this is the command itself)."""
@@ -37,6 +56,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    use_compilation_cache()
     code = run_command(args.func, args)
     if code == INTERRUPTED and argv is None:
         # Ctrl-C in the command itself: a compiled JAX computation may still be running in JAX's
