@@ -237,10 +237,36 @@ def test_output_stem(tmp_path, out, expected):
 
 
 def test_ragged_rows_are_one_line(tmp_path, capsys, no_fit):
-    """numpy's message for a row with too few cells spans several lines; the report is one."""
+    """A row with too few cells is named (its data row and file line) in one line."""
     rows = ["t,wx,wy,wz", *(f"{t},1,2,3" for t in range(12))]
     rows[4] = "3,1"
     data = tmp_path / "gyro.csv"
     data.write_text("\n".join(rows) + "\n")
     assert run_fit([str(data), "-q"]) == 2
-    _one_line_error(capsys.readouterr(), "cannot read the numbers: Some errors were detected ! Line #5")
+    _one_line_error(capsys.readouterr(), "data row 4 (line 5) has 2 cell(s); the header names 4 columns")
+
+
+def test_spreadsheet_csv_with_quotes_bom_and_crlf_is_read(tmp_path):
+    """What spreadsheets and pandas write: a byte-order mark, quoted names and numbers, CRLF line
+    ends, extra columns in any order; plus a trailing comment and an empty (missing) cell."""
+    from rigidjax._cli.fit import read_record
+
+    lines = [
+        '"time_s","wz","t","wx","wy"',
+        '"a",3,0,1,2',
+        '"b","3.5","0.5","1e-3",""  # note',
+        '"c",4,1.0,-1,2',
+    ]
+    data = tmp_path / "export.csv"
+    data.write_bytes(("\ufeff" + "\r\n".join(lines) + "\r\n").encode("utf-8"))
+    (tmp_path / "header_only.csv").write_text('"time_s","wz","t","wx","wy"\n')
+    with pytest.raises(ValueError, match="no data rows"):
+        read_record(str(tmp_path / "header_only.csv"))
+    with pytest.raises(ValueError, match="too few samples: 2 complete rows"):
+        read_record(str(data))
+    lines += [f'"r{k}",{k},{2 + k},1,2' for k in range(10)]
+    data.write_bytes(("\ufeff" + "\r\n".join(lines) + "\r\n").encode("utf-8"))
+    ts, omega = read_record(str(data))
+    np.testing.assert_array_equal(ts, [0.0, 0.5, 1.0, *range(2, 12)])
+    expected = np.array([[1, 2, 3], [1e-3, np.nan, 3.5], [-1, 2, 4], *([1, 2, k] for k in range(10))], float)
+    np.testing.assert_array_equal(omega, expected)

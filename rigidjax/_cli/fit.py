@@ -15,7 +15,6 @@ import math
 import os
 import sys
 import time
-import warnings
 
 import jax
 import numpy as np
@@ -33,12 +32,16 @@ class DataError(ValueError):
 
 
 def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """Reads ``t, wx, wy, wz`` from a CSV with a header row; returns ``(ts, omega)``."""
+    """Reads ``t, wx, wy, wz`` from a CSV with a header row; returns ``(ts, omega)``.
+
+    Standard CSV: quoted cells and a byte-order mark (as spreadsheets write them) are read; blank
+    lines, ``#`` comment lines and text after a ``#`` are skipped; an empty cell or ``nan`` is a
+    missing sample."""
     if not os.path.isfile(path):
         raise DataError(f"{path}: no such file.")
-    with open(path, encoding="utf-8") as handle:
-        header = handle.readline()
-    names = [name.strip().lower() for name in header.strip().split(",")]
+    with open(path, encoding="utf-8-sig", newline="") as handle:
+        rows = list(csv.reader(handle))
+    names = [name.strip().lower() for name in rows[0]] if rows else []
     if all(c in names for c in QUATERNION_COLUMNS) and not all(c in names for c in OMEGA_COLUMNS):
         raise DataError(
             f"{path}: orientation records (t, qw, qx, qy, qz) cannot be fitted from the command line "
@@ -51,17 +54,23 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
             f"(found: {', '.join(names) or 'nothing'})."
         )
     index = [names.index(c) for c in OMEGA_COLUMNS]
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # an empty body is reported below, by name
-            data = np.genfromtxt(path, delimiter=",", skip_header=1, usecols=index, dtype=float, ndmin=2)
-    except ValueError as error:
-        detail = " ".join(str(error).split())  # numpy's message spans lines; the report is one
-        raise DataError(f"{path}: cannot read the numbers: {detail}") from None
-    if data.size == 0:
+    data = []
+    for line, cells in enumerate(rows[1:], start=2):
+        cells = _without_comment(cells)
+        if not any(c.strip() for c in cells):
+            continue  # a blank or comment line
+        row = len(data) + 1
+        if len(cells) <= max(index):
+            raise DataError(
+                f"{path}: data row {row} (line {line}) has {len(cells)} cell(s); the header names "
+                f"{len(names)} columns."
+            )
+        data.append(
+            [_number(path, row, column, cells[i]) for column, i in zip(OMEGA_COLUMNS, index, strict=True)]
+        )
+    if not data:
         raise DataError(f"{path}: no data rows after the header.")
-    if np.isnan(data).any():
-        _check_missing_cells(path, data, index)
+    data = np.asarray(data, dtype=float)
     ts, omega = data[:, 0], data[:, 1:4]
     if not np.all(np.isfinite(ts)):
         row = int(np.argmin(np.isfinite(ts)))
@@ -89,26 +98,27 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
     return ts, omega
 
 
-def _check_missing_cells(path: str, data: np.ndarray, index: list[int]) -> None:
-    """A NaN read from the file must be an empty cell or ``nan`` (a missing sample), not text that
-    is not a number (which the reader would also turn into NaN): a :class:`DataError` naming it."""
-    with open(path, encoding="utf-8", newline="") as handle:
-        rows = csv.reader(handle)
-        next(rows, None)  # the header
-        row_number = 0
-        for cells in rows:
-            if not cells or all(not c.strip() for c in cells) or cells[0].lstrip().startswith("#"):
-                continue  # the reader skips blank and comment lines too
-            row_number += 1
-            if row_number > data.shape[0]:
-                break
-            for k, column in enumerate(index):
-                text = cells[column].split("#")[0].strip() if column < len(cells) else ""
-                if np.isnan(data[row_number - 1, k]) and text and text.lower() != "nan":
-                    raise DataError(
-                        f"{path}: data row {row_number}, column {OMEGA_COLUMNS[k]}: {text!r} is not a "
-                        "number; leave the cell empty (or write nan) for a missing sample."
-                    )
+def _without_comment(cells: list[str]) -> list[str]:
+    """The cells before a ``#`` (the rest of the line is a comment)."""
+    for k, cell in enumerate(cells):
+        if "#" in cell:
+            return [*cells[:k], cell.split("#")[0]]
+    return cells
+
+
+def _number(path: str, row: int, column: str, text: str) -> float:
+    """One cell as a float: empty or ``nan`` is a missing sample (NaN); text that is not a number
+    is a :class:`DataError` naming the row and the column."""
+    text = text.strip()
+    if not text or text.lower() == "nan":
+        return float("nan")
+    try:
+        return float(text)
+    except ValueError:
+        raise DataError(
+            f"{path}: data row {row}, column {column}: {text!r} is not a number; leave the cell empty "
+            "(or write nan) for a missing sample."
+        ) from None
 
 
 class _Progress:
