@@ -11,7 +11,9 @@ a pivot included, for orientation records) the torque fixes the scale, a log-sca
 fitted, and the forward model is Dopri8 (rtol 1e-10, scaled units) instead of the closed form.
 """
 
+import dataclasses
 import math
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -28,6 +30,62 @@ from .prepare import _Data, _prepare_omega, _prepare_orientation
 from .result import InertiaFit
 
 _LOSSES = ("squared", "huber", "soft_l1", "cauchy")
+
+
+def _printed(iteration: int) -> bool:
+    """Iterations 1-10, then every 10th to 100, then every 100th: a readable log of a long fit."""
+    return iteration <= 10 or (iteration <= 100 and iteration % 10 == 0) or iteration % 100 == 0
+
+
+@dataclasses.dataclass(frozen=True)
+class _Hooks:
+    """The host calls after each iteration: the user's ``callback``, ``progress`` (a callable, or
+    ``print_lines`` for ``progress=True``)."""
+
+    callback: Callable | None
+    progress: Callable | None
+    print_lines: bool
+
+    def __call__(self, iteration, loss, step_norm):
+        iteration, loss = int(iteration), float(loss)
+        if self.callback is not None:
+            self.callback(iteration, loss)
+        if self.progress is not None:
+            self.progress(iteration, loss)
+        if self.print_lines and _printed(iteration):
+            print(
+                f"fit: iteration {iteration}, loss {loss:.6e}, step {float(step_norm):.3e}", file=sys.stderr
+            )
+
+
+_ACTIVE: list[_Hooks] = []
+"""The hooks of the fit now running. The compiled fit calls :func:`_dispatch`, one function for all
+hooks, so a new callable (a fresh lambda on every call) does not compile the fit again."""
+
+
+def _dispatch(iteration, loss, step_norm):
+    if _ACTIVE:
+        _ACTIVE[-1](iteration, loss, step_norm)
+
+
+def _hooks(callback, progress) -> _Hooks | None:
+    """The iteration hooks of ``callback`` and ``progress``, or None when there are none."""
+    if callback is not None and not callable(callback):
+        raise TypeError(f"callback must be callable as callback(iteration, loss), got {callback!r}.")
+    if isinstance(progress, bool | np.bool_) or progress is None:
+        print_lines, progress = bool(progress), None
+    elif callable(progress):
+        print_lines = False
+    else:
+        raise TypeError(
+            "progress must be True (a line per iteration on stderr), False, or a callable "
+            f"progress(iteration, loss); got {progress!r}."
+        )
+    if callback is None and progress is None and not print_lines:
+        return None
+    return _Hooks(callback, progress, print_lines)
+
+
 _METHODS = ("levenberg-marquardt", "optax")
 
 
@@ -90,7 +148,7 @@ def _check_known_moment(known_moment):
 
 
 def _check_options(
-    loss, method, optimizer, inertia_trace, known_moment, *, steps, tol, f_scale, dtype, callback, full_tensor
+    loss, method, optimizer, inertia_trace, known_moment, *, steps, tol, f_scale, dtype, full_tensor
 ):
     """Every option of a fit checked before any work: returns ``(method, steps, inertia_trace,
     known_moment, dtype)`` with the defaults filled in (``"optax"``; 200 or 2000 steps)."""
@@ -123,8 +181,6 @@ def _check_options(
     _positive_number(tol, "tol", "the relative tolerance on the loss", allow_zero=True)
     if f_scale is not None:
         _positive_number(f_scale, "f_scale", "the robust loss's scale, in the units of the residual")
-    if callback is not None and not callable(callback):
-        raise TypeError(f"callback must be callable as callback(iteration, loss), got {callback!r}.")
     if dtype is None:
         dtype = jnp.result_type(float)
     else:
@@ -146,10 +202,29 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
     p0 = jnp.asarray(data.p0, dtype)
     # optax's own internals (L-BFGS's memory indices) mix int32 and int64, which a user's strict
     # dtype promotion would reject; rigidjax's arithmetic does not depend on the setting.
-    with jax.numpy_dtype_promotion("standard"):
-        p, history, n_steps, converged, covariance, final_loss, rms = _run(
-            problem, p0, method, optimizer, int(steps), float(tol), callback
-        )
+    if callback is not None:
+        _ACTIVE.append(callback)
+    try:
+        with jax.numpy_dtype_promotion("standard"):
+            out = _run(
+                problem,
+                p0,
+                method,
+                optimizer,
+                int(steps),
+                float(tol),
+                None if callback is None else _dispatch,
+            )
+        if callback is not None:
+            jax.block_until_ready(out)
+            jax.effects_barrier()  # every iteration's call has run
+    finally:
+        if callback is not None:
+            _ACTIVE.pop()
+    p, history, n_steps, converged, covariance, final_loss, rms = out
+    if callback is not None and callback.print_lines:
+        verdict = "converged" if bool(converged) else "not converged (the iteration limit or a stall)"
+        print(f"fit: {int(n_steps)} iterations, loss {float(final_loss):.6e}, {verdict}", file=sys.stderr)
     inertia_trace, known_moment = scale
     omega_scale = data.omega_scale
     segments = data.starts.shape[0]
@@ -246,8 +321,13 @@ _COMMON_ARGS_DOC = """\
       sensor axes (kg m^2).
     - `tol`: relative tolerance on the loss for convergence.
     - `dtype`: float dtype of the fit (default: JAX's default float; float64 with x64 enabled).
-    - `callback`: called on the host as ``callback(iteration, loss)`` after every iteration (a
-      progress display); the loss is in the optimiser's scaled units.
+    - `callback`: called on the host as ``callback(iteration, loss)`` after every iteration; the
+      loss is in the optimiser's scaled units.
+    - `progress`: ``True`` prints the iteration, the loss (scaled units) and the norm of the step in
+      the scaled parameters to stderr (iterations 1-10, then every 10th up to 100, then every 100th)
+      and a last line with the iteration count and whether the fit converged; a callable is called
+      as ``progress(iteration, loss)`` after every iteration instead. The fit is the same with or
+      without it.
 """
 
 
@@ -271,6 +351,7 @@ def fit_inertia(
     tol: float = 1e-10,
     dtype: Any = None,
     callback: Callable[[int, float], None] | None = None,
+    progress: bool | Callable[[int, float], None] = False,
 ) -> InertiaFit:
     """Fits the inertia of a body to body-frame angular-velocity samples (a gyroscope).
 
@@ -302,9 +383,9 @@ def fit_inertia(
         tol=tol,
         f_scale=f_scale,
         dtype=dtype,
-        callback=callback,
         full_tensor=full_tensor,
     )
+    hooks = _hooks(callback, progress)
     torques = _known_torques(torque, inertia_trace, known_moment, orientation_data=False)
     data = _prepare_omega(
         ts,
@@ -328,7 +409,7 @@ def fit_inertia(
         steps=steps,
         tol=tol,
         dtype=dtype,
-        callback=callback,
+        callback=hooks,
         scale=(inertia_trace, known_moment),
     )
 
@@ -353,6 +434,7 @@ def fit_inertia_to_orientation(
     tol: float = 1e-10,
     dtype: Any = None,
     callback: Callable[[int, float], None] | None = None,
+    progress: bool | Callable[[int, float], None] = False,
 ) -> InertiaFit:
     """Fits the inertia of a body to orientation samples (motion capture).
 
@@ -390,9 +472,9 @@ def fit_inertia_to_orientation(
         tol=tol,
         f_scale=f_scale,
         dtype=dtype,
-        callback=callback,
         full_tensor=full_tensor,
     )
+    hooks = _hooks(callback, progress)
     torques = _known_torques(torque, inertia_trace, known_moment, orientation_data=True)
     data = _prepare_orientation(
         ts,
@@ -416,7 +498,7 @@ def fit_inertia_to_orientation(
         steps=steps,
         tol=tol,
         dtype=dtype,
-        callback=callback,
+        callback=hooks,
         scale=(inertia_trace, known_moment),
     )
 

@@ -1,6 +1,9 @@
 """The optimisers of the fit, both one compiled loop over a :class:`_Problem`'s flat parameters:
 Levenberg–Marquardt on its residuals (the Jacobian by forward mode), or any optax
-``GradientTransformation`` on its mean loss. :func:`_run` adds the covariance at the optimum."""
+``GradientTransformation`` on its mean loss. :func:`_run` adds the covariance at the optimum.
+
+``callback``, when given, is called on the host after every iteration as
+``callback(iteration, loss, step_norm)`` (the loss and the step in the optimiser's scaled units)."""
 
 import functools
 
@@ -65,8 +68,12 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
         converged = converged | (stalled & (carry["last_decrease"] <= jnp.sqrt(tol)))
         decrease = jnp.where(improved, (f - f_next) / jnp.maximum(f_next, 1e-300), carry["last_decrease"])
         history = jnp.where(finished, carry["history"], carry["history"].at[i].set(f_next / n))
-        if callback is not None:
-            jax.debug.callback(callback, i + 1, f_next / n, ordered=True)
+        if callback is not None:  # not in the step-free pass after the last step
+
+            def report():
+                jax.debug.callback(callback, i + 1, f_next / n, jnp.linalg.norm(p_next - p), ordered=True)
+
+            jax.lax.cond(finished, lambda: None, report)
         i_next = jnp.where(finished, i, i + 1)
         return {
             "p": p_next,
@@ -135,7 +142,8 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
         p = optax.apply_updates(p, updates)
         history = history.at[i].set(value)
         if callback is not None:
-            jax.debug.callback(callback, i + 1, value, ordered=True)
+            step_norm = jnp.sqrt(sum(jnp.sum(u * u) for u in jax.tree_util.tree_leaves(updates)))
+            jax.debug.callback(callback, i + 1, value, step_norm, ordered=True)
         # Converged when the loss has stopped changing over the last ten iterations. An integrated
         # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump),
         # so changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move

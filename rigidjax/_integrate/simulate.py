@@ -5,6 +5,7 @@ solver and a step-size rule, and hands the batch to :func:`.chunked.integrate`, 
 through the one driver; ``accuracy="exact"`` evaluates the closed form instead.
 """
 
+from collections.abc import Callable
 from typing import Any
 
 import diffrax
@@ -19,6 +20,7 @@ from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, State
 from .._kinematics.euler import _euler_from_quat, is_proper_sequence
 from . import batching, driver
+from . import progress as _progress
 from .chunked import NON_FINITE, integrate, max_norm
 from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
 from .presets import PRESETS, FaultStopPIDController
@@ -233,6 +235,7 @@ def simulate(
     representation: str = "quaternion",
     euler_seq: str = "zxz",
     lock_tolerance: float = 1e-3,
+    progress: bool | Callable[[int, int], None] = False,
 ) -> Trajectory:
     """Integrates ``model`` from ``state0`` and samples it at times ``ts``.
 
@@ -287,6 +290,13 @@ def simulate(
       lock its equations are singular. Output orientations are quaternions either way.
     - `euler_seq`, `lock_tolerance`: the sequence and the gimbal-lock margin of
       ``representation="euler"``.
+    - `progress`: ``True`` prints a progress line to stderr as the batch runs (bodies done of the
+      total, elapsed time, an estimate of the time left); a callable is called as
+      ``progress(done_bodies, total_bodies)`` instead, with counts rising to the total. The batch then
+      runs from Python in up to 20 blocks of whole chunks (the same bodies per chunk, so the same
+      result), one compiled program for all blocks; the last block is padded to the same shape. Not
+      under ``jax.jit``, ``grad`` or ``vmap`` (a ``ValueError``). ``False`` (default): one program for
+      the whole batch.
 
     **Returns:**
 
@@ -299,8 +309,12 @@ def simulate(
         )
     if not isinstance(state0, State):
         raise TypeError(f"state0 must be a rigidjax.State, got {type(state0).__name__}.")
+    report = _progress.check_progress(progress)
     if accuracy == "exact":
-        return _simulate_exact(model, state0, ts)
+        traj = _simulate_exact(model, state0, ts)
+        if report is not None:  # one closed-form program: all bodies at once
+            _progress.report_whole(report, traj)
+        return traj
     fixed_step = isinstance(solver, _STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
@@ -367,7 +381,12 @@ def simulate(
             sort=bool(sort),
         )
 
-    traj = run(model, omega0, q0, chunk_size, sort_by_speed)
+    if report is None:
+        traj = run(model, omega0, q0, chunk_size, sort_by_speed)
+    else:
+        traj = _progress.run_in_blocks(
+            run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort_by_speed
+        )
     if isinstance(traj.success, jax.core.Tracer):  # inside the user's jit: no values to look at
         return _error_if_failed(traj, max_steps, formulation) if throw else traj
     traj = _isolate_faults(traj, model, omega0, q0, run)

@@ -1,0 +1,185 @@
+"""``simulate(..., progress=...)``: the batch run from the host in blocks of whole chunks, with a
+report after each block.
+
+The bodies are put in the order the one-program run would chunk them in (sorted by speed, as
+:func:`.chunked.integrate` sorts them), cut into equal blocks of whole chunks, and every block runs
+through the same compiled integration (one shape, so one compile; the last block is padded with
+copies of the last body, as the last chunk is). Each chunk therefore holds the same bodies, in the
+same order, as without progress, and takes the same steps. Without progress none of this runs.
+"""
+
+import sys
+import time
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import batching
+from .chunked import _omega_scales
+from .trajectory import Trajectory
+
+MAX_BLOCKS = 20
+"""At most this many blocks (reports): one report per 5% of the bodies; every block is one call of
+the compiled integration, so fewer blocks cost less dispatch."""
+
+
+def check_progress(progress) -> Callable[[int, int], None] | None:
+    """``None`` when progress is off; otherwise the function called as ``report(done, total)``."""
+    if isinstance(progress, bool | np.bool_):
+        return ProgressBar() if progress else None
+    if progress is None:
+        return None
+    if callable(progress):
+        return progress
+    raise TypeError(
+        "progress must be True (a progress bar on stderr), False, or a callable "
+        f"progress(done_bodies, total_bodies); got {progress!r}."
+    )
+
+
+def bar(done: int, total: int, width: int = 30) -> str:
+    """A text progress bar: ``done / total`` of ``width`` characters filled with ``#``."""
+    filled = min(width, max(0, round(width * done / max(total, 1))))
+    return "#" * filled + "." * (width - filled)
+
+
+class ProgressBar:
+    """One line on stderr: bodies done, elapsed time and an estimate of the time left. Rewritten in
+    place on a terminal, one line per update otherwise (a log file)."""
+
+    def __init__(self, stream=None):
+        self.stream = sys.stderr if stream is None else stream
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._width = 0
+        self._start = self._first = None
+
+    def __call__(self, done: int, total: int) -> None:
+        now = time.perf_counter()
+        if self._start is None or done == 0:
+            self._start, self._first = now, None
+        elapsed = now - self._start
+        left = ""
+        if 0 < done < total:
+            if self._first is None:  # the first block includes the compile: no estimate yet
+                self._first = (done, now)
+            else:
+                rate = (now - self._first[1]) / max(done - self._first[0], 1)
+                left = f", ~{rate * (total - done):.1f} s left"
+        last = done >= total
+        line = f"simulate [{bar(done, total)}] {done:,}/{total:,} bodies, {elapsed:.1f} s{left}"
+        if self.tty:
+            self.stream.write("\r" + line.ljust(self._width) + ("\n" if last else ""))
+            self._width = 0 if last else len(line)
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+        if last:
+            self._start = None
+
+
+def _inputs_traced(*trees) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
+@eqx.filter_jit
+def _chunk_order(model, omega0, q0, ts, args, formulation, chunk_size, sort):
+    """The body order of :func:`.chunked.integrate`'s chunks (the same computation)."""
+    dtype = omega0.dtype
+    batch = batching.batch_shape(model, omega0, q0)
+    n = int(np.prod(batch))
+    leaves, flat = batching.flatten_model(model, batch, dtype)
+    omega0 = batching.flatten(omega0, batch)
+    q0 = None if q0 is None else batching.flatten(q0, batch)
+    if sort and formulation.uses_scale:
+        sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
+        key = jnp.max(sigma, axis=-1)
+    elif sort:
+        key = jnp.ones((n,), dtype)
+    else:
+        key = None
+    return batching.plan_chunks(n, chunk_size, key, shardable=ts.shape[0] > 1).order
+
+
+_TRACED = (
+    "simulate: progress needs concrete inputs (it runs the batch in blocks from Python and reports "
+    "between them), so it cannot be used under jax.jit, grad or vmap; pass progress=False there."
+)
+
+
+def report_whole(report, traj) -> None:
+    """One report for a batch computed in one program (the closed forms)."""
+    if _inputs_traced(traj.omega):
+        raise ValueError(_TRACED)
+    n = int(np.prod(traj.batch_shape))
+    report(n, n)
+
+
+def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort):
+    """``run(model, omega0, q0, chunk_size, sort)`` over the batch in blocks of whole chunks, calling
+    ``report(done_bodies, total_bodies)`` after each; the blocks' results assembled into one
+    :class:`Trajectory`, equal to ``run`` over the whole batch."""
+    if _inputs_traced(model, omega0, q0, ts, args):
+        raise ValueError(_TRACED)
+    batch = batching.batch_shape(model, omega0, q0)
+    n = int(np.prod(batch))
+    chunk = min(chunk_size, n)
+    n_chunks = -(-n // chunk)
+    if ts.shape[0] == 1 or n_chunks == 1:
+        traj = run(model, omega0, q0, chunk_size, sort)
+        report(n, n)
+        return traj
+    order = np.asarray(_chunk_order(model, omega0, q0, ts, args, formulation, chunk_size, bool(sort)))
+    devices = jax.device_count()
+    per_block = -(-n_chunks // MAX_BLOCKS)
+    per_block = -(-per_block // devices) * devices  # whole chunks per device
+    n_blocks = -(-n_chunks // per_block)
+    size = per_block * chunk
+    # Padded with copies of the last body in chunk order, as the last chunk is padded.
+    take = order[np.minimum(np.arange(n_blocks * size), n - 1)]
+    leaves, flat = batching.flatten_model(model, batch)
+    omega_flat = batching.flatten(omega0, batch)
+    q_flat = None if q0 is None else batching.flatten(q0, batch)
+    parts = []
+    report(0, n)
+    for b in range(n_blocks + 1):
+        if b < n_blocks:  # dispatched before the previous block is waited for: no idle gap
+            index = take[b * size : (b + 1) * size]
+            block = run(
+                model.replace_body_leaves(leaves, [v[index] for v in flat]),
+                omega_flat[index],
+                None if q_flat is None else q_flat[index],
+                chunk,
+                False,
+            )
+            parts.append(block)
+        if b > 0:
+            jax.block_until_ready(parts[b - 1].omega)
+            report(min(n, b * size), n)
+    return _assemble(parts, order, batch, n, n_chunks, model)
+
+
+def _assemble(parts, order, batch, n, n_chunks, model):
+    """The blocks' results (bodies in chunk order, padded) back in the user's order and shape."""
+    back = jnp.asarray(np.argsort(order))
+
+    def join(get):
+        if get(parts[0]) is None:
+            return None
+        x = jnp.concatenate([get(p) for p in parts])[:n][back]
+        return x.reshape(batch + x.shape[1:])
+
+    stats = {"num_steps": jnp.concatenate([p.stats["num_steps"] for p in parts])[:n_chunks]}
+    stats["chunk_size"] = parts[0].stats["chunk_size"]
+    for name in ("quaternion_norm_error", "result", "first_failed_sample"):
+        stats[name] = join(lambda p, name=name: p.stats[name])
+    return Trajectory(
+        ts=parts[0].ts,
+        omega=join(lambda p: p.omega),
+        orientation=join(lambda p: p.orientation),
+        model=model,
+        success=join(lambda p: p.success),
+        stats=stats,
+    )

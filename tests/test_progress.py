@@ -1,0 +1,136 @@
+"""Progress reporting of long runs: ``simulate(..., progress=...)`` and ``fit_inertia(..., progress=...)``.
+
+Progress must report and change nothing: the trajectories and fits are compared bit for bit with
+the runs without it. The scenes are tiny (six bodies in chunks of two: three chunks, three reports)
+so that the file compiles little."""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rigidjax as rj
+
+TS = jnp.linspace(0.0, 2.0, 5)
+N = 6
+
+
+def _scene():
+    rng = np.random.default_rng(0)
+    inertia = rng.uniform(2.0, 3.0, (N, 3))  # moments obey the triangle inequality
+    omega = rng.normal(size=(N, 3)) * rng.uniform(0.5, 3.0, (N, 1))
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (N, 1))
+    return rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega), orientation=jnp.asarray(q))
+
+
+def _assert_same(a, b):
+    for name in ("omega", "orientation", "success"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)))
+    assert a.stats.keys() == b.stats.keys()
+    for name, value in a.stats.items():
+        np.testing.assert_array_equal(np.asarray(value), np.asarray(b.stats[name]), err_msg=name)
+
+
+def test_progress_callable_counts_and_same_result():
+    model, state0 = _scene()
+    plain = rj.simulate(model, state0, TS, chunk_size=2)
+    calls = []
+    traj = rj.simulate(
+        model, state0, TS, chunk_size=2, progress=lambda done, total: calls.append((done, total))
+    )
+    assert calls == [(0, N), (2, N), (4, N), (6, N)]
+    _assert_same(plain, traj)
+
+
+def test_progress_bar_text(capfd):
+    model, state0 = _scene()
+    rj.simulate(model, state0, TS, chunk_size=2, progress=True)
+    err = capfd.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("simulate [")]
+    assert len(lines) == 4, err
+    assert re.fullmatch(r"simulate \[\.{30}\] 0/6 bodies, \d+\.\d s", lines[0])
+    assert re.fullmatch(r"simulate \[#{10}\.{20}\] 2/6 bodies, \d+\.\d s", lines[1])
+    # From the second block on, an estimate from the blocks after the first (which compiles).
+    assert re.fullmatch(r"simulate \[#{20}\.{10}\] 4/6 bodies, \d+\.\d s, ~\d+\.\d s left", lines[2])
+    assert re.fullmatch(r"simulate \[#{30}\] 6/6 bodies, \d+\.\d s", lines[3])
+
+
+def test_progress_with_faults_throw_false():
+    """A NaN torque stops its chunk; the chunk is run again body by body, with progress as without."""
+    omega0 = np.tile([1.0, 0.2, 0.3], (N, 1))
+    omega0[3, 0] = 5.0
+    torque = rj.Torque(
+        lambda t, s, a: jnp.where((t > 1.0) & (s.omega[0] > 3.0), jnp.nan, 0.0) * jnp.ones(3),
+        needs_orientation=False,
+    )
+    model = rj.RigidBody(jnp.asarray(np.tile([1.0, 2.0, 3.0], (N, 1))), torque)
+    state0 = rj.State(jnp.asarray(omega0))
+    plain = rj.simulate(model, state0, TS, chunk_size=2, throw=False)
+    calls = []
+    traj = rj.simulate(model, state0, TS, chunk_size=2, throw=False, progress=lambda d, t: calls.append(d))
+    assert calls == [0, 2, 4, 6]
+    assert np.asarray(traj.success).tolist() == [True, True, True, False, True, True]
+    _assert_same(plain, traj)
+
+
+def test_progress_exact_reports_once():
+    model, state0 = _scene()
+    calls = []
+    rj.simulate(model, state0, TS, accuracy="exact", progress=lambda d, t: calls.append((d, t)))
+    assert calls == [(N, N)]
+
+
+@pytest.mark.parametrize("bad", ["yes", 1, 0.5])
+def test_progress_bad_value(bad, without_runtime_typecheck):
+    model, state0 = _scene()
+    with pytest.raises(TypeError, match=r"progress must be True .*, False, or a callable"):
+        rj.simulate(model, state0, TS, progress=bad)
+
+
+def test_progress_under_jit_is_a_clear_error():
+    model, state0 = _scene()
+
+    @jax.jit
+    def final(omega):
+        return rj.simulate(model, rj.State(omega, state0.orientation), TS, chunk_size=2, progress=True).omega
+
+    with pytest.raises(ValueError, match=r"progress .*jax\.jit.*progress=False"):
+        final(state0.omega)
+
+
+def _record():
+    inertia, omega0 = np.array([1.0, 2.0, 2.5]), np.array([0.3, 0.05, 1.0])
+    ts = np.linspace(0.0, 4.0 * float(rj.torque_free_period(inertia, omega0)), 60)
+    omega = np.asarray(rj.torque_free_omega(inertia, omega0, ts))
+    return ts, omega + 1e-3 * np.random.default_rng(1).standard_normal(omega.shape)
+
+
+def test_fit_progress_lines_and_callable(capsys):
+    ts, omega = _record()
+    plain = rj.fit_inertia(ts, omega, method="levenberg-marquardt")
+    printed = rj.fit_inertia(ts, omega, method="levenberg-marquardt", progress=True)
+    err = capsys.readouterr().err.splitlines()
+    iterations = [line for line in err if line.startswith("fit: iteration")]
+    assert len(iterations) == min(plain.num_steps, 10)
+    assert re.fullmatch(r"fit: iteration 1, loss \d\.\d{6}e[+-]\d\d, step \d\.\d{3}e[+-]\d\d", iterations[0])
+    assert re.fullmatch(rf"fit: {plain.num_steps} iterations, loss \S+, converged", err[-1])
+    seen = []
+    called = rj.fit_inertia(
+        ts, omega, method="levenberg-marquardt", progress=lambda i, loss: seen.append((i, loss))
+    )
+    assert [i for i, _ in seen] == list(range(1, plain.num_steps + 1))
+    assert all(isinstance(loss, float) for _, loss in seen)
+    for fit in (printed, called):
+        np.testing.assert_array_equal(np.asarray(fit.inertia), np.asarray(plain.inertia))
+        np.testing.assert_array_equal(np.asarray(fit.history), np.asarray(plain.history))
+        assert fit.num_steps == plain.num_steps
+
+
+@pytest.mark.parametrize("fit", [rj.fit_inertia, rj.fit_inertia_to_orientation])
+def test_fit_progress_bad_value(fit, without_runtime_typecheck):
+    ts = np.linspace(0.0, 1.0, 20)
+    data = np.tile([0.3, 0.05, 1.0], (20, 1)) if fit is rj.fit_inertia else np.tile([1.0, 0, 0, 0], (20, 1))
+    with pytest.raises(TypeError, match=r"progress must be True .*, False, or a callable"):
+        fit(ts, data, progress="verbose")
