@@ -138,15 +138,17 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     n_blocks = -(-n_chunks // per_block)
     size = per_block * chunk
     # Padded with copies of the last body in chunk order, as the last chunk is padded.
-    take = order[np.minimum(np.arange(n_blocks * size), n - 1)]
+    take = jnp.asarray(order[np.minimum(np.arange(n_blocks * size), n - 1)])
+    # Every block's inputs gathered at once (they are small next to the trajectories).
     leaves, flat = batching.flatten_model(model, batch)
-    omega_flat = batching.flatten(omega0, batch)
-    q_flat = None if q0 is None else batching.flatten(q0, batch)
+    flat = [v[take] for v in flat]
+    omega_flat = batching.flatten(omega0, batch)[take]
+    q_flat = None if q0 is None else batching.flatten(q0, batch)[take]
     parts = []
     report(0, n)
     for b in range(n_blocks + 1):
         if b < n_blocks:  # dispatched before the previous block is waited for: no idle gap
-            index = take[b * size : (b + 1) * size]
+            index = slice(b * size, (b + 1) * size)
             block = run(
                 model.replace_body_leaves(leaves, [v[index] for v in flat]),
                 omega_flat[index],
