@@ -292,7 +292,8 @@ def simulate(
       ``representation="euler"``.
     - `progress`: ``True`` prints a progress line to stderr as the batch runs (bodies done of the
       total, elapsed time, an estimate of the time left); a callable is called as
-      ``progress(done_bodies, total_bodies)`` instead, with counts rising to the total. The batch then
+      ``progress(done_bodies, total_bodies)`` instead: with 0 first, then after each block, the
+      total last. The batch then
       runs from Python in up to 20 blocks of whole chunks (the same bodies per chunk, so the same
       result), one compiled program for all blocks; the last block is padded to the same shape. Not
       under ``jax.jit``, ``grad`` or ``vmap`` (a ``ValueError``). ``False`` (default): one program for
