@@ -10,6 +10,8 @@ import re
 import sys
 from collections.abc import Callable
 
+from .._integrate.progress import StatusLine as StatusLine
+from .._integrate.progress import bar as bar
 from .._integrate.storage import check_writable, write_atomic, write_file_atomic
 
 # The figure formats every command writes (matplotlib's savefig, chosen by the extension).
@@ -123,28 +125,3 @@ def file_size(path: str) -> str:
     """The size of ``path`` in KiB or MiB, for the summaries."""
     size = os.path.getsize(path)
     return f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
-
-
-def bar(done: int, total: int, width: int = 30) -> str:
-    """A text progress bar: ``done / total`` of ``width`` characters filled with ``#``."""
-    filled = min(width, max(0, round(width * done / max(total, 1))))
-    return "#" * filled + "." * (width - filled)
-
-
-class StatusLine:
-    """One progress line on a stream: rewritten in place on a terminal, one line per update otherwise."""
-
-    def __init__(self, stream, enabled: bool):
-        self.stream, self.enabled = stream, enabled
-        self.tty = enabled and hasattr(stream, "isatty") and stream.isatty()
-        self._width = 0
-
-    def show(self, line: str, last: bool = False) -> None:
-        if not self.enabled:
-            return
-        if self.tty:
-            self.stream.write("\r" + line.ljust(self._width) + ("\n" if last else ""))
-            self._width = 0 if last else len(line)
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()

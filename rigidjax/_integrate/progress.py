@@ -46,14 +46,31 @@ def bar(done: int, total: int, width: int = 30) -> str:
     return "#" * filled + "." * (width - filled)
 
 
+class StatusLine:
+    """One progress line on a stream: rewritten in place on a terminal, one line per update otherwise."""
+
+    def __init__(self, stream, enabled: bool = True):
+        self.stream, self.enabled = stream, enabled
+        self.tty = enabled and hasattr(stream, "isatty") and stream.isatty()
+        self._width = 0
+
+    def show(self, line: str, last: bool = False) -> None:
+        if not self.enabled:
+            return
+        if self.tty:
+            self.stream.write("\r" + line.ljust(self._width) + ("\n" if last else ""))
+            self._width = 0 if last else len(line)
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+
 class ProgressBar:
     """One line on stderr: bodies done, elapsed time and an estimate of the time left. Rewritten in
     place on a terminal, one line per update otherwise (a log file)."""
 
     def __init__(self, stream=None):
-        self.stream = sys.stderr if stream is None else stream
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self._width = 0
+        self.line = StatusLine(sys.stderr if stream is None else stream)
         self._start = self._first = None
 
     def __call__(self, done: int, total: int) -> None:
@@ -69,13 +86,9 @@ class ProgressBar:
                 rate = (now - self._first[1]) / max(done - self._first[0], 1)
                 left = f", ~{rate * (total - done):.1f} s left"
         last = done >= total
-        line = f"simulate [{bar(done, total)}] {done:,}/{total:,} bodies, {elapsed:.1f} s{left}"
-        if self.tty:
-            self.stream.write("\r" + line.ljust(self._width) + ("\n" if last else ""))
-            self._width = 0 if last else len(line)
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()
+        self.line.show(
+            f"simulate [{bar(done, total)}] {done:,}/{total:,} bodies, {elapsed:.1f} s{left}", last
+        )
         if last:
             self._start = None
 
