@@ -40,8 +40,10 @@ def use_compilation_cache() -> str | None:
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     path = os.path.join(base, "rigidjax", "jax")
     jax.config.update("jax_compilation_cache_dir", path)
-    # The scenes' integrations take seconds to compile; the many small programs around them add up too.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    # Every program, however small: the integration takes a second or more to compile, but the many
+    # small programs around it (the summary's checks, eager array operations) add up to as much.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
     return path
 
 
