@@ -399,9 +399,8 @@ def simulate(
 @eqx.filter_jit
 def _checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
     """The run-time checks of simulate's inputs, as a program of their own: the integration program
-    holds none of them and failures are reported from its results. (diffrax's own checks of ``ts``
-    and ``dt0`` are host callbacks too, so JAX's persistent cache still does not keep a program
-    that integrates.)"""
+    holds none of them (they are host callbacks, which JAX's persistent compilation cache does not
+    keep), and failures are reported from its results."""
     model = check_model(model, "simulate")
     omega0, q0 = check_state(omega0, q0, "simulate")
     ts = check_times(ts, "simulate")
