@@ -89,6 +89,7 @@ class ChunkPlan(NamedTuple):
     n_chunks: int
     order: Any  # body index in chunk order (fastest first when sorted)
     shard: bool  # chunks are spread over several devices
+    sorted: bool = False  # False: ``order`` is the identity and no gather is needed
 
 
 def plan_chunks(n: int, chunk_size: int, sort_key=None, *, shardable: bool = True) -> ChunkPlan:
@@ -102,18 +103,20 @@ def plan_chunks(n: int, chunk_size: int, sort_key=None, *, shardable: bool = Tru
     if shard:
         n_chunks = -(-n_chunks // n_devices) * n_devices
     if sort_key is not None and n_chunks > 1:
-        order = jnp.argsort(-sort_key)
-    else:
-        order = jnp.arange(n)
-    return ChunkPlan(n, chunk, n_chunks, order, shard)
+        return ChunkPlan(n, chunk, n_chunks, jnp.argsort(-sort_key), shard, sorted=True)
+    return ChunkPlan(n, chunk, n_chunks, jnp.arange(n), shard)
 
 
 def to_chunks(plan: ChunkPlan, x):
     """``(n, ...)`` -> ``(n_chunks, chunk, ...)`` in chunk order, padding with copies of a body."""
     if x is None:
         return None
-    take = plan.order[jnp.minimum(jnp.arange(plan.n_chunks * plan.chunk), plan.n - 1)]
-    return x[take].reshape((plan.n_chunks, plan.chunk) + x.shape[1:])
+    padded = plan.n_chunks * plan.chunk
+    if plan.sorted:
+        x = x[plan.order[jnp.minimum(jnp.arange(padded), plan.n - 1)]]
+    elif padded > plan.n:
+        x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (padded - plan.n,) + x.shape[1:])])
+    return x.reshape((plan.n_chunks, plan.chunk) + x.shape[1:])
 
 
 def from_chunks(plan: ChunkPlan, x):
@@ -121,7 +124,11 @@ def from_chunks(plan: ChunkPlan, x):
     if x is None:
         return None
     x = x.reshape((plan.n_chunks * plan.chunk,) + x.shape[2:])[: plan.n]
-    return x[jnp.argsort(plan.order)]
+    if not plan.sorted:
+        return x
+    # The inverse permutation by a scatter, not a second sort.
+    inverse = jnp.zeros_like(plan.order).at[plan.order].set(jnp.arange(plan.n, dtype=plan.order.dtype))
+    return x[inverse]
 
 
 def map_chunks(fn: Callable, chunks, shared, plan: ChunkPlan):

@@ -79,9 +79,9 @@ def _integrate_traced(
         sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
     else:
         sigma = jnp.ones_like(omega0)
-    plan = batching.plan_chunks(
-        n, chunk_size, jnp.max(sigma, axis=-1) if sort else None, shardable=n_times > 1
-    )
+    # Sorting by speed groups bodies of similar step size; without scales there is nothing to sort by.
+    sort_key = jnp.max(sigma, axis=-1) if sort and formulation.uses_scale else None
+    plan = batching.plan_chunks(n, chunk_size, sort_key, shardable=n_times > 1)
 
     if n_times == 1:
         omega_all = omega0[:, None, :]

@@ -106,13 +106,10 @@ def _chunk_order(model, omega0, q0, ts, args, formulation, chunk_size, sort):
     leaves, flat = batching.flatten_model(model, batch, dtype)
     omega0 = batching.flatten(omega0, batch)
     q0 = None if q0 is None else batching.flatten(q0, batch)
+    key = None
     if sort and formulation.uses_scale:
         sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
         key = jnp.max(sigma, axis=-1)
-    elif sort:
-        key = jnp.ones((n,), dtype)
-    else:
-        key = None
     return batching.plan_chunks(n, chunk_size, key, shardable=ts.shape[0] > 1).order
 
 
