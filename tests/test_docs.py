@@ -144,3 +144,57 @@ def test_readme_is_short_and_its_links_resolve():
     assert links
     broken = [link for link in links if not (ROOT / link).exists()]
     assert not broken, f"README.md links to missing files: {broken}"
+
+
+def test_notebook_pages_show_the_outputs_of_an_executed_copy(tmp_path, monkeypatch):
+    """A notebook's page shows printed text and figures from its executed copy (written by the
+    notebook tests), and only the code when the copy is missing or older than the notebook."""
+    import base64
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("rigidjax_docs_hooks", DOCS / "_ext" / "hooks.py")
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    monkeypatch.setattr(hooks, "EXECUTED", tmp_path / "executed")
+    (tmp_path / "executed").mkdir()
+    png = base64.b64encode(b"\x89PNG\r\n\x1a\n not really an image").decode()
+
+    def notebook(outputs):
+        cells = [
+            {"cell_type": "markdown", "metadata": {}, "source": ["# Title"]},
+            {
+                "cell_type": "code",
+                "metadata": {},
+                "execution_count": None,
+                "source": ["print(1)"],
+                "outputs": outputs,
+            },
+        ]
+        return json.dumps({"cells": cells, "metadata": {}, "nbformat": 4, "nbformat_minor": 5})
+
+    source = tmp_path / "demo.ipynb"
+    source.write_text(notebook([]))
+    assert "```text" not in hooks.notebook_page(source) and "appear when you run it" in hooks.notebook_page(
+        source
+    )
+    executed = tmp_path / "executed" / "demo.ipynb"
+    executed.write_text(
+        notebook(
+            [
+                {"output_type": "stream", "name": "stdout", "text": ["period 304.2 days\n"]},
+                {
+                    "output_type": "display_data",
+                    "metadata": {},
+                    "data": {"image/png": png, "text/plain": ["<Figure>"]},
+                },
+            ]
+        )
+    )
+    os.utime(executed, (source.stat().st_mtime + 10,) * 2)
+    page = hooks.notebook_page(source)
+    assert "```python\nprint(1)\n```" in page
+    assert "```text\nperiod 304.2 days\n```" in page
+    assert f'src="data:image/png;base64,{png}"' in page and "<Figure>" not in page
+    os.utime(executed, (source.stat().st_mtime - 10,) * 2)  # stale: the notebook changed since
+    assert "period 304.2" not in hooks.notebook_page(source)

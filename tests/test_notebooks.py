@@ -4,9 +4,11 @@ Each ``notebooks/*.ipynb`` is one test case (new notebooks are picked up by name
 in a separate process with the interpreter that runs pytest: a kernelspec named ``python3`` that
 points at ``sys.executable`` is written to a temporary ``JUPYTER_PATH`` directory, which takes
 precedence over any ``python3`` kernel installed elsewhere on the machine. A cell that raises (the
-notebooks ``assert`` the numbers they show) fails the test. The committed notebooks must carry no
-outputs, and notebooks/README.md must have a line for each. nbclient, nbformat and ipykernel are
-in the ``test`` extra: a missing one is an error here, not a skip.
+notebooks ``assert`` the numbers they show) fails the test. An executed notebook is kept, with its
+outputs, in ``docs/_executed/`` (not committed): the documentation site shows those outputs. The
+committed notebooks must carry no outputs, and notebooks/README.md must have a line for each.
+nbclient, nbformat and ipykernel are in the ``test`` extra: a missing one is an error here, not a
+skip.
 """
 
 import json
@@ -18,6 +20,8 @@ import nbformat
 import pytest
 
 NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+# Executed copies, with their outputs, for the documentation site (docs/_ext/hooks.py renders them).
+EXECUTED_DIR = Path(__file__).resolve().parent.parent / "docs" / "_executed"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 CELL_TIMEOUT_S = 300
 
@@ -88,3 +92,7 @@ def test_notebook_runs(path, python3_kernel):
     assert not errors, f"{path.name}: {errors}"
     images = sum("image/png" in out.get("data", {}) for out in outputs)
     assert images > 0, f"{path.name} drew no figure"
+    EXECUTED_DIR.mkdir(exist_ok=True)
+    partial = EXECUTED_DIR / f".{path.name}.partial"
+    nbformat.write(nb, partial)
+    partial.replace(EXECUTED_DIR / path.name)  # whole or not at all: the site never reads half a file

@@ -2,8 +2,9 @@
 
 - The command-line reference (cli.md) is generated from the parsers of the ``rigidjax`` command:
   each ``<!-- cli-help: COMMAND -->`` marker becomes that command's ``--help`` text.
-- Each notebook of notebooks/ becomes a page (its markdown and code cells; the outputs appear when
-  it is run) and is offered for download beside it.
+- Each notebook of notebooks/ becomes a page (its markdown and code cells) and is offered for
+  download beside it. Where the tests have executed it (docs/_executed/, written by
+  tests/test_notebooks.py), the page shows its outputs too: printed text and figures.
 - Figures made by the benchmarks (benchmarks/results/) are copied into the site under figures/.
 """
 
@@ -19,6 +20,7 @@ from mkdocs.structure.files import File
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 NOTEBOOKS = ROOT / "notebooks"
+EXECUTED = ROOT / "docs" / "_executed"
 FIGURES = {"figures/work_precision.png": ROOT / "benchmarks" / "results" / "work_precision.png"}
 CLI_MARKER = re.compile(r"<!-- cli-help: ?([a-z ]*?) ?-->")
 
@@ -33,8 +35,11 @@ def on_files(files, config):
 
 
 def notebook_page(path: pathlib.Path) -> str:
-    """The notebook as markdown: markdown cells as they are, code cells as python blocks."""
-    cells = json.loads(path.read_text())["cells"]
+    """The notebook as markdown: markdown cells as they are, code cells as python blocks, and after
+    each code cell its outputs when an executed copy newer than the notebook exists."""
+    executed = EXECUTED / path.name
+    with_outputs = executed.is_file() and executed.stat().st_mtime >= path.stat().st_mtime
+    cells = json.loads((executed if with_outputs else path).read_text())["cells"]
     parts = []
     for i, cell in enumerate(cells):
         source = "".join(cell["source"]).rstrip()
@@ -43,15 +48,45 @@ def notebook_page(path: pathlib.Path) -> str:
         if cell["cell_type"] == "markdown":
             parts.append(source)
             if i == 0:  # after the title cell
-                parts.append(
-                    f'!!! note "Run it"\n    This page shows the notebook\'s text and code; its figures and '
-                    f"numbers appear when you run it: [download {path.name}]({path.name}), then "
-                    '`pip install -e ".[notebooks]"` and run all cells in Jupyter. The tests execute '
-                    "every notebook, and its `assert`s check the numbers it shows."
-                )
+                parts.append(_run_note(path, with_outputs))
         elif cell["cell_type"] == "code":
             parts.append(f"```python\n{source}\n```")
+            parts.extend(_outputs(cell.get("outputs", [])))
     return "\n\n".join(parts) + "\n"
+
+
+def _run_note(path: pathlib.Path, with_outputs: bool) -> str:
+    download = f'[download {path.name}]({path.name}), then `pip install -e ".[notebooks]"` and run all cells'
+    if with_outputs:
+        return (
+            f'!!! note "Run it"\n    The outputs below are from the test run that executed this notebook. '
+            f"To run it yourself: {download} in Jupyter. Its `assert`s check the numbers it shows."
+        )
+    return (
+        f'!!! note "Run it"\n    This page shows the notebook\'s text and code; its figures and numbers '
+        f"appear when you run it: {download} in Jupyter. The tests execute every notebook, and its "
+        "`assert`s check the numbers it shows."
+    )
+
+
+def _outputs(outputs: list[dict]) -> list[str]:
+    """Printed text as a plain block, figures as embedded PNG images; other kinds are left out."""
+    parts = []
+    for out in outputs:
+        data = out.get("data", {})
+        if out.get("output_type") == "stream" and out.get("name") == "stdout":
+            text = "".join(out["text"]).rstrip()
+        elif "image/png" in data:
+            png = "".join(data["image/png"]).replace("\n", "")
+            parts.append(f'<img alt="figure" src="data:image/png;base64,{png}">')
+            continue
+        elif "text/plain" in data and out.get("output_type") == "execute_result":
+            text = "".join(data["text/plain"]).rstrip()
+        else:
+            continue
+        if text:
+            parts.append("```text\n" + text.replace("```", "` ` `") + "\n```")
+    return parts
 
 
 def cli_help(command: str) -> str:
