@@ -308,37 +308,6 @@ def test_random_tops_against_dop853():
         assert np.max(np.abs(q[i] - q_ref)) <= 2e-9
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize(
-    "count", [64, 62, 48, 16], ids=["series", "series and a few elliptic", "series and elliptic", "elliptic"]
-)
-def test_series_path_matches_the_elliptic_path(count):
-    """With many samples per body the values come from the Fourier series (heavy_top_series.py) for
-    the bodies it represents to rounding and the elliptic path for the others (here tops sleeping
-    upright): with none of those (all series), 1/32 and a quarter (both paths) and three quarters
-    (elliptic only), the values equal the elliptic path's to a few ulp."""
-    from rigidjax._closed_form import heavy_top
-    from rigidjax._closed_form.heavy_top_series import series_setup
-
-    inertia, mass, com, omega, q0 = _random_tops(64, seed=2)
-    omega[:, 2] = 40.0 + np.abs(omega[:, 2])
-    sleeping = np.arange(64) >= count
-    omega[sleeping, :2] = 0.0
-    q0[sleeping] = [1.0, 0.0, 0.0, 0.0]
-    com[sleeping, 2] = np.abs(com[sleeping, 2])
-    ts = jnp.linspace(0.0, 5.0, 101)
-    args = [jnp.asarray(x)[:, None] for x in (inertia, mass, com, np.full(64, G), omega, q0)]
-    body = heavy_top._top_body(*args)
-    ok = np.asarray(series_setup(body, *heavy_top._quarters(body), heavy_top._elliptic_motion)["ok"])
-    np.testing.assert_array_equal(ok[:, 0], ~sleeping)
-    w, q = jax.jit(lagrange_top_motion)(*args, ts)
-    w_ref, q_ref = jax.jit(heavy_top._motion_elliptic)(*args, ts)
-    scale = np.max(np.abs(np.asarray(w_ref)), axis=(-2, -1), keepdims=True)
-    assert np.max(np.abs(np.asarray(w - w_ref)) / scale) <= 1e-12
-    assert np.max(np.abs(np.asarray(q - q_ref))) <= 1e-12
-    assert np.max(np.abs(np.linalg.norm(np.asarray(q), axis=-1) - 1)) <= 1e-15
-
-
 # --------------------------------------------------------------------------------------------------
 # Gradients
 

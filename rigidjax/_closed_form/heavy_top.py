@@ -31,11 +31,6 @@ cusped, looping, hanging, sleeping at theta = 0 and 1e-5, falling through the ve
 precession, ``l = 0``); 1.4e-10 for a very slow top over 2e4 s. float32: ``q`` within 2e-5 over
 20 s (1.4e-4 for a looping top, 8e-5 for a fast top at ``|omega| t = 1600`` rad).
 
-Evaluation: for calls with many samples per body, the values come from Fourier series in the
-nutation phase built per body from this closed form (:mod:`.heavy_top_series`; equal to it to a
-few ulp), for every body they represent to rounding; the rest, and all derivatives, from the
-elliptic functions and Carlson integrals directly.
-
 Derivatives (forward and reverse) are those of the motion, including a start on a turning circle
 (a top released with ``theta' = 0``), tops passing close to the vertical and steady precession
 (a nutation below ``eps^(2/3)`` is evaluated in its first-order form, which carries them) and a
@@ -51,7 +46,6 @@ import jax.numpy as jnp
 from .._numerics import safe_norm
 from .carlson import _carlson_rf_rj
 from .elliptic import _ellipj_checked
-from .heavy_top_series import SERIES_NODES, series_motion, series_setup
 
 
 def _safe_div(num, den):
@@ -342,94 +336,9 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     broadcast of the bodies' batch axes with ``t``'s shape. The inputs are not checked here:
     ``simulate`` checks them (a physical inertia, ``I1 = I2``, ``com`` on the z axis, a unit ``q0``).
     """
-    args = tuple(jnp.asarray(x) for x in (inertia, mass, com, gravity, omega0, q0, t))
-    return _motion(*args)
-
-
-def _top_body(inertia, mass, com, gravity, omega0, q0):
     A = 0.5 * (inertia[..., 0] + inertia[..., 1])
-    return _body(A, inertia[..., 2], mass * gravity * com[..., 2], omega0, q0)
-
-
-def _motion_elliptic(inertia, mass, com, gravity, omega0, q0, t):
-    return _elliptic_motion(_top_body(inertia, mass, com, gravity, omega0, q0), t)
-
-
-@jax.custom_jvp
-def _motion(inertia, mass, com, gravity, omega0, q0, t):
-    """The values: by the series where it represents the motion to rounding, else the elliptic path.
-
-    The Fourier series in the nutation phase (:mod:`.heavy_top_series`) costs per body the closed
-    form at a few points of one period and per sample a few dozen multiplications, instead of the
-    elliptic functions and two Carlson ``R_J``. The bodies it does not represent to rounding, up to
-    1/32 or else a quarter of a batch of bodies sampled at common times, go through the elliptic path on their
-    own; past that, or for other layouts, the whole batch does (and so does a call with fewer than
-    ``2 SERIES_NODES`` samples per body, where the series' set-up costs more than it saves). The
-    branch predicates are scalars, so only one branch runs (all of them under vmap). Derivatives
-    are the elliptic path's (see the rule below), so that differentiated programs contain one path.
-    """
-    body = _top_body(inertia, mass, com, gravity, omega0, q0)
-    if jnp.ndim(t) == 0 or jnp.shape(t)[-1] < 2 * SERIES_NODES:
-        # The series' set-up evaluates the elliptic path at SERIES_NODES points per body: it pays
-        # off from about twice as many samples.
-        return _elliptic_motion(body, t)
-    quarter, g_quarter = _quarters(body)
-    setup = series_setup(body, quarter, g_quarter, _elliptic_motion)
-    ok = setup["ok"]
-    shape, nb = ok.shape, ok.size
-    branches = [lambda: series_motion(body, setup, t), lambda: _elliptic_motion(body, t)]
-    index = jnp.where(jnp.all(ok), 0, 1)
-    if jnp.ndim(t) == 1 and len(shape) >= 1 and shape[-1] == 1 and nb >= 8:
-        # Two capacities: the elliptic path's cost is that of its capacity, not of the bad bodies.
-        small, large = max(nb // 32, 1), nb // 4
-        bad = ~ok.reshape(-1)
-        branches.append(lambda: _patched(body, setup, t, bad, large))
-        branches.append(lambda: _patched(body, setup, t, bad, small))
-        count = jnp.sum(bad)
-        index = jnp.where(count == 0, 0, jnp.where(count <= small, 3, jnp.where(count <= large, 2, 1)))
-    return jax.lax.switch(index, branches)
-
-
-@_motion.defjvp
-def _motion_jvp(primals, tangents):
-    # The series equals the elliptic path to rounding, so its derivatives are the elliptic path's.
-    return jax.jvp(_motion_elliptic, primals, tangents)
-
-
-def _patched(body, setup, t, bad, capacity):
-    """The series for every body, then the elliptic path for the ``bad`` ones (at most ``capacity``)."""
-    shape, nb = setup["ok"].shape, setup["ok"].size
-    idx = jnp.nonzero(bad, size=capacity, fill_value=nb)[0]  # unused slots: a row past the end
-    take = jnp.minimum(idx, nb - 1)
-
-    def gather(v):
-        return jnp.broadcast_to(v, shape).reshape(nb, 1)[take] if isinstance(v, jax.Array) else v
-
-    sub = _elliptic_motion(jax.tree.map(gather, body), t)
-    full = series_motion(body, setup, t)
-
-    def merge(f, s):
-        rows = f.reshape((nb,) + f.shape[-2:])
-        rows = jnp.concatenate([rows, jnp.zeros_like(rows[:1])])
-        return rows.at[idx].set(s)[:nb].reshape(f.shape)
-
-    return tuple(merge(f, s_) for f, s_ in zip(full, sub, strict=True))
-
-
-def _quarters(body):
-    """``K(m)`` and, per half, ``int_0^K dtau / (1 + n sn^2)`` (per body)."""
-    g_quarter = []
-    for half in body["halves"]:
-        nn = _safe_div(half["k"] * body["sigma"] * body["amp"], half["near"])
-        n1 = jnp.where(half["near"] > 0, _safe_div(half["far"], half["near"]), 1.0)
-        n1 = jnp.where(n1 > 0, n1, 1.0)
-        _, _, (quarter, gk) = _third_kind(*body["start"], body["m"], body["p"], nn, n1)
-        g_quarter.append(gk)
-    return quarter, g_quarter
-
-
-def _elliptic_motion(body, t):
-    """``(omega, q)`` at times ``t`` by the Jacobi functions and Carlson integrals (every regime)."""
+    C = inertia[..., 2]
+    body = _body(A, C, mass * gravity * com[..., 2], omega0, q0)
     sn0, cn0, dn0 = body["start"]
     v = body["rate"] * t
     sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
