@@ -14,6 +14,7 @@ and other subprocesses started by the tests share the cache.
 
 import os
 import pathlib
+import sys
 
 import jax
 import jaxtyping
@@ -32,6 +33,18 @@ _CACHE_SETTINGS = {  # environment variable: (default, type)
 for _name, (_default, _type) in _CACHE_SETTINGS.items():
     os.environ.setdefault(_name, _default)  # an exported setting wins
     jax.config.update(_name.lower(), _type(os.environ[_name]))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drops every compiled program and open figure after each test file. A worker runs many files,
+    and keeping every program it ever compiled grew one past 8 GiB (two such workers, the notebooks'
+    kernels and a large compile exhausted the 24 GiB of a CI machine: XLA aborted). A program a later
+    file needs again is loaded from the persistent cache instead of compiled."""
+    yield
+    jax.clear_caches()
+    if "matplotlib.pyplot" in sys.modules:
+        sys.modules["matplotlib.pyplot"].close("all")
 
 
 @pytest.fixture
