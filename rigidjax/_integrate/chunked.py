@@ -50,6 +50,24 @@ def _omega_scales(model, leaves, flat, omega0, q0, duration, args):
     return jnp.where(peak > 0, jnp.maximum(sigma, floor), jnp.ones_like(sigma))
 
 
+def plan_bodies(model, omega0, q0, ts, args, formulation, chunk_size, sort):
+    """The batch flattened to per-body arrays, each body's omega scales and the chunk plan:
+    ``(batch, leaves, flat, omega0, q0, sigma, plan)``. The one place the chunks' body order is
+    decided (:mod:`.progress` runs blocks of the same chunks)."""
+    batch = batching.batch_shape(model, omega0, q0)
+    leaves, flat = batching.flatten_model(model, batch, omega0.dtype)
+    omega0 = batching.flatten(omega0, batch)
+    q0 = None if q0 is None else batching.flatten(q0, batch)
+    if formulation.uses_scale:
+        sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
+    else:
+        sigma = jnp.ones_like(omega0)
+    # Sorting by speed groups bodies of similar step size; without scales there is nothing to sort by.
+    sort_key = jnp.max(sigma, axis=-1) if sort and formulation.uses_scale else None
+    plan = batching.plan_chunks(math.prod(batch), chunk_size, sort_key, shardable=ts.shape[0] > 1)
+    return batch, leaves, flat, omega0, q0, sigma, plan
+
+
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces, for the no-recompile tests
 def _integrate_traced(
     model,
@@ -67,21 +85,11 @@ def _integrate_traced(
     chunk_size,
     sort,
 ):
-    dtype = omega0.dtype
-    batch = batching.batch_shape(model, omega0, q0)
-    n = math.prod(batch)
-    leaves, flat = batching.flatten_model(model, batch, dtype)
-    omega0 = batching.flatten(omega0, batch)
-    q0 = None if q0 is None else batching.flatten(q0, batch)
+    batch, leaves, flat, omega0, q0, sigma, plan = plan_bodies(
+        model, omega0, q0, ts, args, formulation, chunk_size, sort
+    )
     has_orientation = q0 is not None
     n_times = ts.shape[0]
-    if formulation.uses_scale:
-        sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
-    else:
-        sigma = jnp.ones_like(omega0)
-    # Sorting by speed groups bodies of similar step size; without scales there is nothing to sort by.
-    sort_key = jnp.max(sigma, axis=-1) if sort and formulation.uses_scale else None
-    plan = batching.plan_chunks(n, chunk_size, sort_key, shardable=n_times > 1)
 
     if n_times == 1:
         omega_all = omega0[:, None, :]

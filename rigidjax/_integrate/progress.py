@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import batching
-from .chunked import _omega_scales
+from .chunked import plan_bodies
 from .trajectory import Trajectory
 
 MAX_BLOCKS = 20
@@ -99,18 +99,9 @@ def _inputs_traced(*trees) -> bool:
 
 @eqx.filter_jit
 def _chunk_order(model, omega0, q0, ts, args, formulation, chunk_size, sort):
-    """The body order of :func:`.chunked.integrate`'s chunks (the same computation)."""
-    dtype = omega0.dtype
-    batch = batching.batch_shape(model, omega0, q0)
-    n = int(np.prod(batch))
-    leaves, flat = batching.flatten_model(model, batch, dtype)
-    omega0 = batching.flatten(omega0, batch)
-    q0 = None if q0 is None else batching.flatten(q0, batch)
-    key = None
-    if sort and formulation.uses_scale:
-        sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
-        key = jnp.max(sigma, axis=-1)
-    return batching.plan_chunks(n, chunk_size, key, shardable=ts.shape[0] > 1).order
+    """The body order of :func:`.chunked.integrate`'s chunks."""
+    plan = plan_bodies(model, omega0, q0, ts, args, formulation, chunk_size, sort)[-1]
+    return plan.order
 
 
 _TRACED = (
