@@ -34,7 +34,8 @@ class Trajectory(eqx.Module):
     ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body),
     ``result`` (per body: 0 for success, otherwise diffrax's result code, or -1 for a state that turned
     NaN or inf under a fixed-step solver) and ``first_failed_sample`` (per body: the index of its
-    first NaN sample, ``T`` when it has none).
+    first NaN sample, ``T`` when it has none); with ``simulate(..., error_estimate=True)`` also
+    ``error_estimate_omega`` and ``error_estimate_orientation`` (:meth:`error_estimate`).
     """
 
     ts: Float[Array, " T"]
@@ -92,6 +93,30 @@ class Trajectory(eqx.Module):
         does not read, or holds float64 arrays while JAX runs in 32-bit mode.
         """
         return cls(**storage.read(path))
+
+    def error_estimate(self) -> dict[str, Float[Array, "*batch"]]:
+        """The per-body error estimate of ``simulate(..., error_estimate=True)``.
+
+        **Returns:**
+
+        ``{"omega": ..., "orientation": ...}`` (``orientation`` only with an orientation), each of
+        shape ``(*batch)``: ``omega`` the largest error of the angular velocity over the samples,
+        relative to the body's largest ``|omega|``; ``orientation`` the largest angle (rad) by which
+        the orientation is off. From a second, more accurate solution (see
+        :func:`rigidjax.simulate`); NaN for a body whose integration failed, inf for one whose
+        second integration failed. Raises ``ValueError`` when the trajectory was simulated without
+        ``error_estimate=True``.
+        """
+        if "error_estimate_omega" not in self.stats:
+            raise ValueError(
+                "This trajectory has no error estimate: simulate with "
+                "rigidjax.simulate(..., error_estimate=True), which solves the batch a second time, "
+                "more accurately, and compares."
+            )
+        out = {"omega": self.stats["error_estimate_omega"]}
+        if self.stats.get("error_estimate_orientation") is not None:
+            out["orientation"] = self.stats["error_estimate_orientation"]
+        return out
 
     def __repr__(self) -> str:
         """One line: the scene and its torques, the batch shape, the number of samples, the time span,

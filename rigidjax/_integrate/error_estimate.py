@@ -1,0 +1,163 @@
+"""``simulate(..., error_estimate=True)``: a per-body error estimate from a second, more accurate
+solution of the same problem.
+
+The batch is solved twice: as asked (the result the user gets) and once more, more accurately:
+
+- an adaptive step (a preset, or a user's ``PIDController``): both tolerances divided by
+  :data:`TOLERANCE_FACTOR` (never below ten roundoff units), the same solver. The finer solution's
+  error is then a small fraction of the first's (for Dopri8 about ``100^(-8/9)``, 1/60; for Tsit5
+  about 1/40), so their difference is the first solution's error to a few per cent;
+- a fixed step (``rigidjax.solvers``' RKMK and splittings, or ``ConstantStepSize``): half the step.
+  For a method of order ``p`` the errors scale as ``h^p``, so the difference is
+  ``1 - 2^-p`` of the first solution's error (Richardson): it is divided by that;
+- ``accuracy="exact"``: the closed form has no truncation error; its error is roundoff amplified by
+  the conditioning of the motion (near a separatrix, at long times). The second solution is the
+  closed form at inputs perturbed by :data:`EXACT_PERTURBATION` roundoff units (moments and initial
+  angular velocity), so the difference measures how much a few roundoff units in the inputs move
+  the result: an estimate of the order of magnitude of that amplification, not a bound.
+
+Per body, ``stats["error_estimate_omega"]`` is :data:`SAFETY` times the largest difference of the
+angular velocities over the samples, relative to the body's largest ``|omega|``, and
+``stats["error_estimate_orientation"]`` (with an orientation) the same for the rotation angle (rad)
+between the two orientations; each is at least :data:`FLOOR` roundoff units. NaN for a body whose
+integration failed, inf for one whose finer integration failed (e.g. ``max_steps``: it is the same
+for both runs).
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import float_dtype
+from .._kinematics.quaternion import _quat_conjugate, _quat_multiply
+from . import driver
+from .presets import PRESETS
+from .solvers.rkmk import RKMK
+from .solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
+from .trajectory import Trajectory
+
+TOLERANCE_FACTOR = 100.0
+"""The finer adaptive solution's tolerances are the first's divided by this."""
+
+SAFETY = 2.0
+"""The difference of the two solutions is multiplied by this, so that the estimate stays above the
+true error when the finer solution's own error (a few per cent of the first's) adds to it by chance;
+measured ratios estimate / true error lie between about 1.5 and 3 (docs/guides/accuracy.md)."""
+
+FLOOR = 10.0
+"""No estimate is below this many roundoff units (``eps`` of the dtype): below it the two solutions
+differ by roundoff only, which is no measure of the error."""
+
+EXACT_PERTURBATION = 4.0
+"""``accuracy="exact"``: the inputs of the second evaluation are perturbed by this many roundoff
+units, relative."""
+
+_FIXED_STEP = (HeavyTopSplitting, LiePoissonSplitting, RKMK)
+
+
+def with_error_estimate(simulate, model, state0, ts, **kwargs) -> Trajectory:
+    """``simulate(model, state0, ts, **kwargs)`` with ``stats["error_estimate_omega"]`` and, with an
+    orientation, ``stats["error_estimate_orientation"]`` added (see the module's docstring)."""
+    dtype = float_dtype(
+        state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
+    )
+    eps = float(jnp.finfo(dtype).eps)
+    fine_model, fine_state0 = model, state0
+    fine_kwargs = dict(kwargs, throw=False)
+    factor = 1.0
+    if kwargs["accuracy"] == "exact":
+        fine_model, fine_state0 = _perturbed(model, state0, EXACT_PERTURBATION * eps, dtype)
+    elif isinstance(kwargs["solver"], _FIXED_STEP):
+        if kwargs["dt0"] is not None:  # without, the first simulate call raises
+            fine_kwargs["dt0"] = kwargs["dt0"] / 2
+            factor = _richardson(kwargs["solver"].order(None), ts, kwargs["dt0"])
+    else:  # checked before the first run: an unsupported controller raises at once
+        fine_kwargs, factor = _finer_adaptive(fine_kwargs, eps)
+    coarse = simulate(model, state0, ts, **kwargs)
+    fine = simulate(fine_model, fine_state0, ts, **fine_kwargs)
+    stats = dict(coarse.stats)
+    stats.update(estimate(coarse, fine, SAFETY * factor, FLOOR * eps))
+    return eqx.tree_at(lambda t: t.stats, coarse, stats)
+
+
+def estimate(coarse: Trajectory, fine: Trajectory, scale: float, floor: float) -> dict:
+    """Per body: ``scale`` times the largest difference of ``coarse`` and ``fine`` (omega relative to
+    the body's largest |omega|, orientation as a rotation angle), at least ``floor``; NaN where
+    ``coarse`` failed, inf where only ``fine`` did."""
+    tiny = jnp.finfo(coarse.omega.dtype).tiny
+    size = jnp.max(jnp.linalg.norm(fine.omega, axis=-1), axis=-1)
+    diff = jnp.max(jnp.linalg.norm(coarse.omega - fine.omega, axis=-1), axis=-1)
+    out = {"error_estimate_omega": diff / jnp.maximum(size, tiny)}
+    if coarse.orientation is not None:
+        # The angle of the rotation between the two: 2 atan2(|v|, |w|) of q_coarse* q_fine.
+        rel = _quat_multiply(_quat_conjugate(coarse.orientation), fine.orientation)
+        angle = 2 * jnp.arctan2(jnp.linalg.norm(rel[..., 1:], axis=-1), jnp.abs(rel[..., 0]))
+        out["error_estimate_orientation"] = jnp.max(angle, axis=-1)
+    for name, value in out.items():
+        value = jnp.maximum(scale * value, floor)  # NaN stays NaN
+        value = jnp.where(coarse.success & ~fine.success, jnp.inf, value)
+        out[name] = jnp.where(coarse.success, value, jnp.nan)
+    return out
+
+
+def _perturbed(model, state0, delta, dtype):
+    """``model`` and ``state0`` with the moments scaled by ``(1 + d, 1 + d, 1 - d)`` (a symmetric top
+    stays symmetric) and omega0 by ``(1 + d, 1 - d, 1 + d)``."""
+    sign_i = jnp.asarray([1.0 + delta, 1.0 + delta, 1.0 - delta], dtype)
+    sign_w = jnp.asarray([1.0 + delta, 1.0 - delta, 1.0 + delta], dtype)
+    inertia = jnp.asarray(model.inertia).astype(dtype) * sign_i
+    model = eqx.tree_at(lambda m: m.inertia, model, inertia)
+    state0 = eqx.tree_at(lambda s: s.omega, state0, jnp.asarray(state0.omega).astype(dtype) * sign_w)
+    return model, state0
+
+
+def _richardson(order, ts, dt0) -> float:
+    """``1 / (1 - r^-p)``, ``r`` the smallest ratio of the step counts of the two grids over a sample
+    interval (2 where ``dt0`` divides the intervals; the smallest is the conservative choice)."""
+    ts = np.asarray(ts, np.float64)
+    if ts.shape[0] < 2:
+        return 1.0
+    coarse, _ = driver.fixed_step_grid(ts, dt0)
+    fine, _ = driver.fixed_step_grid(ts, dt0 / 2)
+    ratio = np.min(np.diff(np.searchsorted(fine, ts)) / np.diff(np.searchsorted(coarse, ts)))
+    return 1.0 / (1.0 - float(ratio) ** (-order))
+
+
+def _tighter(tol, floor):
+    """``tol / TOLERANCE_FACTOR``, at least ``floor``: a Python float where ``tol`` is concrete."""
+    try:
+        return max(float(tol) / TOLERANCE_FACTOR, floor)
+    except jax.errors.ConcretizationTypeError:  # a traced tolerance
+        return jnp.maximum(tol / TOLERANCE_FACTOR, floor)
+
+
+def _finer_adaptive(kwargs, eps):
+    """The finer run's arguments: tolerances divided by TOLERANCE_FACTOR, or half the constant step."""
+    floor = 10 * eps
+    controller = kwargs["stepsize_controller"]
+    if controller is None:
+        rtol = kwargs["rtol"]
+        rtol = max(PRESETS[kwargs["accuracy"]][1], floor) if rtol is None else rtol
+        atol = rtol if kwargs["atol"] is None else kwargs["atol"]
+        kwargs["rtol"], kwargs["atol"] = _tighter(rtol, floor), _tighter(atol, floor)
+        return kwargs, 1.0
+    if isinstance(controller, diffrax.PIDController):
+        kwargs["stepsize_controller"] = eqx.tree_at(
+            lambda c: (c.rtol, c.atol),
+            controller,
+            (_tighter(controller.rtol, floor), _tighter(controller.atol, floor)),
+        )
+        return kwargs, 1.0
+    if isinstance(controller, diffrax.ConstantStepSize):
+        if kwargs["dt0"] is None:
+            raise ValueError("error_estimate with ConstantStepSize needs dt0.")
+        kwargs["dt0"] = kwargs["dt0"] / 2
+        solver = kwargs["solver"] or PRESETS[kwargs["accuracy"]][0]()
+        return kwargs, 1.0 / (1.0 - 2.0 ** (-solver.order(None)))
+    raise ValueError(
+        "error_estimate=True works with the presets' step control, a diffrax.PIDController (a second "
+        "run at tolerances / 100) or a ConstantStepSize (a second run at dt0 / 2); got "
+        f"{type(controller).__name__}."
+    )

@@ -1,0 +1,193 @@
+"""``simulate(..., error_estimate=True)``: the per-body estimate against the true error.
+
+The true error of each body comes from a reference that shares no code with the integration: the
+closed form (``accuracy="exact"``) for torque-free bodies, scipy's DOP853 at rtol = atol = 1e-13 for
+heavy tops. Per body, the estimate must lie between the true error and ten times it. Below a
+roundoff floor the true error is not the integrator's to control (nor the reference's to measure),
+so there the estimate must only stay above the true error and within ten times the floor. The
+floor of a torque-free body grows near the separatrix like ``eps / |s|``,
+``s = (|L|^2 - 2 E I2) / |L|^2`` (docs/guides/accuracy.md).
+"""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import (
+    EPS64,
+    dop853,
+    perturbed_inertia,
+    quat_multiply,
+    quat_rotate,
+    random_moments,
+    random_quaternions,
+)
+
+import rigidjax as rj
+from rigidjax.solvers import HeavyTopSplitting
+
+
+def _omega_error(omega, reference):
+    """Largest |omega - reference| over the samples, relative to the body's largest |omega|."""
+    diff = np.max(np.linalg.norm(np.asarray(omega) - reference, axis=-1), axis=-1)
+    return diff / np.max(np.linalg.norm(reference, axis=-1), axis=-1)
+
+
+def _angle_error(q, reference):
+    """Largest rotation angle (rad) between the orientations over the samples."""
+    rel = quat_multiply(np.asarray(q) * np.array([1.0, -1.0, -1.0, -1.0]), reference)
+    return np.max(2 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0])), axis=-1)
+
+
+def _separatrix_distance(inertia, omega):
+    """``s = (|L|^2 - 2 E I2) / |L|^2`` per body, cancellation-free: sum_i I_i (I_i - I2) w_i^2."""
+    L2 = np.sum((inertia * omega) ** 2, axis=-1)
+    return np.sum(inertia * (inertia - inertia[:, 1:2]) * omega**2, axis=-1) / L2
+
+
+def _torque_free_floor(inertia, omega):
+    """The roundoff floor of a torque-free body: 1000 eps, growing like eps / |s| near the separatrix."""
+    return EPS64 * np.maximum(1e3, 10 / np.abs(_separatrix_distance(inertia, omega)))
+
+
+def _check(estimate, true, floor, what):
+    """estimate / true in [1, 10] above the floor; below it, estimate >= true and <= 10 floor."""
+    estimate, true = np.asarray(estimate), np.asarray(true)
+    floor = np.broadcast_to(floor, true.shape)
+    above = true > floor
+    assert above.sum() >= true.size // 2, f"{what}: the batch is mostly at the roundoff floor"
+    ratio = estimate / true
+    assert np.all(ratio[above] >= 1.0) and np.all(ratio[above] <= 10.0), (
+        f"{what}: estimate / true error {np.sort(ratio[above])}"
+    )
+    assert np.all(estimate[~above] >= true[~above]) and np.all(estimate[~above] <= 10 * floor[~above]), what
+    return ratio[above]
+
+
+@pytest.fixture(scope="module")
+def tumbling():
+    """24 random bodies tumbling for 5 s, the fast preset, against the closed form."""
+    rng = np.random.default_rng(0)
+    n = 24
+    inertia = random_moments(rng, (n,))
+    omega0 = 2 * rng.normal(size=(n, 3))
+    model = rj.FreeBody(jnp.asarray(inertia))
+    state0 = rj.State(jnp.asarray(omega0), jnp.asarray(random_quaternions(rng, n)))
+    ts = jnp.linspace(0.0, 5.0, 26)
+    exact = rj.simulate(model, state0, ts, accuracy="exact")
+    traj = rj.simulate(model, state0, ts, accuracy="fast", error_estimate=True)
+    return traj, exact, _torque_free_floor(inertia, omega0)
+
+
+def test_tumbling_batch(tumbling):
+    traj, exact, floor = tumbling
+    estimate = traj.error_estimate()
+    _check(estimate["omega"], _omega_error(traj.omega, np.asarray(exact.omega)), floor, "omega")
+    _check(estimate["orientation"], _angle_error(traj.orientation, np.asarray(exact.orientation)), floor, "q")
+
+
+def test_fast_tennis_racket_batch_near_the_separatrix():
+    """Spun at 30 rad/s near the intermediate axis, 1e-5 <= |s| <= 1e-2, the balanced preset."""
+    rng = np.random.default_rng(1)
+    n = 24
+    inertia = perturbed_inertia(rng, n, 0.05)
+    # One small component dominates the other (no cancellation in s): half the bodies on each side.
+    shape = np.ones((n, 3)) * rng.uniform(0.0, 0.3, (n, 1))
+    shape[np.arange(n), np.where(np.arange(n) % 2, 0, 2)] = 1.0
+    shape[:, 1] = 0.0
+    coefficient = np.abs(np.sum(inertia * (inertia - inertia[:, 1:2]) * shape**2, -1))
+    target = 10 ** rng.uniform(-5, -2.3, n)  # |s|
+    amplitude = np.sqrt(target * (30.0 * inertia[:, 1]) ** 2 / coefficient)
+    omega0 = rng.choice([-1.0, 1.0], (n, 3)) * shape * amplitude[:, None] + np.array([0.0, 30.0, 0.0])
+    s = np.abs(_separatrix_distance(inertia, omega0))
+    assert 1e-5 < s.min() and s.max() < 1e-2 and np.sum(s < 1e-3) >= n // 3
+    model = rj.FreeBody(jnp.asarray(inertia))
+    state0 = rj.State(jnp.asarray(omega0), jnp.asarray(random_quaternions(rng, n)))
+    ts = jnp.linspace(0.0, 2.0, 21)
+    exact = rj.simulate(model, state0, ts, accuracy="exact")
+    traj = rj.simulate(model, state0, ts, accuracy="balanced", error_estimate=True)
+    estimate = traj.error_estimate()
+    floor = _torque_free_floor(inertia, omega0)
+    _check(estimate["omega"], _omega_error(traj.omega, np.asarray(exact.omega)), floor, "omega")
+    _check(estimate["orientation"], _angle_error(traj.orientation, np.asarray(exact.orientation)), floor, "q")
+
+
+def _heavy_tops(n):
+    rng = np.random.default_rng(2)
+    inertia = np.array([1.0, 1.1, 0.6]) * (1 + 0.05 * rng.uniform(-1, 1, (n, 3)))
+    mass = rng.uniform(0.8, 1.2, n)
+    com = np.stack([np.zeros(n), np.zeros(n), rng.uniform(0.3, 0.6, n)], -1)
+    omega0 = np.stack([0.5 * rng.normal(size=n), 0.5 * rng.normal(size=n), rng.uniform(5, 15, n)], -1)
+    tilt = rng.uniform(0.2, 1.0, n)
+    q0 = np.stack([np.cos(tilt / 2), np.sin(tilt / 2), np.zeros(n), np.zeros(n)], -1)
+    return inertia, mass, com, omega0, q0
+
+
+@pytest.fixture(scope="module")
+def heavy_top_reference():
+    """12 asymmetric heavy tops for 2 s and their DOP853 motion (rtol = atol = 1e-13)."""
+    inertia, mass, com, omega0, q0 = _heavy_tops(12)
+    ts = np.linspace(0.0, 2.0, 21)
+    omega, q = [], []
+    for b in range(len(mass)):
+
+        def accel(t, w, q, b=b):
+            down = quat_rotate(q * np.array([1.0, -1.0, -1.0, -1.0]), np.array([0.0, 0.0, -9.81 * mass[b]]))
+            return (np.cross(inertia[b] * w, w) + np.cross(com[b], down)) / inertia[b]
+
+        w, qb = dop853(accel, omega0[b], ts, q0[b], omega_scale=np.linalg.norm(omega0[b]))
+        omega.append(w)
+        q.append(qb)
+    model = rj.HeavyTop(jnp.asarray(inertia), jnp.asarray(mass), jnp.asarray(com))
+    return model, rj.State(jnp.asarray(omega0), jnp.asarray(q0)), ts, np.array(omega), np.array(q)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{"accuracy": "balanced"}, {"solver": HeavyTopSplitting(), "dt0": 0.01}],
+    ids=["balanced", "HeavyTopSplitting"],
+)
+def test_heavy_top_batch(heavy_top_reference, options):
+    model, state0, ts, omega, q = heavy_top_reference
+    traj = rj.simulate(model, state0, jnp.asarray(ts), error_estimate=True, **options)
+    estimate = traj.error_estimate()
+    floor = 1e3 * EPS64  # the reference's own error is ~1e-13
+    _check(estimate["omega"], _omega_error(traj.omega, omega), floor, "omega")
+    _check(estimate["orientation"], _angle_error(traj.orientation, q), floor, "q")
+
+
+def test_exact_estimate_is_at_roundoff_level(tumbling):
+    """The closed form's estimate (a second evaluation at inputs 4 eps away) is roundoff-sized."""
+    _, exact, _ = tumbling
+    state0 = rj.State(exact.omega[:, 0], exact.orientation[:, 0])
+    traj = rj.simulate(exact.model, state0, exact.ts, accuracy="exact", error_estimate=True)
+    for value in traj.error_estimate().values():
+        assert np.all(np.asarray(value) >= 10 * EPS64) and np.all(np.asarray(value) < 1e-11)
+
+
+def test_without_the_estimate_a_clear_error(tumbling):
+    traj, _, _ = tumbling
+    plain = rj.Trajectory(traj.ts, traj.omega, traj.orientation, traj.model, traj.success, stats={})
+    with pytest.raises(ValueError, match=r"error_estimate=True"):
+        plain.error_estimate()
+
+
+def test_the_estimate_is_saved_and_loaded(tumbling, tmp_path):
+    traj, _, _ = tumbling
+    traj.save(tmp_path / "t.npz")
+    loaded = rj.Trajectory.load(tmp_path / "t.npz").error_estimate()
+    for key, value in traj.error_estimate().items():
+        np.testing.assert_array_equal(loaded[key], value)
+
+
+def test_unsupported_step_control_is_refused_before_any_run():
+    import diffrax
+
+    controller = diffrax.StepTo(ts=jnp.linspace(0.0, 1.0, 11))
+    with pytest.raises(ValueError, match=r"error_estimate=True works with"):
+        rj.simulate(
+            rj.FreeBody(jnp.array([1.0, 2.0, 3.0])),
+            rj.State(jnp.array([1.0, 0.1, 0.0])),
+            jnp.linspace(0.0, 1.0, 3),
+            stepsize_controller=controller,
+            error_estimate=True,
+        )
