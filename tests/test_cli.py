@@ -83,6 +83,7 @@ def test_heavy_top_runs_and_writes_files(heavy_top):
         summary = json.loads(str(data["summary_json"]))
         drift = data["drift_energy"]
         theta_err = np.abs(data["theta_max"] - data["theta_max_pred"])
+        estimate = {key: data["error_estimate_" + key] for key in ("omega", "orientation")}
     # The summary prints the numbers that are in the file.
     assert _number(out, "bodies") == 64
     assert _number(out, "samples") == 20
@@ -93,6 +94,12 @@ def test_heavy_top_runs_and_writes_files(heavy_top):
     assert _number(out, "wall time") > 0 and _number(out, "compile time") > 0
     assert _number(out, "worst drift energy") == pytest.approx(drift.max(), rel=1e-3)
     assert _number(out, "failed bodies") == 0
+    # The error estimate (on by default): the worst body named, with the value the file holds.
+    for key, values in estimate.items():
+        worst = summary["worst_error_estimate"][key]
+        assert values.shape == (64,) and values[worst["body"]] == values.max() == worst["estimate"]
+        assert _number(out, f"worst error estimate {key}") == pytest.approx(values.max(), rel=1e-3)
+        assert _field(out, f"worst error estimate {key}").endswith(f"(body {worst['body']})")
     upright, fell = re.findall(r"([\d,]+) (?:stayed|fell)", _field(out, "upright / fell"))
     assert int(upright) + int(fell) == 64
     # Physics: energy is conserved and the nutation reaches the closed-form turning point.
@@ -211,10 +218,14 @@ def test_quiet_prints_nothing(tmp_path):
         str(tmp_path / "q.npz"),
         "--no-plot",
         "--quiet",
+        "--no-error-estimate",
     ]
     code, out, err = _run(argv)
     assert code == 0 and out == "" and err == ""
     assert (tmp_path / "q.npz").exists() and not (tmp_path / "rigidjax_simulate.png").exists()
+    with np.load(tmp_path / "q.npz") as data:
+        assert "error_estimate_omega" not in data
+        assert json.loads(str(data["summary_json"]))["worst_error_estimate"] == {}
 
 
 @pytest.mark.parametrize(

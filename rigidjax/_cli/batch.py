@@ -109,7 +109,15 @@ def run_block(plan: Plan, args, b: int, times):
     model = plan.scene.make_model(block_params(plan.scene.params, index, plan.n), plan.dtype)
     q0 = jnp.asarray(plan.scene.orientation0[index], plan.dtype) if plan.has_q else None
     state0 = rj.State(jnp.asarray(plan.scene.omega0[index], plan.dtype), q0)
-    traj = rj.simulate(model, state0, times, accuracy=args.accuracy, chunk_size=args.chunk_size, throw=False)
+    traj = rj.simulate(
+        model,
+        state0,
+        times,
+        accuracy=args.accuracy,
+        chunk_size=args.chunk_size,
+        throw=False,
+        error_estimate=getattr(args, "error_estimate", False),
+    )
     jax.block_until_ready(traj)
     return index, traj
 
@@ -147,6 +155,9 @@ def _collect(plan: Plan, batch: Batch, b: int, index, traj, derived) -> None:
     res["success"] = np.asarray(traj.success)[real]
     for key, value in invariants.items():
         res["drift_" + key] = np.asarray(value, np.float64)[real]
+    if "error_estimate_omega" in traj.stats:  # simulate(..., error_estimate=True)
+        for key, value in traj.error_estimate().items():
+            res["error_estimate_" + key] = np.asarray(value, np.float64)[real]
     for key, value in res.items():
         if key not in batch.results:
             batch.results[key] = np.empty((plan.n,) + np.shape(value)[1:], np.asarray(value).dtype)

@@ -20,8 +20,11 @@ The ``.npz`` file (all arrays are NumPy, readable with ``numpy.load`` and no pic
   where only Euler's equations are integrated);
 - the model parameters and initial state (``inertia`` (N, 3), ``omega0`` (N, 3), and per scene
   ``mass``, ``com``, ``gravity``, ``euler0``, ``orientation0``), per-body results (``drift_<name>``
-  for each invariant of :meth:`rigidjax.Trajectory.invariants`, ``success``, and the scene's own,
-  e.g. ``theta_max``), and ``summary_json`` (the printed summary as JSON).
+  for each invariant of :meth:`rigidjax.Trajectory.invariants`, ``success``, the error estimate
+  ``error_estimate_omega`` and ``error_estimate_orientation`` of
+  :meth:`rigidjax.Trajectory.error_estimate` unless ``--no-error-estimate``, and the scene's own,
+  e.g. ``theta_max``), and ``summary_json`` (the printed summary as JSON, the worst body's error
+  estimate and its index included).
 
 Samples are stored as float32 by default (``--save-dtype``) and, by default, thinned in time to the
 smallest stride that keeps the stored trajectories under 32 MiB (``--save-every``); all analysis
@@ -74,6 +77,12 @@ def _summary(plan: Plan, batch: Batch, args, compile_time: float) -> tuple[dict,
     # Over the bodies that integrated (failed ones are NaN and counted apart); a NaN drift stays NaN.
     worst = {k: float(np.max(v[success])) if success.any() else float("nan") for k, v in drifts.items()}
     scene_rows, scene_extra = plan.scene.summarize(batch.results, plan.ts, args)
+    # The body to distrust most, per quantity: its index in the scene and its estimate.
+    worst_estimate = {}
+    for key, value in batch.results.items():
+        if key.startswith("error_estimate_") and not np.all(np.isnan(value)):
+            body = int(np.nanargmax(value))
+            worst_estimate[key[len("error_estimate_") :]] = {"body": body, "estimate": float(value[body])}
     summary = {
         "scene": args.scene,
         "bodies": plan.n,
@@ -93,6 +102,7 @@ def _summary(plan: Plan, batch: Batch, args, compile_time: float) -> tuple[dict,
         "analysis_time_s": batch.loop_time - batch.sim_time,
         "body_steps_per_s": batch.body_steps / batch.sim_time if batch.sim_time > 0 else float("nan"),
         "worst_drift": worst,
+        "worst_error_estimate": worst_estimate,
         "failed_bodies": int(np.sum(~success)),
         "save_every": plan.save_every,
         "save_dtype": args.save_dtype,
@@ -239,6 +249,11 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
     if args.accuracy == "exact":  # no steps to count: the closed form is evaluated at each sample
         lines = [row for row in lines if row[0] not in ("solver steps", "body-steps", "body-steps/s")]
     lines += [(f"worst drift {key}", f"{value:.3e}") for key, value in summary["worst_drift"].items()]
+    units = {"omega": "relative to the body's largest |omega|", "orientation": "rad"}
+    lines += [
+        (f"worst error estimate {key}", f"{w['estimate']:.3e} {units[key]} (body {w['body']:,})")
+        for key, w in summary["worst_error_estimate"].items()
+    ]
     lines.append(("failed bodies", f"{summary['failed_bodies']:,}"))
     lines += scene_rows
     lines += [("wrote", f"{path} ({file_size(path)})") for path in out_files]
@@ -416,6 +431,16 @@ def add_parser(subparsers) -> None:
         metavar="PATH",
         help=f"also write a 3-D animation of the first {ANIMATED_BODIES} bodies (from the stored samples) "
         "to PATH: .gif, or .mp4 with ffmpeg (needs matplotlib); checked before the run",
+    )
+    sim.add_argument(
+        "--error-estimate",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="solve the batch a second time, more accurately, for a per-body error estimate "
+        "(rigidjax.simulate(..., error_estimate=True)); the summary names the worst body, the .npz "
+        "stores error_estimate_omega and error_estimate_orientation per body. It doubles the "
+        "integration time: the default job's wall time went from 7.9 s to 15.7 s on 2 CPU cores "
+        "(compile time unchanged: the second solve is the same program)",
     )
     sim.add_argument("-q", "--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=run)
