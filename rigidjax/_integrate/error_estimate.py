@@ -12,16 +12,16 @@ The batch is solved twice: as asked (the result the user gets) and once more, mo
   ``1 - 2^-p`` of the first solution's error (Richardson): it is divided by that;
 - ``accuracy="exact"``: the closed form has no truncation error; its error is roundoff amplified by
   the conditioning of the motion (near a separatrix, at long times). The second solution is the
-  closed form at inputs perturbed by :data:`EXACT_PERTURBATION` roundoff units (moments and initial
-  angular velocity), so the difference measures how much a few roundoff units in the inputs move
+  closed form at inputs perturbed by :data:`EXACT_PERTURBATION` roundoff unit (moments and initial
+  angular velocity), so the difference, taken as it is, measures how much rounding the inputs moves
   the result: an estimate of the order of magnitude of that amplification, not a bound.
 
-Per body, ``stats["error_estimate_omega"]`` is :data:`SAFETY` times the largest difference of the
-angular velocities over the samples, relative to the body's largest ``|omega|``, and
-``stats["error_estimate_orientation"]`` (with an orientation) the same for the rotation angle (rad)
-between the two orientations; each is at least :data:`FLOOR` roundoff units. NaN for a body whose
-integration failed, inf for one whose finer integration failed (e.g. ``max_steps``: it is the same
-for both runs).
+Per body, ``stats["error_estimate_omega"]`` is :data:`SAFETY` times (for ``"exact"``: once) the
+largest difference of the angular velocities over the samples, relative to the body's largest
+``|omega|``, and ``stats["error_estimate_orientation"]`` (with an orientation) the same for the
+rotation angle (rad) between the two orientations; each is at least :data:`FLOOR` roundoff units.
+NaN for a body whose integration failed, inf for one whose finer integration failed (e.g.
+``max_steps``: it is the same for both runs).
 """
 
 import diffrax
@@ -50,9 +50,9 @@ FLOOR = 10.0
 """No estimate is below this many roundoff units (``eps`` of the dtype): below it the two solutions
 differ by roundoff only, which is no measure of the error."""
 
-EXACT_PERTURBATION = 4.0
+EXACT_PERTURBATION = 1.0
 """``accuracy="exact"``: the inputs of the second evaluation are perturbed by this many roundoff
-units, relative."""
+units, relative (what rounding the inputs does); the difference is the estimate, without SAFETY."""
 
 _FIXED_STEP = (HeavyTopSplitting, LiePoissonSplitting, RKMK)
 
@@ -69,6 +69,7 @@ def with_error_estimate(simulate, model, state0, ts, **kwargs) -> Trajectory:
     factor = 1.0
     if kwargs["accuracy"] == "exact":
         fine_model, fine_state0 = _perturbed(model, state0, EXACT_PERTURBATION * eps, dtype)
+        factor = 1.0 / SAFETY
     elif isinstance(kwargs["solver"], _FIXED_STEP):
         if kwargs["dt0"] is not None:  # without, the first simulate call raises
             fine_kwargs["dt0"] = kwargs["dt0"] / 2
