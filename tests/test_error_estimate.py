@@ -9,6 +9,8 @@ floor of a torque-free body grows near the separatrix like ``eps / |s|``,
 ``s = (|L|^2 - 2 E I2) / |L|^2`` (docs/guides/accuracy.md).
 """
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -191,3 +193,26 @@ def test_unsupported_step_control_is_refused_before_any_run():
             stepsize_controller=controller,
             error_estimate=True,
         )
+
+
+def test_float32_results_are_checked_by_a_float64_solve(tumbling):
+    """float32 with x64 on: the second solve runs in float64, so float32 roundoff is measured too.
+    The fast preset's omega is at float32's roundoff floor here (errors 1e-7 to 2e-6), most of its
+    orientation errors (5e-7 to 6e-4) above it."""
+    traj64, _, _ = tumbling
+    model = rj.FreeBody(traj64.model.inertia.astype(jnp.float32))
+    state0 = rj.State(traj64.omega[:, 0].astype(jnp.float32), traj64.orientation[:, 0].astype(jnp.float32))
+    ts = traj64.ts.astype(jnp.float32)
+    traj = rj.simulate(model, state0, ts, accuracy="fast", error_estimate=True)
+    wide = jax.tree_util.tree_map(
+        lambda x: x.astype(jnp.float64) if eqx.is_inexact_array(x) else x, (model, state0)
+    )
+    exact = rj.simulate(*wide, ts.astype(jnp.float64), accuracy="exact")  # of the float32 inputs
+    estimate = traj.error_estimate()
+    assert estimate["omega"].dtype == jnp.float32
+    floor = 100 * float(np.finfo(np.float32).eps)
+    true_omega = _omega_error(traj.omega.astype(jnp.float64), np.asarray(exact.omega))
+    omega = np.asarray(estimate["omega"], np.float64)
+    assert np.all(omega >= true_omega) and np.all(omega <= 10 * floor)
+    true_angle = _angle_error(traj.orientation.astype(jnp.float64), np.asarray(exact.orientation))
+    _check(estimate["orientation"], true_angle, 10 * float(np.finfo(np.float32).eps), "q")

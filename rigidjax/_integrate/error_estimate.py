@@ -10,6 +10,8 @@ The batch is solved twice: as asked (the result the user gets) and once more, mo
 - a fixed step (``rigidjax.solvers``' RKMK and splittings, or ``ConstantStepSize``): half the step.
   For a method of order ``p`` the errors scale as ``h^p``, so the difference is
   ``1 - 2^-p`` of the first solution's error (Richardson): it is divided by that;
+- float32 results with ``jax_enable_x64`` on: the second solve as above, but in float64, so that
+  it measures float32 roundoff too (for ``accuracy="exact"``: the float64 closed form);
 - ``accuracy="exact"``: the closed form has no truncation error; its error is roundoff amplified by
   the conditioning of the motion (near a separatrix, at long times). The second solution is the
   closed form at inputs perturbed by :data:`EXACT_PERTURBATION` roundoff unit (moments and initial
@@ -64,36 +66,55 @@ def with_error_estimate(simulate, model, state0, ts, **kwargs) -> Trajectory:
         state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
     )
     eps = float(jnp.finfo(dtype).eps)
-    fine_model, fine_state0 = model, state0
+    fine_model, fine_state0, fine_ts = model, state0, ts
+    fine_eps = eps
+    if dtype == np.float32 and jax.config.read("jax_enable_x64"):
+        # float32 results: the second solve in float64, so that their roundoff is measured too.
+        fine_model, fine_state0, fine_ts = _as_float64(model, state0, ts)
+        fine_eps = float(jnp.finfo(np.float64).eps)
     fine_kwargs = dict(kwargs, throw=False)
     factor = 1.0
     if kwargs["accuracy"] == "exact":
-        fine_model, fine_state0 = _perturbed(model, state0, EXACT_PERTURBATION * eps, dtype)
-        factor = 1.0 / SAFETY
+        if fine_eps == eps:  # no wider dtype: how much rounding the inputs moves the result
+            fine_model, fine_state0 = _perturbed(model, state0, EXACT_PERTURBATION * eps, dtype)
+            factor = 1.0 / SAFETY
     elif isinstance(kwargs["solver"], _FIXED_STEP):
         if kwargs["dt0"] is not None:  # without, the first simulate call raises
             fine_kwargs["dt0"] = kwargs["dt0"] / 2
             factor = _richardson(kwargs["solver"].order(None), ts, kwargs["dt0"])
     else:  # checked before the first run: an unsupported controller raises at once
-        fine_kwargs, factor = _finer_adaptive(fine_kwargs, eps)
+        fine_kwargs, factor = _finer_adaptive(fine_kwargs, eps, fine_eps)
     coarse = simulate(model, state0, ts, **kwargs)
-    fine = simulate(fine_model, fine_state0, ts, **fine_kwargs)
+    fine = simulate(fine_model, fine_state0, fine_ts, **fine_kwargs)
     stats = dict(coarse.stats)
     stats.update(estimate(coarse, fine, SAFETY * factor, FLOOR * eps))
     return eqx.tree_at(lambda t: t.stats, coarse, stats)
+
+
+def _as_float64(model, state0, ts):
+    """The problem in float64 (its floating arrays cast)."""
+
+    def wide(x):
+        return x.astype(np.float64) if eqx.is_inexact_array(x) else x
+
+    model = jax.tree_util.tree_map(wide, model)
+    state0 = jax.tree_util.tree_map(wide, state0)
+    return model, state0, jnp.asarray(ts).astype(np.float64)
 
 
 def estimate(coarse: Trajectory, fine: Trajectory, scale: float, floor: float) -> dict:
     """Per body: ``scale`` times the largest difference of ``coarse`` and ``fine`` (omega relative to
     the body's largest |omega|, orientation as a rotation angle), at least ``floor``; NaN where
     ``coarse`` failed, inf where only ``fine`` did."""
-    tiny = jnp.finfo(coarse.omega.dtype).tiny
-    size = jnp.max(jnp.linalg.norm(fine.omega, axis=-1), axis=-1)
-    diff = jnp.max(jnp.linalg.norm(coarse.omega - fine.omega, axis=-1), axis=-1)
+    dtype = coarse.omega.dtype
+    tiny = jnp.finfo(dtype).tiny
+    fine_omega = fine.omega.astype(dtype)
+    size = jnp.max(jnp.linalg.norm(fine_omega, axis=-1), axis=-1)
+    diff = jnp.max(jnp.linalg.norm(coarse.omega - fine_omega, axis=-1), axis=-1)
     out = {"error_estimate_omega": diff / jnp.maximum(size, tiny)}
     if coarse.orientation is not None:
         # The angle of the rotation between the two: 2 atan2(|v|, |w|) of q_coarse* q_fine.
-        rel = _quat_multiply(_quat_conjugate(coarse.orientation), fine.orientation)
+        rel = _quat_multiply(_quat_conjugate(coarse.orientation), fine.orientation.astype(dtype))
         angle = 2 * jnp.arctan2(jnp.linalg.norm(rel[..., 1:], axis=-1), jnp.abs(rel[..., 0]))
         out["error_estimate_orientation"] = jnp.max(angle, axis=-1)
     for name, value in out.items():
@@ -134,13 +155,14 @@ def _tighter(tol, floor):
         return jnp.maximum(tol / TOLERANCE_FACTOR, floor)
 
 
-def _finer_adaptive(kwargs, eps):
-    """The finer run's arguments: tolerances divided by TOLERANCE_FACTOR, or half the constant step."""
-    floor = 10 * eps
+def _finer_adaptive(kwargs, eps, fine_eps):
+    """The finer run's arguments: tolerances divided by TOLERANCE_FACTOR (not below ten roundoff
+    units of the finer run's dtype, ``fine_eps``), or half the constant step."""
+    floor = 10 * fine_eps
     controller = kwargs["stepsize_controller"]
     if controller is None:
         rtol = kwargs["rtol"]
-        rtol = max(PRESETS[kwargs["accuracy"]][1], floor) if rtol is None else rtol
+        rtol = max(PRESETS[kwargs["accuracy"]][1], 10 * eps) if rtol is None else rtol
         atol = rtol if kwargs["atol"] is None else kwargs["atol"]
         kwargs["rtol"], kwargs["atol"] = _tighter(rtol, floor), _tighter(atol, floor)
         return kwargs, 1.0

@@ -304,12 +304,14 @@ def simulate(
       per-body error estimate in ``stats`` (:meth:`Trajectory.error_estimate`): for the presets
       and a ``PIDController`` the same solver at the tolerances divided by 100, for a fixed step
       (``dt0``, ``ConstantStepSize``) half the step with a Richardson correction for the solver's
-      order; the estimate is twice the difference of the two solutions. Measured, it lay between
-      1.9 and 2.05 times the true error on tumbling, tennis-racket and heavy-top batches
+      order (float32 results with ``jax_enable_x64`` on: the second solve in float64); the
+      estimate is twice the difference of the two solutions. Measured, it lay between 1.9 and
+      2.4 times the true error on tumbling, tennis-racket and heavy-top batches
       (``docs/guides/accuracy.md``); where the true error is at the roundoff floor (which grows
       like ``eps/|s|`` near a torque-free separatrix) it stays above it. For ``accuracy="exact"``
       the difference of the closed form at inputs one roundoff unit away: how rounding is
-      amplified, an order of magnitude, not a bound. Every estimate is at least ten roundoff
+      amplified, an order of magnitude, not a bound (float32 with x64 on: twice the difference
+      to the float64 closed form). Every estimate is at least ten roundoff
       units. The cost is the second solve: about the first's again (no new compile for the
       presets). ``throw`` applies to the first solve, ``progress`` reports both; a body whose
       second solve fails gets an inf estimate.
