@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import diffrax
 import equinox._errors as _equinox_errors
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, PyTree
 
@@ -55,6 +56,53 @@ def fixed_step_grid(ts, dt: float):
     grid = np.concatenate(pieces)
     grid[np.cumsum(np.concatenate([[0], counts]))] = ts  # sample times exactly, not start + gap
     return grid, int(counts.sum())
+
+
+_JVP_TRACER = getattr(jax.interpreters.ad, "JVPTracer", None)
+
+
+def _carries_tangents(x) -> bool:
+    """Whether ``x`` is a tracer of forward-mode autodiff (``jax.jvp``, ``jax.jacfwd``), at any depth
+    of nesting: under ``jacfwd(vmap(f))`` it is wrapped in a batching tracer, under ``jit(jacfwd(f))``
+    it wraps a jit tracer. Reverse mode (``grad``, ``vjp``, ``jacrev``) uses linearize tracers."""
+    for _ in range(64):  # tracers nest once per transformation
+        if not isinstance(x, jax.core.Tracer):
+            return False
+        if (_JVP_TRACER is not None and isinstance(x, _JVP_TRACER)) or type(x).__name__ == "JVPTracer":
+            return True
+        inner = [getattr(x, name, None) for name in ("primal", "val")]
+        x = next((v for v in inner if isinstance(v, jax.core.Tracer)), None)
+    return False
+
+
+def default_adjoint(*inputs) -> diffrax.AbstractAdjoint:
+    """The adjoint when the caller names none: ``diffrax.ForwardMode()`` when any array among
+    ``inputs`` (pytrees) carries forward-mode tangents, else ``diffrax.RecursiveCheckpointAdjoint()``.
+
+    The checkpointed adjoint is a ``custom_vjp``, which JAX cannot push tangents through;
+    ``ForwardMode`` is a plain loop, which JAX cannot transpose. Each mode gets the one that works.
+    """
+    leaves = jax.tree_util.tree_leaves(inputs)
+    if any(_carries_tangents(x) for x in leaves):
+        return diffrax.ForwardMode()
+    return diffrax.RecursiveCheckpointAdjoint()
+
+
+def _is_custom_vjp_jvp_error(err: Exception) -> bool:
+    return isinstance(err, TypeError) and "forward-mode autodiff (jvp) to a custom_vjp" in str(err)
+
+
+def solve_in_either_mode(call: Callable[[diffrax.AbstractAdjoint], Any], adjoint, chosen: bool):
+    """``call(adjoint)``; when the adjoint was ``chosen`` by :func:`default_adjoint` (not the user's)
+    and tangents reached the solve by a way the inputs do not show (a tracer closed over by a torque
+    function), JAX refuses to push them through the checkpointed adjoint while tracing: the call is
+    made again with ``diffrax.ForwardMode()``."""
+    try:
+        return call(adjoint)
+    except TypeError as err:
+        if not (chosen and _is_custom_vjp_jvp_error(err)):
+            raise
+    return call(diffrax.ForwardMode())
 
 
 @contextlib.contextmanager

@@ -271,7 +271,12 @@ def simulate(
     - `stepsize_controller`: any diffrax step-size controller (e.g. ``ConstantStepSize`` with
       ``dt0``) instead of the preset's ``PIDController``.
     - `dt0`: the first (or fixed) step (s).
-    - `adjoint`: any diffrax adjoint; reverse-mode checkpointing by default.
+    - `adjoint`: any diffrax adjoint, always used when given. Default: ``diffrax.ForwardMode()``
+      when ``model``, ``state0``, ``ts`` or ``args`` carry forward-mode tangents (``jax.jvp``,
+      ``jax.jacfwd``, also under ``jit`` or ``vmap``), else diffrax's checkpointed reverse mode
+      (``RecursiveCheckpointAdjoint``: ``jax.grad``, ``jax.jacrev``, ``jax.vjp``), so both modes work
+      without choosing. A ``jax.jit`` between ``jacfwd`` and ``simulate`` (``jacfwd(jit(f))``) hides
+      the tangents: pass ``adjoint=diffrax.ForwardMode()`` there, or jit outside the ``jacfwd``.
     - `max_steps`: step limit per chunk; reaching it is an error (or NaN rows with
       ``throw=False``).
     - `chunk_size`: bodies per shared-step chunk. Default: 1024 on CPU (cache-sized chunks run one
@@ -372,7 +377,9 @@ def simulate(
         chunk_size = 1024 if jax.default_backend() == "cpu" else 65536
     if max_steps < 1 or chunk_size < 1:
         raise ValueError("max_steps and chunk_size must be positive integers.")
-    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    # The user's adjoint, or the one that works in the mode of differentiation (driver.default_adjoint).
+    adjoint_chosen = adjoint is None
+    adjoint = driver.default_adjoint(model, state0, ts, args) if adjoint_chosen else adjoint
     if fixed_step:
         controller = diffrax.StepTo(ts=jnp.asarray(grid, dtype)) if n_steps else diffrax.ConstantStepSize()
         dt0 = None
@@ -391,21 +398,13 @@ def simulate(
     model, omega0, q0, ts = _checked_inputs(model, omega0, q0, ts, euler, float(lock_tolerance))
 
     def run(model, omega0, q0, chunk_size, sort):
-        return integrate(
-            model,
-            omega0,
-            q0,
-            ts,
-            args,
-            controller,
-            solver,
-            adjoint,
-            dt0,
-            formulation=formulation,
-            max_steps=int(max_steps),
-            chunk_size=int(chunk_size),
-            sort=bool(sort),
-        )
+        def call(adjoint):
+            return integrate(
+                model, omega0, q0, ts, args, controller, solver, adjoint, dt0, formulation=formulation,
+                max_steps=int(max_steps), chunk_size=int(chunk_size), sort=bool(sort),
+            )  # fmt: skip
+
+        return driver.solve_in_either_mode(call, adjoint, adjoint_chosen)
 
     if report is None:
         traj = run(model, omega0, q0, chunk_size, sort_by_speed)
