@@ -58,7 +58,10 @@ def fixed_step_grid(ts, dt: float):
     return grid, int(counts.sum())
 
 
-_JVP_TRACER = getattr(jax.interpreters.ad, "JVPTracer", None)
+try:  # forward-mode tracers; matched by class name where JAX moves the class
+    from jax.interpreters.ad import JVPTracer as _JVP_TRACER
+except ImportError:  # pragma: no cover
+    _JVP_TRACER = None
 
 
 def _carries_tangents(x) -> bool:
