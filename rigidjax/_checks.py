@@ -6,6 +6,8 @@ Two kinds of error, as everywhere in rigidjax: shape and dtype problems raise ``
 ``eqx.error_if`` checks that work under ``jit`` and ``vmap``. Messages name the argument.
 """
 
+import contextlib
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -67,6 +69,46 @@ def is_full_tensor(inertia, name: str = "inertia") -> bool:
 
 # --- run-time value checks of the public functions (eqx.error_if: they work under jit and vmap) ----
 
+# While a program is traced inside collected_failures(), the checks below record their conditions
+# instead of wrapping values in eqx.error_if: the program then holds no host callback (which JAX's
+# persistent compilation cache cannot keep), returns the conditions, and the caller raises from them.
+_collected: list | None = None
+
+
+@contextlib.contextmanager
+def collected_failures():
+    """Within this context the checks record ``(condition, index, messages)`` in the yielded list
+    rather than adding ``eqx.error_if`` to the traced program; :func:`raise_collected` raises from it."""
+    global _collected
+    outer, _collected = _collected, []
+    try:
+        yield _collected
+    finally:
+        _collected = outer
+
+
+def raise_collected(failures) -> None:
+    """Raises ``ValueError`` with the message of the first recorded condition that holds."""
+    for condition, index, messages in failures:
+        if bool(condition):
+            raise ValueError(messages[0] if index is None else messages[int(index)])
+
+
+def error_if(x, condition, message: str):
+    """``eqx.error_if``, or a recorded condition inside :func:`collected_failures`."""
+    if _collected is not None:
+        _collected.append((jnp.any(condition), None, (message,)))
+        return x
+    return eqx.error_if(x, condition, message)
+
+
+def branched_error_if(x, condition, index, messages):
+    """``eqx.branched_error_if``, or a recorded condition inside :func:`collected_failures`."""
+    if _collected is not None:
+        _collected.append((jnp.any(condition), jnp.max(index), tuple(messages)))
+        return x
+    return eqx.branched_error_if(x, condition, index, messages)
+
 
 def unit_tolerance(dtype) -> float:
     """How far ``R R^T`` may be from ``1`` for a matrix to count as a rotation: ``1e-6`` in float64,
@@ -77,7 +119,7 @@ def unit_tolerance(dtype) -> float:
 
 def check_finite(x, name: str, where: str):
     """``x`` wrapped in a run-time check that all its entries are finite."""
-    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"{where}: {name} contains NaN or inf.")
+    return error_if(x, ~jnp.all(jnp.isfinite(x)), f"{where}: {name} contains NaN or inf.")
 
 
 def check_rotation_quaternion(q, name: str, where: str):
@@ -85,7 +127,7 @@ def check_rotation_quaternion(q, name: str, where: str):
     neither 0 nor under- or overflowing). Such a ``q`` means the rotation of ``q / |q|``."""
     q = check_finite(q, name, where)
     sq = jnp.sum(q * q, axis=-1)
-    return eqx.error_if(
+    return error_if(
         q,
         jnp.any(~jnp.isfinite(sq) | (sq < np.finfo(q.dtype).tiny)),
         f"{where}: {name} has zero norm (or one whose square under- or overflows): it is not a "
@@ -99,13 +141,13 @@ def check_rotation_matrix(R, name: str, where: str):
     tol = unit_tolerance(R.dtype)
     gram = jnp.einsum("...ij,...kj->...ik", R, R)
     off = jnp.max(jnp.abs(gram - jnp.eye(3, dtype=R.dtype)), axis=(-2, -1))
-    R = eqx.error_if(
+    R = error_if(
         R,
         jnp.any(off > tol),
         f"{where}: {name} is not a rotation matrix (max |{name} {name}^T - 1| > {tol:g}); "
         "orthonormalise it first (e.g. the polar factor U V^T of its SVD).",
     )
-    return eqx.error_if(
+    return error_if(
         R,
         jnp.any(jnp.linalg.det(R) <= 0),
         f"{where}: {name} has determinant -1: it is a reflection, not a rotation.",
@@ -217,7 +259,7 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
             "the state's arrays of shape (3, 1, 3) too."
             for problem in problems[1:]
         ]
-    return eqx.branched_error_if(inertia, code != _OK, index, msgs)
+    return branched_error_if(inertia, code != _OK, index, msgs)
 
 
 # --- the dtype rule, sample times, states and scenes ---------------------------------------------
@@ -245,7 +287,7 @@ def check_times(ts, where: str, name: str = "ts"):
     time)."""
     ts = check_finite(ts, name, where)
     if ts.shape[0] > 1:
-        ts = eqx.error_if(
+        ts = error_if(
             ts,
             jnp.any(jnp.diff(ts) <= 0),
             f"{where}: {name} must be strictly increasing (found a decreasing or repeated time); "
@@ -260,7 +302,7 @@ def check_unit_quaternion(q, name: str, where: str):
     q = check_finite(q, name, where)
     tol = unit_tolerance(q.dtype)
     norm = jnp.linalg.norm(q, axis=-1, keepdims=True)
-    q = eqx.error_if(
+    q = error_if(
         q,
         jnp.any(jnp.abs(norm - 1.0) > tol),
         f"{where}: {name} is not a unit quaternion (| |q| - 1 | > {tol:g}); normalise it "
@@ -282,13 +324,11 @@ def check_model_field(label: str, value, where: str):
     positive masses."""
     if label == "inertia":
         return check_inertia(value, name=f"{where}: inertia")
-    value = eqx.error_if(
+    value = error_if(
         value, ~jnp.all(jnp.isfinite(value)), f"{where}: model field {label!r} contains NaN or inf."
     )
     if label.split(".")[-1] == "mass":
-        value = eqx.error_if(
-            value, jnp.any(value <= 0), f"{where}: model field {label!r} must be positive (kg)."
-        )
+        value = error_if(value, jnp.any(value <= 0), f"{where}: model field {label!r} must be positive (kg).")
     return value
 
 

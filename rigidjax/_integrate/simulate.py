@@ -14,7 +14,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_model, check_state, check_times, check_times_shape, float_dtype, is_full_tensor
+from .._checks import (
+    check_model,
+    check_state,
+    check_times,
+    check_times_shape,
+    collected_failures,
+    error_if,
+    float_dtype,
+    is_full_tensor,
+    raise_collected,
+)
 from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, State
@@ -420,16 +430,33 @@ def simulate(
     return traj
 
 
-@eqx.filter_jit
 def _checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
-    """The run-time checks of simulate's inputs, as a program of their own: the integration program
-    holds none of them (they are host callbacks, which JAX's persistent compilation cache does not
-    keep), and failures are reported from its results."""
+    """simulate's inputs after their run-time checks. With concrete inputs the checks are a program
+    of their own that returns the failed conditions, from which a ``ValueError`` is raised here: it
+    holds no host callback, so JAX's persistent compilation cache keeps it and a second run in a new
+    process compiles nothing. Traced inputs (the user's jit, grad or vmap) get ``eqx.error_if``
+    checks in the user's program instead."""
+    leaves = jax.tree_util.tree_leaves((model, omega0, q0, ts))
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+        return _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
+    checked, failures = _checks_collected(model, omega0, q0, ts, euler_seq, lock_tolerance)
+    raise_collected(failures)
+    return checked
+
+
+@eqx.filter_jit
+def _checks_collected(model, omega0, q0, ts, euler_seq, lock_tolerance):
+    with collected_failures() as failures:
+        checked = _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
+    return checked, list(failures)
+
+
+def _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance):
     model = check_model(model, "simulate")
     omega0, q0 = check_state(omega0, q0, "simulate")
     ts = check_times(ts, "simulate")
     if euler_seq is not None:
-        q0 = eqx.error_if(
+        q0 = error_if(
             q0,
             jnp.any(lock_distance(_euler_from_quat(q0, euler_seq), euler_seq) < lock_tolerance),
             f"simulate: the initial orientation is within {lock_tolerance:g} of gimbal lock for the "
