@@ -480,7 +480,7 @@ def test_scene_structural_errors(without_runtime_typecheck, extreme):
         "bad input",
         "simulate: NaN/inf in the model or state, non-physical inertia, non-unit orientation, "
         "unsorted or repeated ts",
-        "EquinoxRuntimeError inside the compiled simulation, naming the field",
+        "ValueError before integrating (EquinoxRuntimeError inside the user's jit), naming the field",
     )
 
 

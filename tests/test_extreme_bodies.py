@@ -717,7 +717,8 @@ def test_flat_plate_limit(preset, groups, runs, references, extreme):
 def test_beyond_the_flat_plate_is_rejected(groups, runs, extreme):
     """check_inertia allows the triangle equality up to 1e2 eps trace: for (1, 2, 3(1 + x)) that is
     x <= 200 eps = 4.4e-14. x = 1e-14 is accepted (and moves like the plate, test above); x = 1e-13
-    and 1e-12 are rejected, by simulate with every preset (inside jit) and by spin_stability."""
+    and 1e-12 are rejected, by simulate with every preset (a ValueError before integrating; inside
+    the user's jit an EquinoxRuntimeError, test_bad_input) and by spin_stability."""
     eps = np.finfo(float).eps
     for x, ok in [(0.0, True), (1e-14, True), (150 * eps, True), (1e-13, False), (1e-12, False)]:
         assert bool(rj.is_physical_inertia(jnp.array([1.0, 2.0, 3.0 * (1 + x)]))) == ok, x
@@ -728,14 +729,14 @@ def test_beyond_the_flat_plate_is_rejected(groups, runs, extreme):
     for preset in PRESETS:
         for with_q in (False, True):
             state = rj.State(jnp.asarray(omega0), jnp.tile(Q_ID, (N, 1)) if with_q else None)
-            with pytest.raises(eqx.EquinoxRuntimeError, match="triangle inequality"):
+            with pytest.raises(ValueError, match="triangle inequality"):
                 rj.simulate(model, state, jnp.asarray(ts), accuracy=preset).omega.block_until_ready()
     with pytest.raises(eqx.EquinoxRuntimeError, match="triangle inequality"):
         rj.spin_stability(jnp.asarray(bad), 1.0).growth_rate.block_until_ready()
     extreme(
         "flat plate I3 = I1 + I2",
         "I3 = (I1 + I2)(1 + x): x <= 4.4e-14 (1e2 eps trace) accepted, x = 1e-13, 1e-12 rejected",
-        "simulate (all presets, inside jit) and spin_stability raise 'violates the triangle inequality'",
+        "simulate (all presets, before integrating; inside jit too) and spin_stability raise 'violates the triangle inequality'",
         None,
         None,
         "moments from measurements: round onto the plate",

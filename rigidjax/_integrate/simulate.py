@@ -157,7 +157,9 @@ def _simulate_exact(model, state0, ts):
         leaves = (model.inertia, model.mass, model.com, model.gravity)
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
         top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
-        return _exact(top, state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype))
+        omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
+        _raise_on_bad_values(top, omega0, q0, ts)
+        return _exact(top, omega0, q0, ts)
     if not model.torque_free:
         raise ValueError(
             "accuracy='exact' is a closed form: for torque-free bodies (a FreeBody, or a RigidBody "
@@ -172,9 +174,20 @@ def _simulate_exact(model, state0, ts):
     ts = check_times_shape(ts)
     dtype = float_dtype(state0.omega, state0.orientation, model.inertia)
     q0 = None if state0.orientation is None else jnp.asarray(state0.orientation, dtype)
-    return _exact(
-        FreeBody(jnp.asarray(model.inertia, dtype)), state0.omega.astype(dtype), q0, ts.astype(dtype)
+    body, omega0, ts = (
+        FreeBody(jnp.asarray(model.inertia, dtype)),
+        state0.omega.astype(dtype),
+        ts.astype(dtype),
     )
+    _raise_on_bad_values(body, omega0, q0, ts)
+    return _exact(body, omega0, q0, ts)
+
+
+def _raise_on_bad_values(model, omega0, q0, ts):
+    """The closed forms' inputs get the same ``ValueError`` as the integrators' (concrete inputs); the
+    closed form's program keeps its own checks for traced ones."""
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((model, omega0, q0, ts))):
+        _checked_inputs(model, omega0, q0, ts, None, 0.0)
 
 
 def _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given):
