@@ -87,6 +87,7 @@ def test_tumbling_batch(tumbling):
     _check(estimate["orientation"], _angle_error(traj.orientation, np.asarray(exact.orientation)), floor, "q")
 
 
+@pytest.mark.slow
 def test_fast_tennis_racket_batch_near_the_separatrix():
     """Spun at 30 rad/s near the intermediate axis, 1e-5 <= |s| <= 1e-2, the balanced preset."""
     rng = np.random.default_rng(1)
@@ -195,6 +196,7 @@ def test_unsupported_step_control_is_refused_before_any_run():
         )
 
 
+@pytest.mark.slow
 def test_float32_results_are_checked_by_a_float64_solve(tumbling):
     """float32 with x64 on: the second solve runs in float64, so float32 roundoff is measured too.
     The fast preset's omega is at float32's roundoff floor here (errors 1e-7 to 2e-6), most of its

@@ -736,7 +736,7 @@ def test_beyond_the_flat_plate_is_rejected(groups, runs, extreme):
     extreme(
         "flat plate I3 = I1 + I2",
         "I3 = (I1 + I2)(1 + x): x <= 4.4e-14 (1e2 eps trace) accepted, x = 1e-13, 1e-12 rejected",
-        "simulate (all presets, before integrating; inside jit too) and spin_stability raise 'violates the triangle inequality'",
+        "simulate (all presets; inside jit too) and spin_stability raise 'violates the triangle inequality'",
         None,
         None,
         "moments from measurements: round onto the plate",

@@ -42,7 +42,9 @@ def central_differences(f, x, h=1e-5):
     return np.stack(columns, axis=-1)
 
 
-@pytest.mark.parametrize("f", [heavy_top, rkmk], ids=["heavy_top", "rkmk"])
+@pytest.mark.parametrize(
+    "f", [heavy_top, pytest.param(rkmk, marks=pytest.mark.slow)], ids=["heavy_top", "rkmk"]
+)
 def test_jacfwd_and_jacrev_agree_with_finite_differences(f):
     forward = np.asarray(jax.jacfwd(f)(W0))
     reverse = np.asarray(jax.jacrev(f)(W0))
@@ -53,6 +55,7 @@ def test_jacfwd_and_jacrev_agree_with_finite_differences(f):
     np.testing.assert_allclose(forward, reference, rtol=0, atol=1e-6 * scale)
 
 
+@pytest.mark.slow
 def test_free_body_under_jit():
     """A FreeBody with orientation: jit around jacfwd (the tangents wrap jit tracers) finds forward
     mode, jit around jacrev stays in reverse mode (vmap nesting: test_default_adjoint_by_mode)."""
@@ -65,6 +68,7 @@ def test_free_body_under_jit():
     np.testing.assert_allclose(forward, reference, rtol=0, atol=1e-6 * scale)
 
 
+@pytest.mark.slow
 def test_tangents_closed_over_by_a_torque():
     """A torque function closing over a traced number hides the tangents from the inputs: the solve
     is traced again in forward mode."""
