@@ -9,6 +9,7 @@ Two kinds of error, as everywhere in rigidjax: shape and dtype problems raise ``
 import contextlib
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool
@@ -85,6 +86,11 @@ def collected_failures():
         yield _collected
     finally:
         _collected = outer
+
+
+def is_traced(*trees) -> bool:
+    """Whether any array in ``trees`` is a tracer (the user's jit, grad or vmap): no values to check."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
 def raise_collected(failures) -> None:

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import is_traced
 from . import batching
 from .chunked import plan_bodies
 from .trajectory import Trajectory
@@ -93,10 +94,6 @@ class ProgressBar:
             self._start = None
 
 
-def _inputs_traced(*trees) -> bool:
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
-
-
 @eqx.filter_jit
 def _chunk_order(model, omega0, q0, ts, args, formulation, chunk_size, sort):
     """The body order of :func:`.chunked.integrate`'s chunks."""
@@ -112,7 +109,7 @@ _TRACED = (
 
 def report_whole(report, traj) -> None:
     """One report for a batch computed in one program (the closed forms)."""
-    if _inputs_traced(traj.omega):
+    if is_traced(traj.omega):
         raise ValueError(_TRACED)
     n = int(np.prod(traj.batch_shape))
     report(n, n)
@@ -122,7 +119,7 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     """``run(model, omega0, q0, chunk_size, sort)`` over the batch in blocks of whole chunks, calling
     ``report(done_bodies, total_bodies)`` after each; the blocks' results assembled into one
     :class:`Trajectory`, equal to ``run`` over the whole batch."""
-    if _inputs_traced(model, omega0, q0, ts, args):
+    if is_traced(model, omega0, q0, ts, args):
         raise ValueError(_TRACED)
     batch = batching.batch_shape(model, omega0, q0)
     n = int(np.prod(batch))

@@ -23,6 +23,7 @@ from .._checks import (
     error_if,
     float_dtype,
     is_full_tensor,
+    is_traced,
     raise_collected,
 )
 from .._closed_form.heavy_top import lagrange_top_motion
@@ -186,7 +187,7 @@ def _simulate_exact(model, state0, ts):
 def _raise_on_bad_values(model, omega0, q0, ts):
     """The closed forms' inputs get the same ``ValueError`` as the integrators' (concrete inputs); the
     closed form's program keeps its own checks for traced ones."""
-    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((model, omega0, q0, ts))):
+    if not is_traced(model, omega0, q0, ts):
         _checked_inputs(model, omega0, q0, ts, None, 0.0)
 
 
@@ -449,8 +450,7 @@ def _checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
     holds no host callback, so JAX's persistent compilation cache keeps it and a second run in a new
     process compiles nothing. Traced inputs (the user's jit, grad or vmap) get ``eqx.error_if``
     checks in the user's program instead."""
-    leaves = jax.tree_util.tree_leaves((model, omega0, q0, ts))
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+    if is_traced(model, omega0, q0, ts):
         return _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
     checked, failures = _checks_collected(model, omega0, q0, ts, euler_seq, lock_tolerance)
     raise_collected(failures)
