@@ -93,6 +93,40 @@ def is_traced(*trees) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
+class _NoValue(Exception):
+    pass
+
+
+def _value(x):
+    if not isinstance(x, jax.core.Tracer):
+        return x
+    value = getattr(x, "to_concrete_value", lambda: None)()
+    if value is None:
+        raise _NoValue
+    return value
+
+
+def known_values(tree):
+    """``tree`` with each tracer replaced by its value, or ``None`` when some tracer has none.
+
+    Outside ``jit`` and ``vmap`` the tracers of ``grad``, ``jvp``, ``jacfwd`` and ``jacrev`` carry
+    their primal values: those inputs can be checked like concrete ones, with a ``ValueError`` and
+    without a host callback in the differentiated program.
+    """
+    try:
+        return jax.tree_util.tree_map(_value, tree)
+    except _NoValue:
+        return None
+
+
+@contextlib.contextmanager
+def checks_done():
+    """Within this context the checks add nothing to the traced program: the caller has checked the
+    same values already (a program traced here holds no host callback for them)."""
+    with collected_failures():
+        yield
+
+
 def raise_collected(failures) -> None:
     """Raises ``ValueError`` with the message of the first recorded condition that holds."""
     for condition, index, messages in failures:

@@ -5,6 +5,7 @@ solver and a step-size rule, and hands the batch to :func:`.chunked.integrate`, 
 through the one driver; ``accuracy="exact"`` evaluates the closed form instead.
 """
 
+import contextlib
 from collections.abc import Callable
 from typing import Any
 
@@ -19,11 +20,13 @@ from .._checks import (
     check_state,
     check_times,
     check_times_shape,
+    checks_done,
     collected_failures,
     error_if,
     float_dtype,
     is_full_tensor,
     is_traced,
+    known_values,
     raise_collected,
 )
 from .._closed_form.heavy_top import lagrange_top_motion
@@ -44,15 +47,20 @@ _STRUCTURE_PRESERVING = (HeavyTopSplitting, LiePoissonSplitting, RKMK)
 
 
 @eqx.filter_jit
-def _exact(model, omega0, q0, ts):
-    model = check_model(model, "simulate")
-    omega0, q0 = check_state(omega0, q0, "simulate")
-    ts = check_times(ts, "simulate")
+def _exact(model, omega0, q0, ts, values_checked: bool):
+    """The closed forms' program; ``values_checked``: the inputs' values were checked before it (no
+    run-time checks, and so no host callback, in the program)."""
+    with checks_done() if values_checked else contextlib.nullcontext():
+        model = check_model(model, "simulate")
+        omega0, q0 = check_state(omega0, q0, "simulate")
+        ts = check_times(ts, "simulate")
     batch = batching.batch_shape(model, omega0, q0)
     inertia = jnp.broadcast_to(model.inertia, batch + (3,))
     omega0 = jnp.broadcast_to(omega0, batch + (3,))
     if isinstance(model, HeavyTop):
-        inertia, com = _lagrange_checked(inertia, jnp.broadcast_to(model.com, batch + (3,)))
+        com = jnp.broadcast_to(model.com, batch + (3,))
+        if not values_checked:
+            inertia, com = _lagrange_checked(inertia, com)
         mass = jnp.broadcast_to(model.mass, batch)[..., None]
         gravity = jnp.broadcast_to(model.gravity, batch)[..., None]
         q0 = jnp.broadcast_to(q0, batch + (4,))
@@ -107,8 +115,8 @@ _OFF_AXIS = (
 
 
 def _lagrange_checked(inertia, com):
-    """``inertia`` and ``com`` with the conditions of Lagrange's top checked at run time (traced values
-    under jit or grad; concrete ones are checked earlier, in :func:`_simulate_exact`)."""
+    """``inertia`` and ``com`` with the conditions of Lagrange's top checked at run time (values traced
+    under jit or vmap; known ones are checked earlier, in :func:`_check_lagrange_top`)."""
     asymmetric, off_axis = _lagrange_failures(inertia, com)
     inertia = eqx.error_if(inertia, jnp.any(asymmetric), _ASYMMETRIC.format(""))
     com = eqx.error_if(com, jnp.any(off_axis), _OFF_AXIS.format(""))
@@ -116,7 +124,7 @@ def _lagrange_checked(inertia, com):
 
 
 def _check_lagrange_top(model, state0):
-    """Trace-time checks of ``accuracy='exact'`` for a :class:`HeavyTop` (concrete values only)."""
+    """Trace-time checks of ``accuracy='exact'`` for a :class:`HeavyTop` (values where they are known)."""
     if model.torques:
         raise ValueError(
             "accuracy='exact' for a HeavyTop is Lagrange's top under gravity alone; it has no closed "
@@ -133,11 +141,10 @@ def _check_lagrange_top(model, state0):
             "HeavyTop needs an orientation: pass State(omega, orientation=q) with a unit quaternion q "
             "(e.g. rigidjax.quat_from_euler(angles))."
         )
-    try:
-        inertia = np.asarray(model.inertia, np.float64)
-        com = np.asarray(model.com, np.float64)
-    except jax.errors.TracerArrayConversionError:
+    values = known_values((model.inertia, model.com))
+    if values is None:
         return  # traced: checked at run time by _lagrange_checked
+    inertia, com = (np.asarray(x, np.float64) for x in values)
     dtype = float_dtype(model.inertia, model.com)
     asymmetric, off_axis = (
         np.asarray(x) for x in _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
@@ -159,8 +166,7 @@ def _simulate_exact(model, state0, ts):
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
         top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
         omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
-        _raise_on_bad_values(top, omega0, q0, ts)
-        return _exact(top, omega0, q0, ts)
+        return _exact(top, omega0, q0, ts, _raise_on_bad_values(top, omega0, q0, ts))
     if not model.torque_free:
         raise ValueError(
             "accuracy='exact' is a closed form: for torque-free bodies (a FreeBody, or a RigidBody "
@@ -180,15 +186,18 @@ def _simulate_exact(model, state0, ts):
         state0.omega.astype(dtype),
         ts.astype(dtype),
     )
-    _raise_on_bad_values(body, omega0, q0, ts)
-    return _exact(body, omega0, q0, ts)
+    return _exact(body, omega0, q0, ts, _raise_on_bad_values(body, omega0, q0, ts))
 
 
-def _raise_on_bad_values(model, omega0, q0, ts):
-    """The closed forms' inputs get the same ``ValueError`` as the integrators' (concrete inputs); the
-    closed form's program keeps its own checks for traced ones."""
-    if not is_traced(model, omega0, q0, ts):
-        _checked_inputs(model, omega0, q0, ts, None, 0.0)
+def _raise_on_bad_values(model, omega0, q0, ts) -> bool:
+    """The closed forms' inputs get the same ``ValueError`` as the integrators' where their values are
+    known (concrete, or the primal values of an eager grad or jvp); returns whether they were
+    checked. The closed form's program keeps its own checks for the others (jit, vmap)."""
+    values = known_values((model, omega0, q0, ts))
+    if values is None:
+        return False
+    _checked_inputs(*values, None, 0.0)
+    return True
 
 
 def _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given):
