@@ -36,8 +36,7 @@ from .._checks import float_dtype
 from .._kinematics.quaternion import _quat_conjugate, _quat_multiply
 from . import driver
 from .presets import PRESETS
-from .solvers.rkmk import RKMK
-from .solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
+from .solvers import STRUCTURE_PRESERVING
 from .trajectory import Trajectory
 
 TOLERANCE_FACTOR = 100.0
@@ -55,8 +54,6 @@ differ by roundoff only, which is no measure of the error."""
 EXACT_PERTURBATION = 1.0
 """``accuracy="exact"``: the inputs of the second evaluation are perturbed by this many roundoff
 units, relative (what rounding the inputs does); the difference is the estimate, without SAFETY."""
-
-_FIXED_STEP = (HeavyTopSplitting, LiePoissonSplitting, RKMK)
 
 
 def with_error_estimate(simulate, model, state0, ts, **kwargs) -> Trajectory:
@@ -78,7 +75,7 @@ def with_error_estimate(simulate, model, state0, ts, **kwargs) -> Trajectory:
         if fine_eps == eps:  # no wider dtype: how much rounding the inputs moves the result
             fine_model, fine_state0 = _perturbed(model, state0, EXACT_PERTURBATION * eps, dtype)
             factor = 1.0 / SAFETY
-    elif isinstance(kwargs["solver"], _FIXED_STEP):
+    elif isinstance(kwargs["solver"], STRUCTURE_PRESERVING):
         if kwargs["dt0"] is not None:  # without, the first simulate call raises
             fine_kwargs["dt0"] = kwargs["dt0"] / 2
             factor = _richardson(kwargs["solver"].order(None), ts, kwargs["dt0"])

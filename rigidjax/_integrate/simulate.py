@@ -39,11 +39,8 @@ from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
 from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
 from .presets import PRESETS, FaultStopPIDController
-from .solvers.rkmk import RKMK
-from .solvers.splitting import HeavyTopSplitting, LiePoissonSplitting
+from .solvers import STRUCTURE_PRESERVING, HeavyTopSplitting, LiePoissonSplitting
 from .trajectory import Trajectory
-
-_STRUCTURE_PRESERVING = (HeavyTopSplitting, LiePoissonSplitting, RKMK)
 
 
 @eqx.filter_jit
@@ -379,7 +376,7 @@ def simulate(
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
         return traj
-    fixed_step = isinstance(solver, _STRUCTURE_PRESERVING)
+    fixed_step = isinstance(solver, STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
         formulation, grid, n_steps = _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given)
