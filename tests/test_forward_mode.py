@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_difference
 
 import rigidjax as rj
 from rigidjax._integrate import driver
@@ -33,22 +34,13 @@ def rkmk(w, **kwargs):
     return free_body(w, solver=rj.solvers.RKMK(), dt0=0.05, **kwargs)
 
 
-def central_differences(f, x, h=1e-5):
-    """d f / d x column by column, each from one call at x + h e_k and one at x - h e_k."""
-    columns = []
-    for k in range(x.shape[0]):
-        step = jnp.zeros_like(x).at[k].set(h)
-        columns.append((np.asarray(f(x + step)) - np.asarray(f(x - step))) / (2 * h))
-    return np.stack(columns, axis=-1)
-
-
 @pytest.mark.parametrize(
     "f", [heavy_top, pytest.param(rkmk, marks=pytest.mark.slow)], ids=["heavy_top", "rkmk"]
 )
 def test_jacfwd_and_jacrev_agree_with_finite_differences(f):
     forward = np.asarray(jax.jacfwd(f)(W0))
     reverse = np.asarray(jax.jacrev(f)(W0))
-    reference = central_differences(f, W0)
+    reference = central_difference(f, W0, h=1e-5)
     scale = np.max(np.abs(reference))
     assert scale > 0.1  # the outputs depend on omega0: a zero Jacobian would not pass
     np.testing.assert_allclose(forward, reverse, rtol=0, atol=1e-9 * scale)
@@ -61,7 +53,7 @@ def test_free_body_under_jit():
     mode, jit around jacrev stays in reverse mode (vmap nesting: test_default_adjoint_by_mode)."""
     forward = np.asarray(jax.jit(jax.jacfwd(free_body))(W0))
     reverse = np.asarray(jax.jit(jax.jacrev(free_body))(W0))
-    reference = central_differences(free_body, W0)
+    reference = central_difference(free_body, W0, h=1e-5)
     scale = np.max(np.abs(reference))
     assert scale > 0.1
     np.testing.assert_allclose(forward, reverse, rtol=0, atol=1e-9 * scale)
