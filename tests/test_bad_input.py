@@ -21,6 +21,7 @@ Compiling is the cost: each function is jitted once (module-level cache) and eve
 the same shape reuses that program; structural errors raise before anything compiles.
 """
 
+import functools
 import warnings
 
 import equinox as eqx
@@ -450,6 +451,32 @@ def test_simulate_rejects_bad_values(case):
     fn, match = SIMULATE_CASES[case]
     with pytest.raises(RUNTIME, match=match):
         fn()
+
+
+@pytest.mark.parametrize("solver", ["adaptive", "fixed-step"])
+def test_errors_under_eager_grad_are_value_errors(solver):
+    """Under grad or jvp outside jit the inputs' primal values are known: the integrators raise the
+    same ValueError as for plain arrays, before the differentiated program is compiled, rather than
+    an EquinoxRuntimeError from inside it."""
+    options = {"accuracy": "fast"} if solver == "adaptive" else {"solver": rj.solvers.RKMK(), "dt0": 0.25}
+
+    def loss(scale, inertia, ts=TS):
+        state = rj.State(jnp.asarray(W), jnp.asarray(Q) * scale)
+        return jnp.sum(rj.simulate(rj.FreeBody(inertia), state, ts, **options).omega)
+
+    cases = {
+        "not a unit quaternion": (1.1, I3, TS),
+        "triangle inequality": (1.0, np.array([1.0, 1.0, 3.0]), TS),
+        "strictly increasing": (1.0, I3, TS[::-1]),
+    }
+    for match, (scale, inertia, ts) in cases.items():
+        with pytest.raises(ValueError, match=match) as raised:
+            jax.grad(loss)(scale, inertia, ts)
+        assert not isinstance(raised.value, eqx.EquinoxRuntimeError)
+        with pytest.raises(ValueError, match=match):
+            jax.jvp(functools.partial(loss, inertia=inertia, ts=ts), (scale,), (1.0,))
+    with pytest.raises(ValueError, match="triangle inequality"):
+        jax.grad(lambda i: loss(1.0, i))(jnp.array([1.0, 1.0, 3.0]))
 
 
 def test_scene_structural_errors(without_runtime_typecheck, extreme):

@@ -9,6 +9,9 @@ floor of a torque-free body grows near the separatrix like ``eps / |s|``,
 ``s = (|L|^2 - 2 E I2) / |L|^2`` (docs/guides/accuracy.md).
 """
 
+import functools
+
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -65,9 +68,10 @@ def _check(estimate, true, floor, what):
     return ratio[above]
 
 
-@pytest.fixture(scope="module")
-def tumbling():
-    """24 random bodies tumbling for 5 s, the fast preset, against the closed form."""
+@functools.cache
+def _tumbling_problem():
+    """24 random bodies tumbling for 5 s: their fast-preset run with the estimate, the closed form
+    and the roundoff floor."""
     rng = np.random.default_rng(0)
     n = 24
     inertia = random_moments(rng, (n,))
@@ -78,6 +82,12 @@ def tumbling():
     exact = rj.simulate(model, state0, ts, accuracy="exact")
     traj = rj.simulate(model, state0, ts, accuracy="fast", error_estimate=True)
     return traj, exact, _torque_free_floor(inertia, omega0)
+
+
+@pytest.fixture(scope="module")
+def tumbling():
+    """24 random bodies tumbling for 5 s, the fast preset, against the closed form."""
+    return _tumbling_problem()
 
 
 def test_tumbling_batch(tumbling):
@@ -158,6 +168,42 @@ def test_heavy_top_batch(heavy_top_reference, options):
     _check(estimate["orientation"], _angle_error(traj.orientation, q), floor, "q")
 
 
+def _tumbling_with(options, jit=False):
+    """The tumbling batch with an estimate under the user's step control, eagerly or under jit."""
+    _, exact, floor = _tumbling_problem()
+
+    def run(model, state0):
+        return rj.simulate(model, state0, exact.ts, error_estimate=True, **options)
+
+    state0 = rj.State(exact.omega[:, 0], exact.orientation[:, 0])
+    traj = (eqx.filter_jit(run) if jit else run)(exact.model, state0)
+    return traj, exact, floor
+
+
+PID = diffrax.PIDController(rtol=1e-7, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    ("options", "jit"),
+    [
+        pytest.param({"solver": diffrax.Tsit5(), "stepsize_controller": PID}, False, id="PIDController"),
+        pytest.param(
+            {"solver": diffrax.Tsit5(), "stepsize_controller": diffrax.ConstantStepSize(), "dt0": 0.02},
+            False,
+            id="ConstantStepSize",
+        ),
+        pytest.param({"accuracy": "fast"}, True, id="fast-under-jit"),
+    ],
+)
+def test_user_step_control_and_jit(options, jit):
+    """A PIDController's second run is at tolerances / 100, a ConstantStepSize's at dt0 / 2
+    (Richardson); under the user's jit the estimate is computed inside the program."""
+    traj, exact, floor = _tumbling_with(options, jit)
+    estimate = traj.error_estimate()
+    _check(estimate["omega"], _omega_error(traj.omega, np.asarray(exact.omega)), floor, "omega")
+    _check(estimate["orientation"], _angle_error(traj.orientation, np.asarray(exact.orientation)), floor, "q")
+
+
 def test_exact_estimate_is_at_roundoff_level(tumbling):
     """The closed form's estimate (a second evaluation at inputs 1 eps away) is roundoff-sized."""
     _, exact, _ = tumbling
@@ -183,8 +229,6 @@ def test_the_estimate_is_saved_and_loaded(tumbling, tmp_path):
 
 
 def test_unsupported_step_control_is_refused_before_any_run():
-    import diffrax
-
     controller = diffrax.StepTo(ts=jnp.linspace(0.0, 1.0, 11))
     with pytest.raises(ValueError, match=r"error_estimate=True works with"):
         rj.simulate(

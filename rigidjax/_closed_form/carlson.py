@@ -78,16 +78,19 @@ def _carlson_rf_rd(x, y, z):
     # Carlson (1995): A_n - x_n = (A_0 - x_0) / 4^n exactly, which keeps the deviations accurate.
     fx, fy = a_f - x, a_f - y
     dx, dy = a_d - x, a_d - y
-    tail = jnp.zeros_like(x)
-    scale = 1.0
-    for _ in range(_steps(_CARLSON_STEPS, x.dtype)):
+
+    def step(_, carry):
+        # A loop rather than unrolled steps: unrolled, the steps (and their derivatives) are most of
+        # the closed forms' compiled programs, and XLA's compile time grows with them.
+        x, y, z, a_f, a_d, tail, scale = carry
         sx, sy, sz = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z)
         lam = sx * (sy + sz) + sy * sz
         tail = tail + scale / (sz * (z + lam))
-        scale = scale / 4
         x, y, z = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4
-        a_f = (a_f + lam) / 4
-        a_d = (a_d + lam) / 4
+        return x, y, z, (a_f + lam) / 4, (a_d + lam) / 4, tail, scale / 4
+
+    carry = (x, y, z, a_f, a_d, jnp.zeros_like(x), jnp.ones_like(x))
+    *_, a_f, a_d, tail, scale = jax.lax.fori_loop(0, _steps(_CARLSON_STEPS, x.dtype), step, carry)
 
     rf = _rf_series(fx, fy, a_f, scale)
 

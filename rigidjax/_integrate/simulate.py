@@ -454,13 +454,18 @@ def _checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
     """simulate's inputs after their run-time checks. With concrete inputs the checks are a program
     of their own that returns the failed conditions, from which a ``ValueError`` is raised here: it
     holds no host callback, so JAX's persistent compilation cache keeps it and a second run in a new
-    process compiles nothing. Traced inputs (the user's jit, grad or vmap) get ``eqx.error_if``
-    checks in the user's program instead."""
-    if is_traced(model, omega0, q0, ts):
+    process compiles nothing. The tracers of an eager grad or jvp carry their primal values: those
+    are checked the same way, and the differentiated program gets no checks of its own. Inputs
+    without values (the user's jit or vmap) get ``eqx.error_if`` checks in the user's program."""
+    values = known_values((model, omega0, q0, ts))
+    if values is None:
         return _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
-    checked, failures = _checks_collected(model, omega0, q0, ts, euler_seq, lock_tolerance)
+    checked, failures = _checks_collected(*values, euler_seq, lock_tolerance)
     raise_collected(failures)
-    return checked
+    if not is_traced(model, omega0, q0, ts):
+        return checked
+    with checks_done():
+        return _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
 
 
 @eqx.filter_jit
