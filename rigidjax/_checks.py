@@ -54,6 +54,25 @@ def check_last_two_axes(x, name: str):
         raise ValueError(f"{name} must have shape (..., 3, 3), got shape {tuple(x.shape)}.")
 
 
+def check_batch_shapes(where: str, *arrays) -> tuple[int, ...]:
+    """The broadcast batch shape of ``arrays``, ``(name, array, core)`` triples whose last ``core``
+    axes are not batch axes (0 for a scalar, 1 for a vector, 2 for a tensor; ``array`` may be None).
+    A ``ValueError`` while tracing, naming every argument with its shape, when they do not broadcast."""
+    named = [(name, tuple(jnp.shape(x)), core) for name, x, core in arrays if x is not None]
+    batches = [shape[: len(shape) - core] for _, shape, core in named]
+    try:
+        return tuple(np.broadcast_shapes(*batches))
+    except ValueError:
+        listing = ", ".join(
+            f"{name} {shape} (batch {batch})" for (name, shape, _), batch in zip(named, batches, strict=True)
+        )
+        raise ValueError(
+            f"{where}: the batch shapes of the arguments do not broadcast: {listing}. Batch axes are "
+            "matched from the right, as in NumPy broadcasting; to pair every element of one batch with "
+            "every element of another, add axes of size 1 (e.g. x[:, None])."
+        ) from None
+
+
 def is_full_tensor(inertia, name: str = "inertia") -> bool:
     """True when ``inertia`` is a ``(..., 3, 3)`` tensor, False for principal moments ``(..., 3)``;
     a ``ValueError`` naming ``name`` for any other shape."""
@@ -208,7 +227,7 @@ _OK, _TRIANGLE, _NOT_POSITIVE, _NOT_SYMMETRIC, _NOT_FINITE = 0, 1, 2, 3, 4
 
 def _inertia_failure(inertia):
     """Per-body failure code (0 = physical) of principal moments or a tensor, shape ``(...)``."""
-    inertia = as_float_array(inertia)
+    inertia = as_float_array(inertia, "inertia")
     tol_eps = eps(inertia.dtype)
     if _check_inertia_shape(inertia, "inertia"):
         finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
@@ -283,7 +302,7 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
         "and the same to the state's arrays.",
         f"{name} ({what}) contains NaN or infinite values.",
     ]
-    index = jnp.max(code)
+    index = jnp.max(code, initial=_OK)  # an empty batch has nothing to report
     if tensor and inertia.ndim == 2:
         # A (3, 3) array is ambiguous: one tensor, or the principal moments of three bodies (three
         # identical spheres even give a symmetric one). It is read as a tensor; when that tensor is

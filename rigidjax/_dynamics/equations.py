@@ -18,7 +18,14 @@ integrators call unchecked private cores (``_euler_equations``...).
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._checks import check_finite, check_last_axis, check_rotation_quaternion, common_float, is_full_tensor
+from .._checks import (
+    check_batch_shapes,
+    check_finite,
+    check_last_axis,
+    check_rotation_quaternion,
+    common_float,
+    is_full_tensor,
+)
 from .._kinematics.quaternion import _quat_normalize, _quat_rotate
 from .._numerics import eps
 from .._types import Inertia, Quaternion, Scalar, ScalarOut, Vector, VectorOut
@@ -95,11 +102,19 @@ def _free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
 
 def _checked(inertia, omega, where, extra=(), invertible=False):
     """Float arrays of one dtype, shape-checked while tracing, value-checked at run time."""
-    names = ["inertia", "omega"] + [n for n, _ in extra]
-    arrays = common_float(inertia, omega, *[a for _, a in extra], names=names)
+    names = ["inertia", "omega"] + [n for n, _, _ in extra]
+    arrays = common_float(inertia, omega, *[a for _, a, _ in extra], names=names)
     inertia, omega, *rest = arrays
     tensor = is_full_tensor(inertia)
     check_last_axis(omega, 3, "omega")
+    for (name, _, size), array in zip(extra, rest, strict=True):
+        check_last_axis(array, size, name)
+    check_batch_shapes(
+        where,
+        ("inertia", inertia, 2 if tensor else 1),
+        ("omega", omega, 1),
+        *[(name, array, 1) for (name, _, _), array in zip(extra, rest, strict=True)],
+    )
     inertia = check_finite(inertia, "inertia", where)
     omega = check_finite(omega, "omega", where)
     if invertible:
@@ -141,9 +156,8 @@ def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = Non
         inertia, omega, _ = _checked(inertia, omega, "euler_equations", invertible=True)
         return _euler_equations(inertia, omega)
     inertia, omega, (torque,) = _checked(
-        inertia, omega, "euler_equations", [("torque", torque)], invertible=True
+        inertia, omega, "euler_equations", [("torque", torque, 3)], invertible=True
     )
-    check_last_axis(torque, 3, "torque")
     return _euler_equations(inertia, omega, check_finite(torque, "torque", "euler_equations"))
 
 
@@ -180,8 +194,7 @@ def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quatern
     run time.
     """
     where = "space_angular_momentum"
-    inertia, omega, (orientation,) = _checked(inertia, omega, where, [("orientation", orientation)])
-    check_last_axis(orientation, 4, "orientation")
+    inertia, omega, (orientation,) = _checked(inertia, omega, where, [("orientation", orientation, 4)])
     orientation = _quat_normalize(check_rotation_quaternion(orientation, "orientation", where))
     return _space_angular_momentum(inertia, omega, orientation)
 
@@ -222,6 +235,7 @@ def free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
     """
     where = "free_precession_rate"
     I1, I3, omega3 = common_float(I1, I3, omega3, names=["I1", "I3", "omega3"])
+    check_batch_shapes(where, ("I1", I1, 0), ("I3", I3, 0), ("omega3", omega3, 0))
     I1, I3, omega3 = (check_finite(x, n, where) for x, n in ((I1, "I1"), (I3, "I3"), (omega3, "omega3")))
     I1 = eqx.error_if(I1, jnp.any(I1 == 0), f"{where}: I1 = 0; the transverse moment must be > 0 kg m^2.")
     return _free_precession_rate(I1, I3, omega3)

@@ -27,6 +27,7 @@ from jaxtyping import ArrayLike, Float
 from .._checks import (  # noqa: F401 (re-exported)
     _check_inertia_shape,
     as_float_array,
+    check_batch_shapes,
     check_finite,
     check_inertia,
     check_last_axis,
@@ -103,9 +104,15 @@ def parallel_axis(inertia_com: Inertia, mass: Scalar, displacement: Vector) -> M
     inertia_com, mass, displacement = common_float(
         inertia_com, mass, displacement, names=["inertia_com", "mass", "displacement"]
     )
-    _check_inertia_shape(inertia_com, "inertia_com")
+    tensor = _check_inertia_shape(inertia_com, "inertia_com")
     check_last_axis(displacement, 3, "displacement")
     where = "parallel_axis"
+    check_batch_shapes(
+        where,
+        ("inertia_com", inertia_com, 2 if tensor else 1),
+        ("mass", mass, 0),
+        ("displacement", displacement, 1),
+    )
     inertia_com = check_finite(inertia_com, "inertia_com", where)
     mass = _check_nonnegative(mass, "mass", where)
     displacement = check_finite(displacement, "displacement", where)
@@ -121,9 +128,13 @@ def _check_nonnegative(x, name: str, where: str):
     return eqx.error_if(x, jnp.any(x < 0), f"{where}: {name} must be >= 0, got a negative value.")
 
 
+_VECTORS = ("size", "semi_axes")  # the (..., 3) arguments of the shape functions; the rest are scalars
+
+
 def _nonnegative(where, **values):
     """Float arrays of one dtype, each checked by :func:`_check_nonnegative`, in argument order."""
     arrays = common_float(*values.values(), names=list(values))
+    check_batch_shapes(where, *[(n, a, int(n in _VECTORS)) for n, a in zip(values, arrays, strict=True)])
     return [_check_nonnegative(a, n, where) for a, n in zip(arrays, values, strict=True)]
 
 

@@ -13,7 +13,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .._checks import check_finite, check_last_axis, common_float
+from .._checks import check_batch_shapes, check_finite, check_last_axis, common_float
 from .._types import Inertia, Scalar, Vector
 from .equations import is_full_tensor
 from .inertia import check_inertia
@@ -130,6 +130,7 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
     inertia, omega = _common_float(inertia, omega_magnitude, names=["inertia", "omega_magnitude"])
     omega = check_finite(omega, "omega_magnitude", "spin_stability")
     inertia = _principal_moments(inertia, "spin_stability")
+    check_batch_shapes("spin_stability", ("inertia", inertia, 1), ("omega_magnitude", omega, 0))
     # Axis i with its neighbours j = i + 1 and k = i + 2 (cyclic); the product is symmetric in j, k.
     I_i = inertia
     I_j = jnp.roll(inertia, -1, axis=-1)
@@ -230,6 +231,11 @@ def sleeping_top(
     )
     mass = eqx.error_if(mass, jnp.any(mass <= 0), "sleeping_top: mass must be positive (kg).")
     inertia = _principal_moments(inertia, "sleeping_top")
+    check_batch_shapes(
+        "sleeping_top",
+        *[("inertia", inertia, 1), ("mass", mass, 0), ("com", com, 1), ("omega3", omega3, 0)],
+        ("gravity", gravity, 0),
+    )
     I1, I2, I3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
     I1 = eqx.error_if(
         I1,

@@ -30,8 +30,8 @@ from .solvers.rkmk import rigid_body_vector_field
 from .solvers.splitting import (
     HeavyTopSplitting,
     LiePoissonSplitting,
-    free_body_vector_field,
-    heavy_top_vector_field,
+    _free_body_vector_field,
+    _heavy_top_vector_field,
 )
 
 
@@ -203,8 +203,8 @@ class SplittingODE(eqx.Module):
     def vector_field(self, shell, leaves, values, sigma):
         moments, top = self._parameters(values, leaves)
         if top is None:
-            return free_body_vector_field(moments)
-        return heavy_top_vector_field(moments, *top)
+            return _free_body_vector_field(moments)
+        return _heavy_top_vector_field(moments, *top)
 
     def chunk_solver(self, solver, values, leaves):
         moments, top = self._parameters(values, leaves)

@@ -12,7 +12,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_finite, check_last_axis, common_float, unit_tolerance
+from .._checks import check_batch_shapes, check_finite, check_last_axis, common_float, unit_tolerance
 from .._dynamics.models import State
 
 __all__ = [
@@ -222,7 +222,13 @@ def to_mujoco_free_joint(state: State, position=None, velocity=None):
         (velocity, 3, "velocity"),
     ]:
         check_last_axis(x, size, name)
-    batch = jnp.broadcast_shapes(omega.shape[:-1], q.shape[:-1], position.shape[:-1], velocity.shape[:-1])
+    batch = check_batch_shapes(
+        where,
+        ("state.omega", omega, 1),
+        ("state.orientation", q, 1),
+        ("position", position, 1),
+        ("velocity", velocity, 1),
+    )
     q = _check_unit(q, "state.orientation", where)
     omega = check_finite(omega, "state.omega", where)
     position = check_finite(position, "position", where)
@@ -262,7 +268,7 @@ def from_mujoco_free_joint(qpos, qvel):
     qpos, qvel = common_float(qpos, qvel, names=["qpos", "qvel"])
     check_last_axis(qpos, 7, "qpos")
     check_last_axis(qvel, 6, "qvel")
-    batch = jnp.broadcast_shapes(qpos.shape[:-1], qvel.shape[:-1])
+    batch = check_batch_shapes(where, ("qpos", qpos, 1), ("qvel", qvel, 1))
     qpos = jnp.broadcast_to(check_finite(qpos, "qpos", where), batch + (7,))
     qvel = jnp.broadcast_to(check_finite(qvel, "qvel", where), batch + (6,))
     q = _check_unit(qpos[..., 3:], "qpos[..., 3:7] (the quaternion)", where)

@@ -23,6 +23,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._checks import (
+    check_batch_shapes,
     check_finite,
     check_last_axis,
     check_last_two_axes,
@@ -346,6 +347,7 @@ def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> Ve
     angles, rates = common_float(angles, rates, names=["angles", "rates"])
     check_last_axis(angles, 3, "angles")
     check_last_axis(rates, 3, "rates")
+    check_batch_shapes("body_angular_velocity", ("angles", angles, 1), ("rates", rates, 1))
     where = "body_angular_velocity"
     return _body_angular_velocity(
         check_finite(angles, "angles", where), check_finite(rates, "rates", where), seq
@@ -373,6 +375,7 @@ def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> V
     angles, rates = common_float(angles, rates, names=["angles", "rates"])
     check_last_axis(angles, 3, "angles")
     check_last_axis(rates, 3, "rates")
+    check_batch_shapes("space_angular_velocity", ("angles", angles, 1), ("rates", rates, 1))
     where = "space_angular_velocity"
     return _space_angular_velocity(
         check_finite(angles, "angles", where), check_finite(rates, "rates", where), seq
@@ -405,6 +408,7 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
     angles, omega = common_float(angles, omega, names=["angles", "omega"])
     check_last_axis(angles, 3, "angles")
     check_last_axis(omega, 3, "omega")
+    check_batch_shapes("euler_rates", ("angles", angles, 1), ("omega", omega, 1))
     if throw:
         angles = check_finite(angles, "angles", "euler_rates")
         omega = check_finite(omega, "omega", "euler_rates")

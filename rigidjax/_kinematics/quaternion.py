@@ -25,6 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import (
     as_float_array,
+    check_batch_shapes,
     check_finite,
     check_last_axis,
     check_last_two_axes,
@@ -156,6 +157,7 @@ def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
     p, q = common_float(p, q, names=["p", "q"])
     check_last_axis(p, 4, "p")
     check_last_axis(q, 4, "q")
+    check_batch_shapes("quat_multiply", ("p", p, 1), ("q", q, 1))
     return _quat_multiply(check_finite(p, "p", "quat_multiply"), check_finite(q, "q", "quat_multiply"))
 
 
@@ -188,6 +190,7 @@ def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
     q, v = common_float(q, v, names=["q", "v"])
     check_last_axis(q, 4, "q")
     check_last_axis(v, 3, "v")
+    check_batch_shapes("quat_rotate", ("q", q, 1), ("v", v, 1))
     q = _quat_normalize(check_rotation_quaternion(q, "q", "quat_rotate"))
     return _quat_rotate(q, check_finite(v, "v", "quat_rotate"))
 

@@ -28,7 +28,14 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ..._checks import check_finite, check_last_axis, check_rotation_quaternion, common_float
+from ..._checks import (
+    as_float_array,
+    check_batch_shapes,
+    check_finite,
+    check_last_axis,
+    check_rotation_quaternion,
+    common_float,
+)
 from ..._kinematics.quaternion import _quat_exp, _quat_kinematics, _quat_multiply
 
 # ---------------------------------------------------------------------------------------------
@@ -42,6 +49,7 @@ def dexpinv(theta: Float[ArrayLike, "... 3"], omega: Float[ArrayLike, "... 3"]) 
     theta, omega = common_float(theta, omega, names=["theta", "omega"])
     check_last_axis(theta, 3, "theta")
     check_last_axis(omega, 3, "omega")
+    check_batch_shapes("dexpinv", ("theta", theta, 1), ("omega", omega, 1))
     theta = check_finite(theta, "theta", "dexpinv")
     omega = check_finite(omega, "omega", "dexpinv")
     return _dexpinv(theta, omega)
@@ -160,13 +168,21 @@ def rkmk_step(
     ``(omega, q)`` at ``t + h``; ``q`` is ``q ⊗ Exp(theta)`` and so unit to roundoff.
     """
     _check_tableau(tableau)
-    omega, q = jnp.asarray(omega), jnp.asarray(q)
+    where = "rkmk_step"
+    omega, q = common_float(omega, q, names=["omega", "q"])
     check_last_axis(omega, 3, "omega")
     check_last_axis(q, 4, "q")
-    omega = check_finite(omega, "omega", "rkmk_step")
-    q = check_rotation_quaternion(q, "q", "rkmk_step")
-    h = check_finite(jnp.asarray(h), "h", "rkmk_step")
-    omega1, q1, *_ = _rkmk(angular_acceleration, t, omega, q.astype(omega.dtype), h, args, tableau)
+    t, h = (as_float_array(x, name).astype(omega.dtype) for x, name in ((t, "t"), (h, "h")))
+    for x, name in ((t, "t"), (h, "h")):
+        if x.ndim != 0:
+            raise ValueError(f"{where}: {name} must be a scalar (s), got shape {tuple(x.shape)}.")
+    batch = check_batch_shapes(where, ("omega", omega, 1), ("q", q, 1))
+    omega = jnp.broadcast_to(check_finite(omega, "omega", where), batch + (3,))
+    q = jnp.broadcast_to(check_rotation_quaternion(q, "q", where), batch + (4,))
+    # t reaches the result only through the user's angular acceleration: its check is tied to omega.
+    omega = eqx.error_if(omega, ~jnp.isfinite(t), f"{where}: t contains NaN or inf.")
+    h = check_finite(h, "h", where)
+    omega1, q1, *_ = _rkmk(angular_acceleration, t, omega, q, h, args, tableau)
     return omega1, q1
 
 
@@ -176,6 +192,12 @@ def rigid_body_vector_field(angular_acceleration: Callable) -> Callable:
 
     :class:`RKMK` uses only its first component (the orientation kinematics are built in); any
     other diffrax solver integrates it as a plain ODE (reference solutions)."""
+
+    if not callable(angular_acceleration):
+        raise TypeError(
+            "rigid_body_vector_field: angular_acceleration must be a function "
+            f"f(t, omega, q, args), got {type(angular_acceleration).__name__}."
+        )
 
     def vf(t, y, args):
         omega, q = y

@@ -36,7 +36,14 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ..._checks import as_float_array, check_finite, check_last_axis, check_rotation_quaternion
+from ..._checks import (
+    as_float_array,
+    check_batch_shapes,
+    check_finite,
+    check_last_axis,
+    check_rotation_quaternion,
+    common_float,
+)
 from ..._dynamics.inertia import check_inertia
 from ..._dynamics.models import gravity_torque
 from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
@@ -74,7 +81,51 @@ def _strang(inertia, L, q, h):
 
 
 def splitting_step(inertia, L, q, h, order: int = 2):
-    """One step of length ``h`` of the splitting map of the given ``order`` (2 or 4)."""
+    """One step of length ``h`` of the free body's splitting map of the given ``order`` (2 or 4).
+
+    ``inertia``: principal moments ``(..., 3)`` (kg m^2); ``L``: body angular momentum ``(..., 3)``;
+    ``q``: unit quaternion ``(..., 4)``, scalar first, body to space; ``h``: the step (s), a scalar.
+    The batch axes broadcast against each other. Returns ``(L, q)`` after the step. A non-physical
+    inertia, a zero quaternion or NaN/inf raise at run time.
+    """
+    _check_order(order)
+    inertia, L, q, h = _checked_step("splitting_step", inertia, L, q, h)
+    return _splitting_step(inertia, L, q, h, order)
+
+
+def _check_order(order):
+    if order not in (2, 4):
+        raise ValueError(f"order must be 2 or 4, got {order!r}.")
+
+
+def _checked_step(where, inertia, L, q, h, **extra):
+    """The public steps' arguments: one float dtype, shapes and batch shapes checked while tracing,
+    values at run time, ``L`` and ``q`` broadcast to the common batch shape. ``extra``: more
+    ``(..., 3)`` arrays (checked finite), returned after ``h``."""
+    names = ["inertia", "L", "q", "h", *extra]
+    inertia, L, q, h, *more = common_float(inertia, L, q, h, *extra.values(), names=names)
+    _check_principal(inertia, where)
+    for x, name, size in ((inertia, "inertia", 3), (L, "L", 3), (q, "q", 4)):
+        check_last_axis(x, size, name)
+    for x, name in zip(more, extra, strict=True):
+        check_last_axis(x, 3, name)
+    if h.ndim != 0:
+        raise ValueError(f"{where}: h must be a scalar (s), got shape {tuple(h.shape)}.")
+    batch = check_batch_shapes(
+        where,
+        ("inertia", inertia, 1),
+        ("L", L, 1),
+        ("q", q, 1),
+        *[(name, x, 1) for x, name in zip(more, extra, strict=True)],
+    )
+    inertia = check_inertia(inertia, name=f"{where}: inertia")
+    L = jnp.broadcast_to(check_finite(L, "L", where), batch + (3,))
+    q = jnp.broadcast_to(check_rotation_quaternion(q, "q", where), batch + (4,))
+    h = check_finite(h, "h", where)
+    return inertia, L, q, h, *[check_finite(x, name, where) for x, name in zip(more, extra, strict=True)]
+
+
+def _splitting_step(inertia, L, q, h, order: int = 2):
     if order == 2:
         return _strang(inertia, L, q, h)
     if order == 4:
@@ -99,6 +150,13 @@ def _check_principal(inertia, who: str):
         )
 
 
+def _checked_moments(inertia, where):
+    inertia = as_float_array(inertia, "inertia")
+    _check_principal(inertia, where)
+    check_last_axis(inertia, 3, "inertia")
+    return check_inertia(inertia, name=f"{where}: inertia")
+
+
 def _require_parameters(solver, name: str, constructor: str):
     if solver.inertia is None:
         raise ValueError(
@@ -107,31 +165,32 @@ def _require_parameters(solver, name: str, constructor: str):
         )
 
 
-def _as_state(inertia, L0, q0, dt):
-    _check_principal(inertia, "the splitting")
-    dtype = jnp.result_type(jnp.asarray(L0).dtype, jnp.asarray(q0).dtype, jnp.asarray(inertia).dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        dtype = jnp.asarray(1.0).dtype
-    inertia = jnp.asarray(inertia).astype(dtype)
-    L0 = jnp.asarray(L0).astype(dtype)
-    q0 = jnp.asarray(q0).astype(dtype)
-    dt = jnp.asarray(dt).astype(dtype)
-    if inertia.shape[-1:] != (3,) or L0.shape[-1:] != (3,) or q0.shape[-1:] != (4,):
-        raise ValueError(
-            "split_free_body: inertia and L0 must have shape (..., 3) and q0 shape (..., 4); got "
-            f"{inertia.shape}, {L0.shape}, {q0.shape}."
-        )
-    inertia = check_inertia(inertia, name="the splitting: inertia")
-    L0 = check_finite(L0, "L0", "the splitting")
-    q0 = check_rotation_quaternion(q0, "q0", "the splitting")
-    dt = check_finite(dt, "dt", "the splitting")
-    batch = jnp.broadcast_shapes(inertia.shape[:-1], L0.shape[:-1], q0.shape[:-1])
-    return (
-        inertia,
-        jnp.broadcast_to(L0, batch + (3,)),
-        jnp.broadcast_to(q0, batch + (4,)),
-        dt,
+def _as_state(where, inertia, L0, q0, dt, **extra):
+    """The fixed-step runs' arguments: one float dtype, shapes and batch shapes checked while
+    tracing (``dt`` a scalar), values at run time, ``L0`` and ``q0`` broadcast to the batch shape of
+    all of them. ``extra``: more per-body arrays, ``name=(array, core axes)``, checked for their
+    batch shape only and returned as floats of the same dtype after ``dt``."""
+    _check_principal(inertia, where)
+    names = ["inertia", "L0", "q0", "dt", *extra]
+    inertia, L0, q0, dt, *more = common_float(
+        inertia, L0, q0, dt, *[x for x, _ in extra.values()], names=names
     )
+    for x, name, size in ((inertia, "inertia", 3), (L0, "L0", 3), (q0, "q0", 4)):
+        check_last_axis(x, size, name)
+    if dt.ndim != 0:
+        raise ValueError(f"{where}: dt must be a scalar (s), got shape {tuple(dt.shape)}.")
+    batch = check_batch_shapes(
+        where,
+        ("inertia", inertia, 1),
+        ("L0", L0, 1),
+        ("q0", q0, 1),
+        *[(name, x, core) for x, (name, (_, core)) in zip(more, extra.items(), strict=True)],
+    )
+    inertia = check_inertia(inertia, name=f"{where}: inertia")
+    L0 = check_finite(L0, "L0", where)
+    q0 = check_rotation_quaternion(q0, "q0", where)
+    dt = check_finite(dt, "dt", where)
+    return (inertia, jnp.broadcast_to(L0, batch + (3,)), jnp.broadcast_to(q0, batch + (4,)), dt, *more)
 
 
 @functools.partial(jax.jit, static_argnames=("n_steps", "order"))
@@ -159,12 +218,11 @@ def split_free_body(
     ``(L, q)`` at ``t = n_steps * dt``, batch shape the broadcast of the inputs'. The dtype is
     the inputs' (float32 inputs stay float32).
     """
-    if order not in (2, 4):
-        raise ValueError(f"order must be 2 or 4, got {order!r}.")
-    inertia, L0, q0, dt = _as_state(inertia, L0, q0, dt)
+    _check_order(order)
+    inertia, L0, q0, dt = _as_state("split_free_body", inertia, L0, q0, dt)
 
     def body(_, state):
-        return splitting_step(inertia, *state, dt, order)
+        return _splitting_step(inertia, *state, dt, order)
 
     return jax.lax.fori_loop(0, n_steps, body, (L0, q0))
 
@@ -221,7 +279,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         _check_principal(self.inertia, "LiePoissonSplitting")
         h = jnp.asarray(t1 - t0).astype(L0.dtype)
         inertia = self.inertia.astype(L0.dtype)
-        y1 = splitting_step(inertia, L0, q0, h, self.splitting_order)
+        y1 = _splitting_step(inertia, L0, q0, h, self.splitting_order)
         dense_info = dict(y0=y0, y1=y1)
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
@@ -230,8 +288,14 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
 
 
 def free_body_vector_field(inertia):
-    """``(L, q) -> (dL/dt, dq/dt)`` of the free body, for references and for ``ODETerm``."""
+    """``(L, q) -> (dL/dt, dq/dt)`` of the free body, for references and for ``ODETerm``.
 
+    ``inertia``: principal moments ``(..., 3)`` (kg m^2), checked here (shape while tracing, a
+    physical inertia at run time); ``L`` and ``q`` are the solver's state."""
+    return _free_body_vector_field(_checked_moments(inertia, "free_body_vector_field"))
+
+
+def _free_body_vector_field(inertia):
     def vf(t, y, args):
         L, q = y
         omega = L / inertia.astype(L.dtype)
@@ -263,8 +327,19 @@ def heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
     """One step of length ``h`` of the heavy-top splitting of the given ``order`` (2 or 4).
 
     ``inertia``: principal moments about the pivot ``(..., 3)``; ``weight_com``: ``m g com``
-    ``(..., 3)`` (N m, body frame); ``L`` body angular momentum; ``q`` unit quaternion (body to space).
+    ``(..., 3)`` (N m, body frame); ``L`` body angular momentum ``(..., 3)``; ``q`` unit quaternion
+    ``(..., 4)`` (body to space); ``h``: the step (s), a scalar. The batch axes broadcast against each
+    other. Returns ``(L, q)`` after the step. A non-physical inertia, a zero quaternion or NaN/inf
+    raise at run time.
     """
+    _check_order(order)
+    inertia, L, q, h, weight_com = _checked_step(
+        "heavy_top_splitting_step", inertia, L, q, h, weight_com=weight_com
+    )
+    return _heavy_top_splitting_step(inertia, weight_com, L, q, h, order)
+
+
+def _heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
     if order == 2:
         return _heavy_top_strang(inertia, weight_com, L, q, h)
     if order == 4:
@@ -328,17 +403,20 @@ def split_heavy_top(
     ``(L, q)`` at ``t = n_steps * dt``, batch shape the broadcast of the inputs'. Energy error
     bounded, ``L_Z = (R L) . Z`` and ``|q|`` conserved to roundoff.
     """
-    if order not in (2, 4):
-        raise ValueError(f"order must be 2 or 4, got {order!r}.")
-    inertia, L0, q0, dt = _as_state(inertia, L0, q0, dt)
-    mass, com, gravity = _checked_top_parameters(mass, com, gravity, "split_heavy_top")
+    _check_order(order)
+    where = "split_heavy_top"
+    check_last_axis(as_float_array(com, "com"), 3, "com")
+    inertia, L0, q0, dt, mass, com, gravity = _as_state(
+        where, inertia, L0, q0, dt, mass=(mass, 0), com=(com, 1), gravity=(gravity, 0)
+    )
+    mass, com, gravity = _checked_top_parameters(mass, com, gravity, where)
     weight_com = heavy_top_weight_com(mass, com, gravity, L0.dtype)
     batch = jnp.broadcast_shapes(L0.shape[:-1], weight_com.shape[:-1])
     L0 = jnp.broadcast_to(L0, batch + (3,))
     q0 = jnp.broadcast_to(q0, batch + (4,))
 
     def body(_, state):
-        return heavy_top_splitting_step(inertia, weight_com, *state, dt, order)
+        return _heavy_top_splitting_step(inertia, weight_com, *state, dt, order)
 
     return jax.lax.fori_loop(0, n_steps, body, (L0, q0))
 
@@ -421,7 +499,9 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         dtype = L0.dtype
         h = jnp.asarray(t1 - t0).astype(dtype)
         weight_com = heavy_top_weight_com(self.mass, self.com, self.gravity, dtype)
-        y1 = heavy_top_splitting_step(self.inertia.astype(dtype), weight_com, L0, q0, h, self.splitting_order)
+        y1 = _heavy_top_splitting_step(
+            self.inertia.astype(dtype), weight_com, L0, q0, h, self.splitting_order
+        )
         dense_info = dict(y0=y0, y1=y1)
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
@@ -431,8 +511,20 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
 
 def heavy_top_vector_field(inertia, mass, com, gravity=9.81):
     """``(L, q) -> (dL/dt, dq/dt)`` of the heavy top (principal ``inertia`` about the pivot), for
-    references and for ``ODETerm``: ``dL/dt = L x omega + m g (R^T Z) x com``."""
-    free = free_body_vector_field(jnp.asarray(inertia))
+    references and for ``ODETerm``: ``dL/dt = L x omega + m g (R^T Z) x com``. The parameters are
+    checked here, as :func:`split_heavy_top`'s."""
+    where = "heavy_top_vector_field"
+    inertia = _checked_moments(inertia, where)
+    check_last_axis(as_float_array(com, "com"), 3, "com")
+    mass, com, gravity = _checked_top_parameters(mass, com, gravity, where)
+    check_batch_shapes(
+        where, ("inertia", inertia, 1), ("mass", mass, 0), ("com", com, 1), ("gravity", gravity, 0)
+    )
+    return _heavy_top_vector_field(inertia, mass, com, gravity)
+
+
+def _heavy_top_vector_field(inertia, mass, com, gravity):
+    free = _free_body_vector_field(jnp.asarray(inertia))
 
     def vf(t, y, args):
         L, q = y
