@@ -75,6 +75,32 @@ def test_progress_with_faults_throw_false():
     _assert_same(plain, traj)
 
 
+def test_progress_with_error_estimate_is_one_report_over_both_solves(capfd):
+    """The estimate's second solve continues the same report: totals are twice the bodies, the
+    count never goes back, and the bar ends once."""
+    model, state0 = _scene()
+    plain = rj.simulate(model, state0, TS, chunk_size=2, error_estimate=True)
+    calls = []
+    traj = rj.simulate(
+        model, state0, TS, chunk_size=2, error_estimate=True, progress=lambda d, t: calls.append((d, t))
+    )
+    assert calls == [
+        (0, 2 * N),
+        (2, 2 * N),
+        (4, 2 * N),
+        (6, 2 * N),
+        (6, 2 * N),
+        (8, 2 * N),
+        (10, 2 * N),
+        (12, 2 * N),
+    ]
+    _assert_same(plain, traj)
+    rj.simulate(model, state0, TS, chunk_size=2, error_estimate=True, progress=True)
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("simulate [")]
+    assert len(lines) == 8 and all("/12 body solves (2 per body: result, error estimate)" in x for x in lines)
+    assert lines[-1].startswith(f"simulate [{'#' * 30}] 12/12") and not any("12/12" in x for x in lines[:-1])
+
+
 def test_progress_exact_reports_once():
     model, state0 = _scene()
     calls = []

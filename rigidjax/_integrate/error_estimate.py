@@ -35,6 +35,7 @@ import numpy as np
 from .._checks import float_dtype
 from .._kinematics.quaternion import _quat_conjugate, _quat_multiply
 from . import driver
+from . import progress as _progress
 from .presets import PRESETS
 from .solvers import STRUCTURE_PRESERVING
 from .trajectory import Trajectory
@@ -70,6 +71,9 @@ def with_error_estimate(simulate, model, state0, ts, **kwargs) -> Trajectory:
         fine_model, fine_state0, fine_ts = _as_float64(model, state0, ts)
         fine_eps = float(jnp.finfo(np.float64).eps)
     fine_kwargs = dict(kwargs, throw=False)
+    report = _progress.check_progress(kwargs["progress"])
+    if report is not None:  # one report over both solves
+        kwargs["progress"], fine_kwargs["progress"] = _progress.passes(report, 2)
     factor = 1.0
     if kwargs["accuracy"] == "exact":
         if fine_eps == eps:  # no wider dtype: how much rounding the inputs moves the result

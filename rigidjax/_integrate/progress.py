@@ -66,6 +66,18 @@ class StatusLine:
         self.stream.flush()
 
 
+def passes(report, count: int) -> list[Callable[[int, int], None]]:
+    """``count`` reports for ``count`` solves of the same batch, one after the other, that make one
+    report to ``report``: pass ``i``'s ``(done, total)`` arrives as ``(i total + done, count total)``."""
+    if isinstance(report, ProgressBar):
+        report.passes = count
+
+    def one(i):
+        return lambda done, total: report(i * total + done, count * total)
+
+    return [one(i) for i in range(count)]
+
+
 class ProgressBar:
     """One line on stderr: bodies done, elapsed time and an estimate of the time left. Rewritten in
     place on a terminal, one line per update otherwise (a log file)."""
@@ -73,6 +85,7 @@ class ProgressBar:
     def __init__(self, stream=None):
         self.line = StatusLine(sys.stderr if stream is None else stream)
         self._start = self._first = None
+        self.passes = 1  # solves per body (2 with an error estimate)
 
     def __call__(self, done: int, total: int) -> None:
         now = time.perf_counter()
@@ -87,8 +100,11 @@ class ProgressBar:
                 rate = (now - self._first[1]) / max(done - self._first[0], 1)
                 left = f", ~{rate * (total - done):.1f} s left"
         last = done >= total
+        what = (
+            "bodies" if self.passes == 1 else f"body solves ({self.passes} per body: result, error estimate)"
+        )
         self.line.show(
-            f"simulate [{bar(done, total)}] {done:,}/{total:,} bodies, {elapsed:.1f} s{left}", last
+            f"simulate [{bar(done, total)}] {done:,}/{total:,} {what}, {elapsed:.1f} s{left}", last
         )
         if last:
             self._start = None

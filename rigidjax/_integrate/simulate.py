@@ -348,8 +348,8 @@ def simulate(
       amplified, an order of magnitude, not a bound (float32 with x64 on: twice the difference
       to the float64 closed form). Every estimate is at least ten roundoff
       units. The cost is the second solve: about the first's again (no new compile for the
-      presets). ``throw`` applies to the first solve, ``progress`` reports both; a body whose
-      second solve fails gets an inf estimate.
+      presets). ``throw`` applies to the first solve; a body whose second solve fails gets an inf
+      estimate. ``progress`` makes one report over both solves: its total is twice the bodies.
 
     **Returns:**
 
