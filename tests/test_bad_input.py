@@ -547,7 +547,7 @@ FIT_CASES = {
     ),
     "omega_from_orientations-inf": (
         lambda: rj.omega_from_orientations(_TS_FIT, with_value(_Q_FIT, inf)),
-        "orientation_observed contains inf",
+        "q_observed contains inf",  # the argument's own name
     ),
 }
 

@@ -2,6 +2,7 @@
 message names the argument and the fix), sign alignment of quaternions, and angular velocity from
 orientation samples."""
 
+import jax
 import numpy as np
 
 from .._kinematics.quaternion import _quat_multiply
@@ -24,7 +25,13 @@ def _check_times(ts):
 
 
 def _real_array(x, name):
-    """``x`` as a float array; a ``TypeError`` naming ``name`` unless it holds real numbers."""
+    """``x`` as a float array; a ``TypeError`` naming ``name`` unless it holds real numbers (with
+    values: the records are checked and prepared on the host, before anything is compiled)."""
+    if isinstance(x, jax.core.Tracer):
+        raise TypeError(
+            f"{name} is traced (inside jax.jit, vmap or grad): the fitting functions read a record's "
+            "values on the host, so call them outside jit with NumPy or JAX arrays."
+        )
     x = np.asarray(x)
     if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
         raise TypeError(f"{name} must hold real numbers, got dtype {x.dtype}.")
@@ -44,24 +51,24 @@ def _check_data(ts, omega_observed):
     return ts, omega
 
 
-def _check_quaternions(ts, q_observed):
+def _check_quaternions(ts, q_observed, name="orientation_observed"):
     """``(ts, q)`` of an orientation record, checked: unit quaternions ``(T, 4)``, no inf; a row
-    with any NaN becomes all NaN."""
+    with any NaN becomes all NaN. ``name``: the caller's name of ``q_observed``."""
     ts = _check_times(ts)
-    q = _real_array(q_observed, "orientation_observed")
+    q = _real_array(q_observed, name)
     if q.shape != (ts.shape[0], 4):
         raise ValueError(
-            f"orientation_observed must have shape (T, 4) = ({ts.shape[0]}, 4) (unit quaternions, scalar "
+            f"{name} must have shape (T, 4) = ({ts.shape[0]}, 4) (unit quaternions, scalar "
             f"first) to match ts, got {q.shape}."
         )
     if np.any(np.isinf(q)):
-        raise ValueError("orientation_observed contains inf; mark missing samples with NaN instead.")
+        raise ValueError(f"{name} contains inf; mark missing samples with NaN instead.")
     q = np.where(np.isnan(q).any(axis=1, keepdims=True), np.nan, q)  # a quaternion is all or nothing
     norm_error = np.abs(np.linalg.norm(q, axis=1) - 1.0)
     if np.nanmax(norm_error, initial=0.0) > 1e-5:
         row = int(np.nanargmax(norm_error))
         raise ValueError(
-            f"orientation_observed must hold unit quaternions; row {row} has norm "
+            f"{name} must hold unit quaternions; row {row} has norm "
             f"{np.linalg.norm(q[row]):.8g}. Normalise them (rigidjax.quat_normalize) first."
         )
     return ts, q
@@ -94,7 +101,7 @@ def omega_from_orientations(ts, q_observed):
 
     **Returns:** the angular velocity (rad/s), ``(T, 3)``; NaN where a neighbour is missing.
     """
-    ts, q = _check_quaternions(ts, q_observed)
+    ts, q = _check_quaternions(ts, q_observed, "q_observed")
     q = _align_signs(q)
     T = ts.shape[0]
     lo = np.clip(np.arange(T) - 1, 0, T - 1)
