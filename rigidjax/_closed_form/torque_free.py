@@ -30,10 +30,15 @@ from .elliptic import _ellipj_checked, ellipkm1
 
 
 def _sorted_frame(inertia, omega0):
-    """Moments ascending, omega permuted alike, and the permutation's parity (+1 even, -1 odd)."""
+    """Moments ascending, omega permuted alike, and the permutation's parity (+1 even, -1 odd).
+
+    Every gather here and below indexes with a permutation of ``0, 1, 2``, so it is declared in
+    bounds: the default out-of-bounds handling adds masking to each gather and to its derivatives,
+    a sizeable part of every compiled copy of the model.
+    """
     perm = jnp.argsort(inertia, axis=-1)
-    moments = jnp.take_along_axis(inertia, perm, axis=-1)
-    omega = jnp.take_along_axis(omega0, perm, axis=-1)
+    moments = jnp.take_along_axis(inertia, perm, axis=-1, mode="promise_in_bounds")
+    omega = jnp.take_along_axis(omega0, perm, axis=-1, mode="promise_in_bounds")
     p0, p1, p2 = perm[..., 0], perm[..., 1], perm[..., 2]
     inversions = sum((x > y).astype(jnp.int32) for x, y in ((p0, p1), (p0, p2), (p1, p2)))
     parity = jnp.where(inversions % 2 == 0, 1.0, -1.0).astype(inertia.dtype)
@@ -44,7 +49,10 @@ def _take(x, index):
     """``take_along_axis`` on the last axis, ``index`` broadcast against ``x``'s batch axes."""
     shape = jnp.broadcast_shapes(x.shape[:-1], index.shape[:-1]) + index.shape[-1:]
     return jnp.take_along_axis(
-        jnp.broadcast_to(x, shape[:-1] + x.shape[-1:]), jnp.broadcast_to(index, shape), axis=-1
+        jnp.broadcast_to(x, shape[:-1] + x.shape[-1:]),
+        jnp.broadcast_to(index, shape),
+        axis=-1,
+        mode="promise_in_bounds",
     )
 
 
@@ -536,11 +544,15 @@ def _general_orientation(inertia, omega0, omega_t, t, parts):
     phi = (size / I_c) * (t + (I_c - I_a) / I_a * delta_g / jnp.where(speed != 0, speed, 1.0))
 
     # Cyclic relabelling of the body axes: (x, y, c) = (c + 1, c + 2, c) mod 3, a proper rotation.
-    c_index = jnp.take_along_axis(perm, jnp.where(around_largest, 2, 0)[..., None], axis=-1)
-    a_index = jnp.take_along_axis(perm, jnp.where(around_largest, 0, 2)[..., None], axis=-1)[..., 0]
+    c_index = jnp.take_along_axis(
+        perm, jnp.where(around_largest, 2, 0)[..., None], axis=-1, mode="promise_in_bounds"
+    )
+    a_index = jnp.take_along_axis(
+        perm, jnp.where(around_largest, 0, 2)[..., None], axis=-1, mode="promise_in_bounds"
+    )[..., 0]
     to_cyclic = (c_index + jnp.arange(1, 4)) % 3
     from_cyclic = (jnp.arange(3) - c_index - 1) % 3
-    l0 = jnp.take_along_axis(inertia * omega0, to_cyclic, axis=-1)
+    l0 = jnp.take_along_axis(inertia * omega0, to_cyclic, axis=-1, mode="promise_in_bounds")
     l1 = _take(inertia * omega_t, to_cyclic)
     b0, psi0 = _nutation_spin_quat(l0)
     b1, psi1 = _nutation_spin_quat(l1)

@@ -216,7 +216,15 @@ class _Problem(eqx.Module):
     def residuals(self, p):
         """Weighted residuals whose sum of squares is the robust loss (``f^2 rho((r/f)^2)``),
         flattened."""
-        r = self.raw_residuals(p) * self.weights
+        return self._weighted(self.raw_residuals(p))
+
+    def residuals_and_raw(self, p):
+        """``(residuals(p), raw_residuals(p))`` from one evaluation of the model."""
+        raw = self.raw_residuals(p)
+        return self._weighted(raw), raw
+
+    def _weighted(self, raw):
+        r = raw * self.weights
         if self.loss_kind == "squared":
             return r.reshape(-1)
         z = (r / self.f_scale) ** 2
