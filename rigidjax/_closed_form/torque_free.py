@@ -20,7 +20,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._checks import check_finite, check_last_axis, check_rotation_quaternion, common_float
+from .._checks import (
+    check_batch_shapes,
+    check_finite,
+    check_last_axis,
+    check_rotation_quaternion,
+    common_float,
+)
 from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
 from .._numerics import safe_norm
@@ -119,6 +125,7 @@ def _broadcast_inputs(inertia, omega0, t):
     inertia, omega0, t = common_float(inertia, omega0, t, names=["inertia", "omega0", "t"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
+    check_batch_shapes("torque_free_omega", ("inertia", inertia, 1), ("omega0", omega0, 1), ("t", t, 0))
     inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_omega")
     (inertia, omega0), batch = _body_arrays(t, inertia, omega0)
     return inertia, omega0, t, batch
@@ -233,6 +240,7 @@ def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     inertia, omega0 = common_float(inertia, omega0, names=["inertia", "omega0"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
+    check_batch_shapes("torque_free_period", ("inertia", inertia, 1), ("omega0", omega0, 1))
     inertia, omega0, _ = _checked(inertia, omega0, None, "torque_free_period")
     inertia, omega0 = jnp.broadcast_arrays(inertia, omega0)
     _, moments, omega, _ = _sorted_frame(inertia, omega0)
@@ -436,6 +444,9 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
     check_last_axis(q0, 4, "q0")
+    check_batch_shapes(
+        "torque_free_motion", ("inertia", inertia, 1), ("omega0", omega0, 1), ("q0", q0, 1), ("t", t, 0)
+    )
     inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_motion")
     q0 = check_rotation_quaternion(q0, "q0", "torque_free_motion")
     (inertia, omega0, q0), batch = _body_arrays(t, inertia, omega0, q0)
