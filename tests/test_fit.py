@@ -67,6 +67,23 @@ def test_principal_fit_recovers_truth_and_methods_agree():
 
 
 @pytest.mark.slow
+def test_forward_and_reverse_gradients_give_the_same_fit(monkeypatch):
+    """Long records take the optax gradient in reverse mode, short ones through the forward-mode
+    Jacobian: the two derivatives of one loss, so the same fit to the optimiser's tolerance."""
+    from rigidjax._fit import optimisers
+
+    rng = np.random.default_rng(0)
+    ts = short_times()
+    obs = record(I_TRUE, W0_TRUE, ts, 0.01, rng)
+    forward = fit_inertia(ts, obs)
+    monkeypatch.setattr(optimisers, "FORWARD_GRADIENT_SAMPLES", 0)
+    reverse = fit_inertia(ts, obs)
+    assert bool(forward.converged) and bool(reverse.converged)
+    np.testing.assert_allclose(reverse.inertia, forward.inertia, rtol=1e-7)
+    np.testing.assert_allclose(reverse.inertia_stderr, forward.inertia_stderr, rtol=1e-5)
+
+
+@pytest.mark.slow
 def test_standard_errors_are_honest():
     """Over repeated noise draws the truth lies within 2 sigma about 95 % of the time."""
     rng = np.random.default_rng(1)
