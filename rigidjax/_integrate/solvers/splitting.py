@@ -89,7 +89,7 @@ def splitting_step(inertia, L, q, h, order: int = 2):
     inertia, a zero quaternion or NaN/inf raise at run time.
     """
     _check_order(order)
-    inertia, L, q, h = _checked_step("splitting_step", inertia, L, q, h)
+    inertia, L, q, h = _checked_state("splitting_step", inertia, L, q, h)
     return _splitting_step(inertia, L, q, h, order)
 
 
@@ -98,31 +98,37 @@ def _check_order(order):
         raise ValueError(f"order must be 2 or 4, got {order!r}.")
 
 
-def _checked_step(where, inertia, L, q, h, **extra):
-    """The public steps' arguments: one float dtype, shapes and batch shapes checked while tracing,
-    values at run time, ``L`` and ``q`` broadcast to the common batch shape. ``extra``: more
-    ``(..., 3)`` arrays (checked finite), returned after ``h``."""
-    names = ["inertia", "L", "q", "h", *extra]
-    inertia, L, q, h, *more = common_float(inertia, L, q, h, *extra.values(), names=names)
+def _checked_state(where, inertia, L, q, h, names=("L", "q", "h"), **extra):
+    """The public steps' and runs' arguments: one float dtype; shapes, a scalar step and the batch
+    shapes checked while tracing; values at run time; ``L`` and ``q`` broadcast to the batch shape
+    of all arrays. ``names``: the caller's names of ``L``, ``q`` and the step. ``extra``: more
+    per-body arrays, ``name=(array, core axes)`` (a core axis is a vector ``(..., 3)``), returned
+    after the step in the same dtype; their values are the caller's to check."""
+    l_name, q_name, h_name = names
     _check_principal(inertia, where)
-    for x, name, size in ((inertia, "inertia", 3), (L, "L", 3), (q, "q", 4)):
+    inertia, L, q, *more = common_float(
+        inertia, L, q, *[x for x, _ in extra.values()], names=["inertia", *names[:2], *extra]
+    )
+    h = as_float_array(h, h_name).astype(L.dtype)  # the step follows the state's dtype
+    cores = [core for _, core in extra.values()]
+    for x, name, size in ((inertia, "inertia", 3), (L, l_name, 3), (q, q_name, 4)):
         check_last_axis(x, size, name)
-    for x, name in zip(more, extra, strict=True):
-        check_last_axis(x, 3, name)
+    for x, name, core in zip(more, extra, cores, strict=True):
+        if core:
+            check_last_axis(x, 3, name)
     if h.ndim != 0:
-        raise ValueError(f"{where}: h must be a scalar (s), got shape {tuple(h.shape)}.")
+        raise ValueError(f"{where}: {h_name} must be a scalar (s), got shape {tuple(h.shape)}.")
     batch = check_batch_shapes(
         where,
         ("inertia", inertia, 1),
-        ("L", L, 1),
-        ("q", q, 1),
-        *[(name, x, 1) for x, name in zip(more, extra, strict=True)],
+        (l_name, L, 1),
+        (q_name, q, 1),
+        *[(name, x, core) for x, name, core in zip(more, extra, cores, strict=True)],
     )
     inertia = check_inertia(inertia, name=f"{where}: inertia")
-    L = jnp.broadcast_to(check_finite(L, "L", where), batch + (3,))
-    q = jnp.broadcast_to(check_rotation_quaternion(q, "q", where), batch + (4,))
-    h = check_finite(h, "h", where)
-    return inertia, L, q, h, *[check_finite(x, name, where) for x, name in zip(more, extra, strict=True)]
+    L = jnp.broadcast_to(check_finite(L, l_name, where), batch + (3,))
+    q = jnp.broadcast_to(check_rotation_quaternion(q, q_name, where), batch + (4,))
+    return inertia, L, q, check_finite(h, h_name, where), *more
 
 
 def _splitting_step(inertia, L, q, h, order: int = 2):
@@ -165,34 +171,6 @@ def _require_parameters(solver, name: str, constructor: str):
         )
 
 
-def _as_state(where, inertia, L0, q0, dt, **extra):
-    """The fixed-step runs' arguments: one float dtype, shapes and batch shapes checked while
-    tracing (``dt`` a scalar), values at run time, ``L0`` and ``q0`` broadcast to the batch shape of
-    all of them. ``extra``: more per-body arrays, ``name=(array, core axes)``, checked for their
-    batch shape only and returned as floats of the same dtype after ``dt``."""
-    _check_principal(inertia, where)
-    names = ["inertia", "L0", "q0", "dt", *extra]
-    inertia, L0, q0, dt, *more = common_float(
-        inertia, L0, q0, dt, *[x for x, _ in extra.values()], names=names
-    )
-    for x, name, size in ((inertia, "inertia", 3), (L0, "L0", 3), (q0, "q0", 4)):
-        check_last_axis(x, size, name)
-    if dt.ndim != 0:
-        raise ValueError(f"{where}: dt must be a scalar (s), got shape {tuple(dt.shape)}.")
-    batch = check_batch_shapes(
-        where,
-        ("inertia", inertia, 1),
-        ("L0", L0, 1),
-        ("q0", q0, 1),
-        *[(name, x, core) for x, (name, (_, core)) in zip(more, extra.items(), strict=True)],
-    )
-    inertia = check_inertia(inertia, name=f"{where}: inertia")
-    L0 = check_finite(L0, "L0", where)
-    q0 = check_rotation_quaternion(q0, "q0", where)
-    dt = check_finite(dt, "dt", where)
-    return (inertia, jnp.broadcast_to(L0, batch + (3,)), jnp.broadcast_to(q0, batch + (4,)), dt, *more)
-
-
 @functools.partial(jax.jit, static_argnames=("n_steps", "order"))
 def split_free_body(
     inertia: Float[ArrayLike, "... 3"],
@@ -219,7 +197,7 @@ def split_free_body(
     the inputs' (float32 inputs stay float32).
     """
     _check_order(order)
-    inertia, L0, q0, dt = _as_state("split_free_body", inertia, L0, q0, dt)
+    inertia, L0, q0, dt = _checked_state("split_free_body", inertia, L0, q0, dt, names=("L0", "q0", "dt"))
 
     def body(_, state):
         return _splitting_step(inertia, *state, dt, order)
@@ -333,9 +311,9 @@ def heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
     raise at run time.
     """
     _check_order(order)
-    inertia, L, q, h, weight_com = _checked_step(
-        "heavy_top_splitting_step", inertia, L, q, h, weight_com=weight_com
-    )
+    where = "heavy_top_splitting_step"
+    inertia, L, q, h, weight_com = _checked_state(where, inertia, L, q, h, weight_com=(weight_com, 1))
+    weight_com = check_finite(weight_com, "weight_com", where)
     return _heavy_top_splitting_step(inertia, weight_com, L, q, h, order)
 
 
@@ -405,9 +383,8 @@ def split_heavy_top(
     """
     _check_order(order)
     where = "split_heavy_top"
-    check_last_axis(as_float_array(com, "com"), 3, "com")
-    inertia, L0, q0, dt, mass, com, gravity = _as_state(
-        where, inertia, L0, q0, dt, mass=(mass, 0), com=(com, 1), gravity=(gravity, 0)
+    inertia, L0, q0, dt, mass, com, gravity = _checked_state(
+        where, inertia, L0, q0, dt, ("L0", "q0", "dt"), mass=(mass, 0), com=(com, 1), gravity=(gravity, 0)
     )
     mass, com, gravity = _checked_top_parameters(mass, com, gravity, where)
     weight_com = heavy_top_weight_com(mass, com, gravity, L0.dtype)
