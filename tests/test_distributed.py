@@ -93,7 +93,8 @@ def _run_workers(tmp_path, meanwhile, num_processes=2):
     returns ``meanwhile()``'s result and the workers' outputs; a failed or stuck worker fails the
     test with its output (stdout and stderr)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_ENABLE_X64="True")
-    env.pop("XLA_FLAGS", None)  # one CPU device per process
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if "xla_force_host_platform_device_count" not in f]
+    env["XLA_FLAGS"] = " ".join(flags)  # one CPU device per process; the suite's compile flags kept
     port = _free_port()
     procs, outs, logs = [], [], []
     deadline = time.monotonic() + TIMEOUT_S

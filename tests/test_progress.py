@@ -148,9 +148,11 @@ def test_fit_progress_lines_and_callable(capsys):
     )
     assert [i for i, _ in seen] == list(range(1, plain.num_steps + 1))
     assert all(isinstance(loss, float) for _, loss in seen)
+    # A fit that reports is a different compiled program (a host call per iteration), and XLA may
+    # fuse it differently: the same iterations, equal up to a few units of roundoff.
     for fit in (printed, called):
-        np.testing.assert_array_equal(np.asarray(fit.inertia), np.asarray(plain.inertia))
-        np.testing.assert_array_equal(np.asarray(fit.history), np.asarray(plain.history))
+        np.testing.assert_allclose(np.asarray(fit.inertia), np.asarray(plain.inertia), rtol=1e-13, atol=0)
+        np.testing.assert_allclose(np.asarray(fit.history), np.asarray(plain.history), rtol=1e-12, atol=0)
         assert fit.num_steps == plain.num_steps
 
 

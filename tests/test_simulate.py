@@ -449,7 +449,8 @@ def test_sharded_equals_unsharded(tmp_path):
     import sys
 
     path = str(tmp_path / "sharded.npy")
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")  # the suite's own flags kept
     subprocess.run([sys.executable, "-c", _SHARD_SCRIPT.format(path=path)], env=env, check=True, timeout=600)
     sharded = np.load(path)
     rng = np.random.default_rng(1)
