@@ -9,6 +9,7 @@ import functools
 
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 import rigidjax as rj
@@ -378,3 +379,14 @@ def test_omega_from_orientations_converges_at_second_order():
         q[::3] *= -1.0
         np.testing.assert_allclose(rj.omega_from_orientations(ts, q), estimate, rtol=0, atol=1e-12)
     assert 3.5 < errors[0] / errors[1] < 4.5, errors
+
+
+@pytest.mark.slow
+def test_a_diverging_optimiser_is_an_error_that_says_so():
+    """An optax step far too long sends the parameters to inf/NaN: the fit raises a
+    FloatingPointError naming the optimiser and what to try (before, the closed form's value check
+    fired inside the compiled fit with "inertia has a non-positive principal moment")."""
+    ts = np.linspace(0.0, 20.0, 60)
+    w = np.asarray(rj.torque_free_omega(np.array([1.0, 2.0, 2.7]), np.array([0.3, 1.0, 0.2]), ts))
+    with pytest.raises(FloatingPointError, match="optax optimiser diverged.*levenberg-marquardt"):
+        rj.fit_inertia(ts, w, method="optax", optimizer=optax.sgd(1e3), steps=50)

@@ -121,12 +121,13 @@ def _body_arrays(t, *arrays):
     return [jnp.broadcast_to(a, body + a.shape[-1:]) for a in arrays], jnp.broadcast_shapes(body, t.shape)
 
 
-def _broadcast_inputs(inertia, omega0, t):
+def _broadcast_inputs(inertia, omega0, t, checked=True):
     inertia, omega0, t = common_float(inertia, omega0, t, names=["inertia", "omega0", "t"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
     check_batch_shapes("torque_free_omega", ("inertia", inertia, 1), ("omega0", omega0, 1), ("t", t, 0))
-    inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_omega")
+    if checked:
+        inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_omega")
     (inertia, omega0), batch = _body_arrays(t, inertia, omega0)
     return inertia, omega0, t, batch
 
@@ -209,7 +210,14 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     the broadcast of the bodies' batch axes with ``t``'s shape. NaN or inf in any input raises at run
     time.
     """
-    inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t)
+    return _torque_free_omega(inertia, omega0, t, checked=True)
+
+
+def _torque_free_omega(inertia, omega0, t, *, checked):
+    """:func:`torque_free_omega`; ``checked=False`` leaves out its run-time value checks (equinox
+    errors, host callbacks: JAX's persistent cache keeps no program that holds one) for callers
+    whose values are valid by construction, such as the fit's parametrised moments."""
+    inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t, checked)
     steady = _steady(inertia, omega0)
     # A generic body stands in for steady ones (the elliptic parametrisation is singular there: its
     # amplitudes are square roots of zero), whose motion and derivatives are _steady_omega's.
@@ -439,7 +447,7 @@ def _flow_matrices(i_sg, w_sg, t_sg):
     return flow, drive
 
 
-def _broadcast_motion_inputs(inertia, omega0, q0, t):
+def _broadcast_motion_inputs(inertia, omega0, q0, t, checked=True):
     inertia, omega0, q0, t = common_float(inertia, omega0, q0, t, names=["inertia", "omega0", "q0", "t"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
@@ -447,8 +455,9 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t):
     check_batch_shapes(
         "torque_free_motion", ("inertia", inertia, 1), ("omega0", omega0, 1), ("q0", q0, 1), ("t", t, 0)
     )
-    inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_motion")
-    q0 = check_rotation_quaternion(q0, "q0", "torque_free_motion")
+    if checked:
+        inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_motion")
+        q0 = check_rotation_quaternion(q0, "q0", "torque_free_motion")
     (inertia, omega0, q0), batch = _body_arrays(t, inertia, omega0, q0)
     return inertia, omega0, q0, t, batch
 
@@ -505,7 +514,12 @@ def torque_free_motion(
     ``q(0) = q0`` (the same sign as integrating ``dq/dt = q (0, omega) / 2``). Non-physical moments
     and NaN or inf inputs raise at run time.
     """
-    inertia, omega0, q0, t, batch = _broadcast_motion_inputs(inertia, omega0, q0, t)
+    return _torque_free_motion(inertia, omega0, q0, t, checked=True)
+
+
+def _torque_free_motion(inertia, omega0, q0, t, *, checked):
+    """:func:`torque_free_motion`; ``checked=False`` as in :func:`_torque_free_omega`."""
+    inertia, omega0, q0, t, batch = _broadcast_motion_inputs(inertia, omega0, q0, t, checked)
     dtype = inertia.dtype
     steady = _steady(inertia, omega0)
     # A generic body stands in for steady ones, whose motion is below: no 0/0 in the general branch.

@@ -222,6 +222,12 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         if callback is not None:
             _ACTIVE.pop()
     p, history, n_steps, converged, covariance, final_loss, rms = out
+    if not bool(jnp.all(jnp.isfinite(p))):
+        raise FloatingPointError(
+            f"the {method} optimiser diverged: its parameters turned NaN or inf within {int(n_steps)} "
+            "iterations. Try method='levenberg-marquardt', a smaller learning rate, or more segments "
+            "(shorter windows) for a long record."
+        )
     if callback is not None and callback.print_lines:
         verdict = "converged" if bool(converged) else "not converged (the iteration limit or a stall)"
         print(f"fit: {int(n_steps)} iterations, loss {float(final_loss):.6e}, {verdict}", file=sys.stderr)

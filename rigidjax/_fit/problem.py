@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._closed_form.torque_free import torque_free_motion, torque_free_omega
+from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.equations import _euler_equations
 from .._dynamics.models import State, _total_torque
 from .._integrate.driver import solve
@@ -135,7 +135,7 @@ class _Problem(eqx.Module):
         moments, axes = self.tensor_parts(p_inertia)
         if axes is not None:
             w0 = w0 @ axes  # sensor -> principal components: axes^T w0
-        omega = torque_free_omega(moments, w0[:, None, :], self.t)
+        omega = _torque_free_omega(moments, w0[:, None, :], self.t, checked=False)
         if axes is not None:
             omega = omega @ axes.T
         return omega
@@ -197,11 +197,11 @@ class _Problem(eqx.Module):
         if self.torque is not None:
             return self.integrate_orientation(self.inertia(p_inertia), w0, q0)
         if axes is None:
-            return torque_free_motion(moments, w0[:, None, :], q0[:, None, :], self.t)[1]
+            return _torque_free_motion(moments, w0[:, None, :], q0[:, None, :], self.t, checked=False)[1]
         # The principal frame is the sensor frame turned by the rotation vector p_inertia[2:].
         q_axes = _quat_exp(p_inertia[2:5])
-        q_principal = torque_free_motion(
-            moments, (w0 @ axes)[:, None, :], _quat_multiply(q0, q_axes)[:, None, :], self.t
+        q_principal = _torque_free_motion(
+            moments, (w0 @ axes)[:, None, :], _quat_multiply(q0, q_axes)[:, None, :], self.t, checked=False
         )[1]
         return _quat_multiply(q_principal, _quat_conjugate(q_axes))
 
