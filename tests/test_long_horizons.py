@@ -502,3 +502,29 @@ def test_zero_torque_zero_duration_single_time(extreme):
         None,
         "",
     )
+
+
+@pytest.mark.slow
+def test_default_step_limit_grows_with_the_turns(extreme):
+    """3183 turns of a fast spinner (2000 rad/s for 10 s) at "precise" take ~1.1e5 steps, more than
+    the fixed 1e5 limit allowed: the default limit now scales with the turns (100 per turn, a power of
+    two), the run succeeds and matches the closed form; the old limit, passed explicitly, still stops
+    with the error that names it."""
+    body = rj.FreeBody(jnp.array([1.0, 2.0, 3.0]))
+    state = rj.State(jnp.array([20.0, 1.0, 2000.0]), jnp.asarray(IDENTITY))
+    ts = jnp.array([0.0, 10.0])
+    trajectory = rj.simulate(body, state, ts, accuracy="precise")
+    assert int(np.max(trajectory.stats["num_steps"])) > 100_000
+    reference = rj.torque_free_motion(body.inertia, state.omega, state.orientation, ts[-1])
+    assert np.max(np.abs(trajectory.omega[-1] - reference[0])) <= 1e-9 * 2000.0
+    assert np.max(np.abs(trajectory.orientation[-1] - reference[1])) <= 1e-8
+    extreme(
+        "long horizon",
+        "3183 turns at 2000 rad/s, accuracy='precise', default max_steps",
+        "the default step limit grows with the turns: the run completes",
+        float(np.max(np.abs(trajectory.omega[-1] - reference[0])) / 2000.0),
+        1e-9,
+        "a longer run or a faster body raises the default limit; under jit pass max_steps",
+    )
+    with pytest.raises(Exception, match="max_steps=100000"):
+        rj.simulate(body, state, ts, accuracy="precise", max_steps=100_000)
