@@ -390,3 +390,16 @@ def test_a_diverging_optimiser_is_an_error_that_says_so():
     w = np.asarray(rj.torque_free_omega(np.array([1.0, 2.0, 2.7]), np.array([0.3, 1.0, 0.2]), ts))
     with pytest.raises(FloatingPointError, match="optax optimiser diverged.*levenberg-marquardt"):
         rj.fit_inertia(ts, w, method="optax", optimizer=optax.sgd(1e3), steps=50)
+
+
+@pytest.mark.slow
+def test_a_known_torque_that_cannot_be_integrated_is_an_error_that_says_so():
+    """A record of 2e4 s (~30,000 turns) needs far more than the fit's 200,000 integration steps per
+    window: the loss at the start is inf, Levenberg–Marquardt stops at once, and the fit raises a
+    FloatingPointError saying the motion could not be integrated and what to do (segments)."""
+    inertia = np.array([0.02, 0.04, 0.05])
+    ts = np.linspace(0.0, 2e4, 240)
+    w = np.asarray(rj.torque_free_omega(jnp.asarray(inertia), jnp.array([3.0, 0.5, 10.0]), jnp.asarray(ts)))
+    torque = rj.ConstantTorque(jnp.array([2e-9, -1e-9, 3e-9]))
+    with pytest.raises(FloatingPointError, match="could not be integrated.*segments"):
+        fit_inertia(ts, w, torque=torque, method="levenberg-marquardt", inertia_init=jnp.asarray(inertia))

@@ -222,7 +222,15 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         if callback is not None:
             _ACTIVE.pop()
     p, history, n_steps, converged, covariance, final_loss, rms = out
-    if not bool(jnp.all(jnp.isfinite(p))):
+    if not (bool(jnp.all(jnp.isfinite(p))) and bool(jnp.isfinite(final_loss))):
+        if problem.torque is not None:
+            raise FloatingPointError(
+                "the fit's loss is NaN or inf: with a known torque the motion could not be integrated "
+                f"over the record at the parameters reached after {int(n_steps)} iterations (more than "
+                "200,000 steps per window, or a torque that is NaN or inf there), or the optimiser "
+                "diverged. Use more segments (shorter windows), check the torque, or try "
+                "method='levenberg-marquardt'."
+            )
         raise FloatingPointError(
             f"the {method} optimiser diverged: its parameters turned NaN or inf within {int(n_steps)} "
             "iterations. Try method='levenberg-marquardt', a smaller learning rate, or more segments "

@@ -40,11 +40,13 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
     def body(carry):
         p, lam, i = carry["p"], carry["lam"], carry["i"]
         J, (r, raw) = jacobian(p)
-        finished = carry["finished"]
+        f = jnp.sum(r * r)
+        # Accepted steps have a finite loss, so only the start can have none (a known torque's
+        # integration that fails there): no step is tried, and the fit reports the loss.
+        finished = carry["finished"] | ~jnp.isfinite(f)
         g = J.T @ r
         A = J.T @ J
         d = jnp.maximum(jnp.diag(A), 1e-12 * jnp.max(jnp.diag(A)) + 1e-300)
-        f = jnp.sum(r * r)
 
         # Try the step, raising the damping until it lowers the loss (at most 12 tries).
         def retry_cond(c):

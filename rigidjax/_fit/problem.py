@@ -175,7 +175,9 @@ class _Problem(eqx.Module):
 
     def _solve_window(self, vector_field, y0, t, t_start):
         """One window's states at its sample times ``t`` (from 0): Dopri8 at rtol 1e-10 through
-        the package's one driver, raising if the solve fails."""
+        the package's one driver. A failed solve leaves its unreached samples at inf (the
+        optimisers reject such a step; the fit reports a non-finite final loss): no error callback
+        in the compiled fit, so JAX's persistent cache keeps it."""
         adjoint = diffrax.RecursiveCheckpointAdjoint() if self.reverse_mode else diffrax.ForwardMode()
         return solve(
             vector_field,
@@ -187,7 +189,6 @@ class _Problem(eqx.Module):
             args=t_start,
             adjoint=adjoint,
             max_steps=200_000,
-            throw=True,
         ).ys
 
     def predict_orientation(self, p):
