@@ -290,6 +290,38 @@ def fmt_table(headers, rows):
     return f"{line}\n{sep}\n{body}"
 
 
+def plot_scaling(path: str) -> str:
+    """Run time and memory against the number of bodies (the scaling section of ``path``), log-log,
+    with the linear trend through N = 10^4; written beside ``path`` as ``<stem>.png``."""
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(path) as f:
+        rows = json.load(f)["scaling"]
+    n = np.array([r["spec"]["n"] for r in rows], float)
+    run = np.array([r["run_s"] for r in rows])
+    peak = np.array([r["mem"]["peak_minus_baseline"] / 2**20 for r in rows])
+    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(9, 3.6))
+    ax_t.loglog(n, run, "o-", label="simulate, balanced")
+    anchor = int(np.argmin(np.abs(n - 1e4)))
+    ax_t.loglog(n, run[anchor] * n / n[anchor], "k:", label="linear in N")
+    ax_t.set(xlabel="bodies N", ylabel="run time (s, compile excluded)", title="Time, T = 20 s")
+    ax_t.legend()
+    ax_m.loglog(n, peak, "s-", color="C1")
+    ax_m.set(xlabel="bodies N", ylabel="peak memory above baseline (MiB)", title="Memory (whole process)")
+    for ax in (ax_t, ax_m):
+        ax.grid(True, which="both", alpha=0.3)
+    fig.suptitle(f"rigidjax.simulate scaling, tennis-racket scene, {rows[0]['spec']['dtype']}, 2-core CPU")
+    fig.tight_layout()
+    out = os.path.splitext(path)[0] + ".png"
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument(
@@ -303,7 +335,14 @@ def main():
     ap.add_argument("--shard-pairs", type=int, default=5, help="alternating 1-device / 2-device runs")
     ap.add_argument("--merge", action="store_true", help="update the sections run in an existing --out JSON")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--plot", default=None, metavar="JSON", help="only draw JSON's scaling plot (PNG beside it)"
+    )
     a = ap.parse_args()
+
+    if a.plot is not None:
+        print(plot_scaling(a.plot))
+        return
 
     if a.worker is not None:
         print("RESULT " + json.dumps(worker(json.loads(a.worker))), flush=True)
@@ -413,6 +452,9 @@ def main():
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     with open(out, "w") as f:
         json.dump(results, f, indent=1)
+
+    if "scaling" in results:
+        print("plot:", plot_scaling(out))
 
     # ------------------------------------------------------------------ tables
     if "scaling" in results:
