@@ -9,6 +9,7 @@ from types import MappingProxyType
 from typing import Any
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -34,6 +35,24 @@ per turn of a body spinning at 2000 rad/s, so this leaves about 3x headroom (als
 estimate's tighter second solve)."""
 
 
+def _spread_over_processes(x) -> bool:
+    """An array of a batch sharded over several processes: its values cannot be fetched here."""
+    return isinstance(x, jax.Array) and not x.is_fully_addressable
+
+
+def _largest_norm(omega0) -> float:
+    if _spread_over_processes(omega0):  # reduced on the devices: every process gets the same value
+        return float(jax.jit(lambda w: jnp.max(jnp.linalg.norm(w, axis=-1)))(omega0))
+    return float(np.max(np.linalg.norm(np.asarray(omega0, np.float64), axis=-1)))
+
+
+def _span(ts) -> float:
+    if _spread_over_processes(ts):
+        return float(jax.jit(lambda t: t[-1] - t[0])(ts))
+    ts = np.asarray(ts, np.float64)
+    return float(ts[-1] - ts[0])
+
+
 def default_max_steps(omega0, ts) -> int:
     """The step limit per chunk when the caller names none: ``STEPS_PER_TURN`` steps per turn of the
     fastest body over the span of ``ts`` (``max|omega0| (ts[-1] - ts[0]) / 2 pi`` turns), at least
@@ -45,10 +64,10 @@ def default_max_steps(omega0, ts) -> int:
     values = known_values((omega0, ts))
     if values is None:
         return MIN_MAX_STEPS
-    omega0, ts = (np.asarray(v, np.float64) for v in values)
+    omega0, ts = values
     if omega0.size == 0 or ts.shape[0] < 2:
         return MIN_MAX_STEPS
-    turns = float(np.max(np.linalg.norm(omega0, axis=-1))) * float(ts[-1] - ts[0]) / (2 * np.pi)
+    turns = _largest_norm(omega0) * _span(ts) / (2 * np.pi)
     need = STEPS_PER_TURN * turns
     if not np.isfinite(need) or need <= MIN_MAX_STEPS:  # non-finite input is reported by the checks
         return MIN_MAX_STEPS
