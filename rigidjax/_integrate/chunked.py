@@ -123,6 +123,7 @@ def _integrate_traced(
                 adjoint=adjoint,
                 max_steps=max_steps,
                 event=formulation.event(),
+                save_fn=formulation.save_fn,
             )
             omega, q = formulation.outputs(solution.ys, values, leaves, s)
             return omega, q, solution.result, solution.num_steps

@@ -141,6 +141,7 @@ def solve(
     max_steps: int = 100_000,
     event: diffrax.Event | None = None,
     throw: bool = False,
+    save_fn: Callable | None = None,
 ) -> Solution:
     """Integrates ``dy/dt = vector_field(t, y, args)`` from ``y0`` and samples it at ``ts``.
 
@@ -159,6 +160,8 @@ def solve(
     - `max_steps`: the step limit; reaching it is the result ``MAX_STEPS_REACHED``.
     - `event`: a diffrax ``Event`` that stops the solve (result ``EVENT_OCCURRED``).
     - `throw`: raise on failure instead of returning the result code.
+    - `save_fn`: ``save_fn(t, y, args)``, what is kept of the state at each sample time (None: the
+      state itself), as diffrax's ``SaveAt(fn=...)``.
 
     **Returns:** a :class:`Solution` with the states at ``ts``.
     """
@@ -171,7 +174,7 @@ def solve(
             dt0,
             y0,
             args=args,
-            saveat=diffrax.SaveAt(ts=ts),
+            saveat=diffrax.SaveAt(ts=ts) if save_fn is None else diffrax.SaveAt(ts=ts, fn=save_fn),
             stepsize_controller=stepsize_controller,
             adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
             max_steps=max_steps,

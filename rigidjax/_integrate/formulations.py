@@ -114,10 +114,18 @@ class ScaledODE(eqx.Module):
 
         return diffrax.Event(near_lock)
 
+    @staticmethod
+    def save_fn(t, y, args):
+        """Each sample is kept bodies-first, ``(bodies, components)``: transposing one sample (a few
+        kB, in cache) as it is saved is far cheaper than transposing the whole ``(T, components,
+        bodies)`` record afterwards (10^4 bodies, 800 samples: "fast" 1.22 -> 0.84 s, "balanced"
+        1.77 -> 1.47 s)."""
+        return tuple(None if x is None else x.T for x in y)
+
     def outputs(self, ys, values, leaves, sigma):
-        u, attitude = ys  # (T, components, bodies)
-        omega = jnp.transpose(u, (2, 0, 1)) * sigma[:, None, :]
-        q = None if attitude is None else jnp.transpose(attitude, (2, 0, 1))
+        u, attitude = ys  # (T, bodies, components): saved transposed by save_fn
+        omega = jnp.transpose(u, (1, 0, 2)) * sigma[:, None, :]
+        q = None if attitude is None else jnp.transpose(attitude, (1, 0, 2))
         if self.euler_seq is not None:
             q = _quat_from_euler(q, self.euler_seq)
         return omega, q
@@ -127,6 +135,7 @@ class LieGroupODE(eqx.Module):
     """RKMK on ``(omega, q)``, bodies first; scenes without an orientation carry the identity."""
 
     uses_scale: ClassVar[bool] = False
+    save_fn: ClassVar[None] = None  # the state is bodies-first already
 
     def prepare(self, values, leaves):
         return values
@@ -172,6 +181,7 @@ class SplittingODE(eqx.Module):
     order: int = eqx.field(static=True)
 
     uses_scale: ClassVar[bool] = False
+    save_fn: ClassVar[None] = None  # the state is bodies-first already
 
     def prepare(self, values, leaves):
         """The chunk's parameters by name and its principal frame, computed once per chunk: a tensor
