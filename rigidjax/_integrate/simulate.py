@@ -38,7 +38,7 @@ from . import progress as _progress
 from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
 from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
-from .presets import PRESETS, FaultStopPIDController, default_max_steps
+from .presets import MIN_MAX_STEPS, PRESETS, FaultStopPIDController, default_max_steps
 from .solvers import STRUCTURE_PRESERVING, HeavyTopSplitting, LiePoissonSplitting
 from .trajectory import Trajectory
 
@@ -310,8 +310,9 @@ def simulate(
     - `max_steps`: step limit per chunk; reaching it is an error (or NaN rows with
       ``throw=False``). Default: 100 steps per turn of the fastest body over the span of ``ts``
       (``max|omega0| (ts[-1] - ts[0]) / 2 pi`` turns), at least 1e5, rounded up to a power of two;
-      1e5 inside ``jit``, where the values are unknown. The limit costs no memory (reverse mode
-      keeps ``log(max_steps)`` checkpoints).
+      1e5 inside ``jit``, where the values are unknown, and with ``adjoint=diffrax.DirectAdjoint()``
+      (whose loop is sized by the limit). Otherwise the limit costs no memory (reverse mode keeps
+      ``log(max_steps)`` checkpoints).
     - `chunk_size`: bodies per shared-step chunk. Default: 1024 on CPU (cache-sized chunks run one
       after another), 65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk
       than as ten; ``benchmarks/README.md``).
@@ -409,7 +410,9 @@ def simulate(
     if chunk_size is None:
         chunk_size = 1024 if jax.default_backend() == "cpu" else 65536
     if max_steps is None:
-        max_steps = default_max_steps(omega0, ts)
+        # DirectAdjoint runs nested scans sized by max_steps: its cost grows with the limit.
+        direct = isinstance(adjoint, diffrax.DirectAdjoint)
+        max_steps = MIN_MAX_STEPS if direct else default_max_steps(omega0, ts)
     if max_steps < 1 or chunk_size < 1:
         raise ValueError("max_steps and chunk_size must be positive integers.")
     # The user's adjoint, or the one that works in the mode of differentiation (driver.default_adjoint).
