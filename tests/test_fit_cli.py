@@ -272,6 +272,7 @@ def test_spreadsheet_csv_with_quotes_bom_and_crlf_is_read(tmp_path):
     np.testing.assert_array_equal(omega, expected)
 
 
+@pytest.mark.slow
 def test_fit_program_is_kept_between_invocations(tmp_path):
     """With no cache directory chosen, ``rigidjax fit`` keeps its compiled fit in
     $XDG_CACHE_HOME/rigidjax/jax (the program holds no host callback, which JAX would refuse to
