@@ -27,6 +27,7 @@ from .._dynamics.models import GravityTorque, _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _default_optimizer, _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
+from .problem import WINDOW_MAX_STEPS
 from .result import InertiaFit
 
 _LOSSES = ("squared", "huber", "soft_l1", "cauchy")
@@ -227,8 +228,8 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
             raise FloatingPointError(
                 "the fit's loss is NaN or inf: with a known torque the motion could not be integrated "
                 f"over the record at the parameters reached after {int(n_steps)} iterations (more than "
-                "200,000 steps per window, or a torque that is NaN or inf there), or the optimiser "
-                "diverged. Use more segments (shorter windows), check the torque, or try "
+                f"{WINDOW_MAX_STEPS:,} steps per window, or a torque that is NaN or inf there), or the "
+                "optimiser diverged. Use more segments (shorter windows), check the torque, or try "
                 "method='levenberg-marquardt'."
             )
         raise FloatingPointError(

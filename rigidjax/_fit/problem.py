@@ -76,6 +76,10 @@ def _rotvec_from_matrix(R):
     return angle * axis
 
 
+WINDOW_MAX_STEPS = 200_000
+"""Step limit of one window's integration under a known torque."""
+
+
 class _Problem(eqx.Module):
     """Residuals of the fit as a function of one flat parameter vector (all in scaled units)."""
 
@@ -188,7 +192,7 @@ class _Problem(eqx.Module):
             stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
             args=t_start,
             adjoint=adjoint,
-            max_steps=200_000,
+            max_steps=WINDOW_MAX_STEPS,
         ).ys
 
     def predict_orientation(self, p):

@@ -40,15 +40,19 @@ def _spread_over_processes(x) -> bool:
     return isinstance(x, jax.Array) and not x.is_fully_addressable
 
 
+_largest_norm_on_devices = jax.jit(lambda w: jnp.max(jnp.linalg.norm(w, axis=-1)))
+_span_on_devices = jax.jit(lambda t: t[-1] - t[0])
+
+
 def _largest_norm(omega0) -> float:
     if _spread_over_processes(omega0):  # reduced on the devices: every process gets the same value
-        return float(jax.jit(lambda w: jnp.max(jnp.linalg.norm(w, axis=-1)))(omega0))
+        return float(_largest_norm_on_devices(omega0))
     return float(np.max(np.linalg.norm(np.asarray(omega0, np.float64), axis=-1)))
 
 
 def _span(ts) -> float:
     if _spread_over_processes(ts):
-        return float(jax.jit(lambda t: t[-1] - t[0])(ts))
+        return float(_span_on_devices(ts))
     ts = np.asarray(ts, np.float64)
     return float(ts[-1] - ts[0])
 
