@@ -154,6 +154,27 @@ def expect_error(fn, *words):
         assert word in text, f"{word!r} not in error message:\n{text}"
 
 
+def cli_in_fresh_cache(tmp_path, *args):
+    """A function that runs ``rigidjax <args>`` in a new process with no cache directory chosen (so
+    the command uses its own, ``$XDG_CACHE_HOME/rigidjax/jax`` under ``tmp_path``) and JAX's compile
+    log on, asserts it succeeded and returns ``(stdout, stderr)``."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
+    env["JAX_LOG_COMPILES"] = "1"
+    argv = [sys.executable, "-m", "rigidjax._cli", *args]
+
+    def run():
+        child = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        assert child.returncode == 0, child.stderr
+        return child.stdout, child.stderr
+
+    return run
+
+
 # --------------------------------------------------------------------------------------------------
 # Scene builders. Each draws from the generator it is given, in a fixed order, so that a test that
 # builds its scene from them gets the same bodies on every run.

@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import cli_in_fresh_cache
 
 import rigidjax
 from rigidjax._cli import main
@@ -591,22 +592,12 @@ def test_compiled_programs_are_kept_between_invocations(tmp_path):
     """With no cache directory chosen, the command keeps its programs in
     $XDG_CACHE_HOME/rigidjax/jax, the integration among them (it holds no host callback, which JAX
     would refuse to store); a second run of the same scene loads it instead of compiling it."""
-    import os
-    import subprocess
-
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
-    env["JAX_LOG_COMPILES"] = "1"
-    argv = [sys.executable, "-m", "rigidjax._cli", "simulate", "--scene", "free", "-n", "8"]
-    argv += ["--duration", "1", "--samples", "5", "--out", str(tmp_path / "x.npz"), "--no-plot", "-q"]
-
-    def run():
-        child = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600)
-        assert child.returncode == 0, child.stderr
-        return child.stderr
-
+    run = cli_in_fresh_cache(
+        tmp_path, "simulate", "--scene", "free", "-n", "8", "--duration", "1", "--samples", "5",
+        "--out", str(tmp_path / "x.npz"), "--no-plot", "-q",
+    )  # fmt: skip
     run()
     cache = tmp_path / "xdg" / "rigidjax" / "jax"
     assert any("integrate_traced" in p.name for p in cache.iterdir()), sorted(p.name for p in cache.iterdir())
-    second = run()
+    _, second = run()
     assert "Persistent compilation cache hit for 'jit__integrate_traced'" in second

@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from helpers import cli_in_fresh_cache
 
 import rigidjax as rj
 from rigidjax._cli import main
@@ -277,23 +278,11 @@ def test_fit_program_is_kept_between_invocations(tmp_path):
     """With no cache directory chosen, ``rigidjax fit`` keeps its compiled fit in
     $XDG_CACHE_HOME/rigidjax/jax (the program holds no host callback, which JAX would refuse to
     store); a second run on the same record loads it instead of compiling it, and prints the same fit."""
-    import os
-    import subprocess
-    import sys
-
     ts = np.linspace(0.0, 20.0, 60)
     w = np.asarray(rj.torque_free_omega(np.array([1.0, 2.0, 2.7]), np.array([0.3, 1.0, 0.2]), ts))
     data = tmp_path / "gyro.csv"
     write_csv(data, ts, w + 1e-3 * np.random.default_rng(0).standard_normal(w.shape))
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
-    env["JAX_LOG_COMPILES"] = "1"
-    argv = [sys.executable, "-m", "rigidjax._cli", "fit", str(data), "--no-plot", "-q"]
-
-    def run():
-        child = subprocess.run(argv, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600)
-        assert child.returncode == 0, child.stderr
-        return child.stdout, child.stderr
+    run = cli_in_fresh_cache(tmp_path, "fit", str(data), "--no-plot", "-q")
 
     first_out, first_log = run()
     assert "Persistent compilation cache hit for 'jit__run'" not in first_log
