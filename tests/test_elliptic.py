@@ -252,6 +252,23 @@ def test_ellipj_relative_accuracy_of_small_cn_dn_near_separatrix():
     assert np.max(ulp(dn, ref[2]) / us) <= 3
 
 
+@pytest.mark.parametrize("p", [0.5 - 1e-12, 0.5, 0.5 + 1e-12, 0.1, 1e-40])
+def test_ellipj_across_its_seams_matches_mpmath(p):
+    """The Jacobi functions switch formulas at m = 1/2 (ordinary to complementary nome) and, above
+    it, at |u| = K/2, 3K/2, ... (direct to quarter-period shifted): on either side of each seam they
+    agree with mpmath to a few ulp of the conditioning |f| + |u df/du|."""
+    with mpmath.workdps(60):
+        quarter = float(mpmath.ellipk(1 - mpmath.mpf(p)))
+    seams = quarter * np.array([0.5, 1.5, -2.5, 7.5])
+    us = np.concatenate(
+        [seams * (1 - 1e-13), seams, seams * (1 + 1e-13), quarter * np.array([1.0, 2.0, -3.0])]
+    )
+    ours = call("ellipj_m1", us, p)
+    ref = mp_jacobi(p, tuple(us))
+    err = ulp(ours, ref, jacobi_scale(ref, us, 1 - p))
+    assert np.max(err) <= 4, np.max(err, axis=1)
+
+
 def test_ellipj_special_parameters():
     u = np.linspace(-30, 30, 41)
     sn, cn, dn, am = call("ellipj", u, 0.0)

@@ -17,11 +17,13 @@ for every ``p = 1 - m`` down to the smallest normal number.
 Algorithms:
 
 - ``ellipk``, ``ellipkm1``: the arithmetic-geometric mean, ``K = pi / (2 AGM(1, sqrt(p)))``.
-- ``ellipj``, ``ellipj_m1``: the descending Landen (Gauss) transformation driven by the same AGM, in
-  the ratio form of Numerical Recipes' ``sncndn``, rewritten homogeneously so that no intermediate
-  overflows or divides by zero. It works on ratios of positive numbers rather than on the amplitude
-  angle, so ``cn`` and ``dn`` keep their *relative* accuracy near ``m = 1`` (where both are tiny,
-  ``~ sech(u)``), unlike the angle recurrence of Abramowitz & Stegun 16.4 / cephes.
+- ``ellipj``, ``ellipj_m1``: theta series (DLMF 22.2) in a nome of at most ``exp(-pi)``: the ordinary
+  nome for ``m <= 1/2``, the complementary one (Jacobi's imaginary transformation) above, so three
+  or four terms reach double precision and each ``u`` costs one ``sin``/``cos`` or ``sinh``/``cosh``
+  pair. The nome comes from its series in the modulus (no second AGM), the argument is reduced to
+  a quarter period, and near ``u = K`` the functions are shifted by a quarter period, so ``cn`` and
+  ``dn`` keep their *relative* accuracy near ``m = 1`` (where both are tiny, ``~ sech(u)``), unlike
+  the angle recurrence of Abramowitz & Stegun 16.4 / cephes.
 - ``ellipe``, ``ellipkinc``, ``ellipeinc``: Carlson's symmetric integrals ``R_F`` and ``R_D`` by
   duplication (DLMF 19.36), combined so that every term is positive for ``0 <= m <= 1`` (one of the
   forms of DLMF 19.25(ii)): no cancellation near ``m = 1``, where ``F`` diverges but ``E`` is finite.
@@ -327,32 +329,127 @@ def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
 # Jacobi elliptic functions
 
 
-def _jacobi_values(u, p):
-    """``(sn, cn, dn, am)`` by the descending Landen transformation (NR ``sncndn``), ``0 <= m < 1``.
+# AGM(1, sqrt(b)) for b >= 1/2: the relative gap 0.29 -> 1e-2 -> 1.4e-5 -> 2.4e-11 -> 7e-23.
+_AGM_STEPS_HALF = {np.dtype(np.float32): 4, np.dtype(np.float64): 5}
 
-    With ``a_n, b_n`` the AGM of ``(1, sqrt(p))`` and ``v = a_N u = pi u / (2 K)``, the ratio
-    ``cn/sn`` at level ``n`` is kept as ``X / Y`` with ``Y = sin(v)`` throughout and ``X`` starting at
-    ``a_N cos(v)``; going up one level multiplies ``X`` by the previous ``dn`` and sets
-    ``dn = (b_{n-1} a_n Y^2 + X^2) / (a_{n-1} a_n Y^2 + X^2)``. Every quantity is a ratio of
-    nonnegative terms, so nothing cancels, overflows or divides by zero (for ``p > 0``).
+
+def _agm_limit(root):
+    """``AGM(1, root)`` for ``root >= sqrt(1/2)``."""
+    a, b = jnp.ones_like(root), root
+    for _ in range(_steps(_AGM_STEPS_HALF, root.dtype)):
+        a, b = 0.5 * (a + b), jnp.sqrt(a * b)
+    return a
+
+
+def _nome_parts(m, p):
+    """Per body: which side of ``m = 1/2``, ``AGM(1, sqrt(b))`` of the larger of ``b = m, p``, and the
+    nome ``q`` of the smaller (``q = exp(-pi K'/K)`` for ``m <= 1/2``, ``q' = exp(-pi K/K')`` above),
+    with ``L = -log q'``.
+
+    The nome comes from its series in ``lambda = (1 - b^(1/4)) / (2 (1 + b^(1/4)))`` (DLMF 22.2.2,
+    Whittaker & Watson 21.71): ``q = lambda + 2 lambda^5 + 15 lambda^9 + 150 lambda^13 + 1707 lambda^17``,
+    exact to rounding for ``lambda <= 0.0432`` (``b >= 1/2``). ``1 - b^(1/4)`` is formed as
+    ``(1 - b) / ((1 + sqrt b)(1 + b^(1/4)))``, so the nome keeps its relative accuracy for a ``1 - b``
+    down to the smallest normal number, where ``K`` grows like ``log(4 / sqrt(1 - b))``.
     """
-    a_seq, b_seq, a_lim = _agm_sequence(p)
-    v = a_lim * u
-    y = jnp.sin(v)
-    x = a_lim * jnp.cos(v)
-    dn = jnp.ones_like(u)
-    y2 = y * y
-    a_next = a_lim
-    for a_n, b_n in zip(reversed(a_seq), reversed(b_seq), strict=True):
-        x2 = x * x
-        dn_new = (b_n * a_next * y2 + x2) / (a_n * a_next * y2 + x2)
-        x = x * dn
-        dn = dn_new
-        a_next = a_n
-    h = jnp.hypot(x, y)
-    sn, cn = y / h, x / h
-    # am - v is periodic and |am - v| < pi/2 (both pass through j pi/2 at u = j K): unwrap atan2.
-    theta = jnp.arctan2(y, x)
+    upper = m > 0.5
+    big = jnp.where(upper, m, p)
+    small = jnp.where(upper, p, m)
+    root = jnp.sqrt(big)
+    quarter = jnp.sqrt(root)
+    agm = _agm_limit(root)
+    lam = 0.5 * small / ((1 + root) * (1 + quarter) ** 2)
+    l4 = lam**4
+    excess = l4 * (2 + l4 * (15 + l4 * (150 + l4 * 1707)))
+    nome = lam * (1 + excess)
+    positive = lam > 0
+    log_nome = jnp.where(positive, jnp.log(jnp.where(positive, lam, 1.0)) + jnp.log1p(excess), -jnp.inf)
+    return upper, agm, nome, -log_nome
+
+
+def _guarded(coefficient, x):
+    """``coefficient * x`` where a power of the nome that underflows to 0 meets an ``x`` that
+    overflows: the power reaches 0 long before ``x`` reaches inf, and the term is then 0."""
+    return jnp.where(coefficient == 0, jnp.zeros_like(x), coefficient * x)
+
+
+def _jacobi_values(u, m, p):
+    """``(sn, cn, dn, am)`` for ``0 <= m <= 1``, ``p = 1 - m``, from theta series in a nome of at most
+    ``exp(-pi)`` (DLMF 22.2.4-6, 20.2.1-4): three or four terms reach double precision
+    (``q^12 < 5e-17``). The per-body parameters (``m``, ``p`` of fewer axes than ``u``) are computed
+    once, not per ``u``.
+
+    - ``m <= 1/2``: the theta functions of ``z = pi u / (2 K)`` and the ordinary nome.
+    - ``m > 1/2``: Jacobi's imaginary transformation (DLMF 22.6.20, ``sn(u|m) = -i sc(iu|1-m)``), the
+      complementary nome ``q' = exp(-L)`` and the hyperbolic functions of ``y = pi t / (2 K')``. ``u``
+      is reduced to ``r`` in ``[-K, K]`` (``sn``, ``cn`` change sign with each half period ``2K``);
+      where ``|r| > K/2`` the functions are evaluated at ``t = K - |r|`` and shifted by a quarter
+      period (DLMF 22.4.3: ``sn = cd``, ``cn = k' sd``, ``dn = k' nd``). So ``y <= L/4`` (no overflow
+      up to ``m = 1 - 1e-300``), and ``cn``, ``dn`` keep their relative accuracy where they are tiny,
+      near ``u = K`` close to the separatrix. At ``m = 1`` (``q' = 0``, ``K = inf``) this is
+      ``(tanh u, sech u, sech u)``.
+
+    Both sides share one set of series: the odd harmonics ``sin((2n+1) z) / sin z``,
+    ``cos((2n+1) z) / cos z`` and the even ones ``cos(2 n z)`` are the same polynomials in ``cos(z)^2``
+    as their hyperbolic counterparts in ``cosh(y)^2``. ``theta_1``, ``theta_2`` are divided by their
+    common ``2 q^(1/4)`` and written as ``sin z``, ``cos z`` times those polynomials, so ``sn`` and ``cn``
+    keep their relative accuracy at their zeros.
+    """
+    upper, agm, q, big_l = _nome_parts(m, p)
+    # m > 1/2: the reduction to a quarter period (K = L K' / pi)
+    half = jnp.where(upper, big_l, jnp.pi) / (2 * agm)
+    reduce = upper & jnp.isfinite(half)
+    turns = jnp.where(reduce, jnp.round(u / jnp.where(reduce, 2 * half, 1.0)), jnp.zeros_like(u))
+    r = jnp.where(reduce, u - 2 * half * turns, u)
+    flip = 1 - 2 * jnp.mod(turns, 2)
+    a = jnp.abs(r)
+    near = a <= half / 2
+    y = jnp.where(near, a, half - a) * agm
+    # tanh y and sech y from exp and expm1 (2 ulp; XLA's sinh and cosh are off by up to 9 ulp)
+    e2 = jnp.expm1(-2 * y)
+    e = jnp.exp(-y)
+    z = u * agm
+    odd_sin = jnp.where(upper, -e2 / (2 + e2), jnp.sin(z))  # tanh y | sin z
+    odd_cos = jnp.where(upper, 2 * e / (1 + e * e), jnp.cos(z))  # sech y | cos z
+    c2 = jnp.where(upper, 1 / (odd_cos * odd_cos), odd_cos * odd_cos)  # cosh(y)^2 | cos(z)^2
+    q2 = q * q
+    q4 = q2 * q2
+    q6, q9, q12 = q4 * q2, q4 * q4 * q, q4 * q4 * q4
+    odd_s = 1 - _guarded(q2, 4 * c2 - 1) + _guarded(q6, (16 * c2 - 12) * c2 + 1)
+    odd_s = odd_s - _guarded(q12, ((64 * c2 - 80) * c2 + 24) * c2 - 1)
+    odd_c = 1 + _guarded(q2, 4 * c2 - 3) + _guarded(q6, (16 * c2 - 20) * c2 + 5)
+    odd_c = odd_c + _guarded(q12, ((64 * c2 - 112) * c2 + 56) * c2 - 7)
+    cos2 = jnp.where(upper, 2 * c2 - 1, 1 - 2 * odd_sin * odd_sin)
+    cos4 = 2 * cos2 * cos2 - 1
+    cos6 = 2 * cos2 * cos4 - cos2
+    e1, e2, e3 = _guarded(q, cos2), _guarded(q4, cos4), _guarded(q9, cos6)
+    even3 = 1 + 2 * (e1 + e2 + e3)
+    even4 = 1 + 2 * (-e1 + e2 - e3)
+    odd_c0 = 1 + q2 + q6 + q12
+    even3_0 = 1 + 2 * (q + q4 + q9)
+    even4_0 = 1 + 2 * (-q + q4 - q9)
+    # m <= 1/2: sn = th3 th1 / (th2 th4), cn = th4 th2 / (th2 th4), dn = th4 th3 / (th3 th4) at z and 0;
+    # m > 1/2: the same with the roles of theta_2 and theta_4 exchanged (sc, nc, dc of 1 - m).
+    den = jnp.where(upper, odd_c, even4)
+    sn = even3_0 / jnp.where(upper, even4_0, odd_c0) * odd_sin * odd_s / den
+    cn = jnp.where(upper, odd_c0 / even4_0 * even4, even4_0 / odd_c0 * odd_c) * odd_cos / den
+    dn = jnp.where(upper, odd_c0 / even3_0 * odd_cos, even4_0 / even3_0) * even3 / den
+    k_prime = jnp.sqrt(p)
+    shift = upper & ~near
+    sn, cn, dn = (
+        jnp.where(shift, cn / dn, sn),
+        jnp.where(shift, k_prime * sn / dn, cn),
+        jnp.where(shift, k_prime / dn, dn),
+    )
+    sign = jnp.where(upper, flip, jnp.ones_like(flip))
+    # sn^2 + cn^2 = 1 to rounding (each is within ~1.5 ulp; the sum of squares would be ~5 ulp off).
+    # At q = 0 (m = 0: sin, cos; m = 1: tanh, sech) the values are those functions as they are.
+    norm = jnp.where(q > 0, jnp.hypot(sn, cn), jnp.ones_like(sn))
+    sn = sign * jnp.where(upper, jnp.sign(r), jnp.ones_like(r)) * sn / norm
+    cn = sign * cn / norm
+    # am - v is periodic and |am - v| < pi/2 with v = pi u / (2 K): unwrap atan2 about v.
+    v = u * jnp.where(upper, jnp.pi * agm / jnp.where(upper, big_l, 1.0), agm)
+    theta = jnp.arctan2(sn, cn)
     am = theta + (2 * jnp.pi) * jnp.round((v - theta) / (2 * jnp.pi))
     return sn, cn, dn, am
 
@@ -367,24 +464,10 @@ def _tanh_sech(u):
     return -jnp.sign(u) * e1 / (2 + e1), 2 * e / (1 + e * e)
 
 
-def _jacobi_m1(u):
-    """The ``m = 1`` limits: ``(tanh, sech, sech, gd)``, finite for any ``u``."""
-    t, sech = _tanh_sech(u)
-    return t, sech, sech, 2 * jnp.arctan(_tanh_sech(u / 2)[0])
-
-
 @jax.custom_jvp
 def _ellipj(u, m, p):
     """``(sn, cn, dn, am)`` with ``p = 1 - m``; the derivative uses the tangents of ``u`` and ``m``."""
-    m1 = p == 0
-    m0 = m == 0
-    p_safe = jnp.where(m1, jnp.ones_like(p), p)
-    general = _jacobi_values(u, p_safe)
-    circular = (jnp.sin(u), jnp.cos(u), jnp.ones_like(u), u)
-    hyperbolic = _jacobi_m1(u)
-    return tuple(
-        jnp.where(m1, h, jnp.where(m0, c, g)) for g, c, h in zip(general, circular, hyperbolic, strict=True)
-    )
+    return _jacobi_values(u, m, p)
 
 
 @functools.partial(_ellipj.defjvp, symbolic_zeros=True)
