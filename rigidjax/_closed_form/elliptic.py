@@ -19,11 +19,12 @@ Algorithms:
 - ``ellipk``, ``ellipkm1``: the arithmetic-geometric mean, ``K = pi / (2 AGM(1, sqrt(p)))``.
 - ``ellipj``, ``ellipj_m1``: theta series (DLMF 22.2) in a nome of at most ``exp(-pi)``: the ordinary
   nome for ``m <= 1/2``, the complementary one (Jacobi's imaginary transformation) above, so three
-  or four terms reach double precision and each ``u`` costs one ``sin``/``cos`` or ``sinh``/``cosh``
-  pair. The nome comes from its series in the modulus (no second AGM), the argument is reduced to
-  a quarter period, and near ``u = K`` the functions are shifted by a quarter period, so ``cn`` and
-  ``dn`` keep their *relative* accuracy near ``m = 1`` (where both are tiny, ``~ sech(u)``), unlike
-  the angle recurrence of Abramowitz & Stegun 16.4 / cephes.
+  or four terms reach double precision and each ``u`` costs a ``sin``/``cos`` and an
+  ``exp``/``expm1`` pair (both sides are evaluated, then one is selected). The nome comes from its
+  series in the modulus (no second AGM), the argument is reduced to a quarter period, and near
+  ``u = K`` the functions are shifted by a quarter period, so ``cn`` and ``dn`` keep their *relative*
+  accuracy near ``m = 1`` (where both are tiny, ``~ sech(u)``), unlike the angle recurrence of
+  Abramowitz & Stegun 16.4 / cephes.
 - ``ellipe``, ``ellipkinc``, ``ellipeinc``: Carlson's symmetric integrals ``R_F`` and ``R_D`` by
   duplication (DLMF 19.36), combined so that every term is positive for ``0 <= m <= 1`` (one of the
   forms of DLMF 19.25(ii)): no cancellation near ``m = 1``, where ``F`` diverges but ``E`` is finite.
@@ -406,10 +407,10 @@ def _jacobi_values(u, m, p):
     near = a <= half / 2
     y = jnp.where(near, a, half - a) * agm
     # tanh y and sech y from exp and expm1 (2 ulp; XLA's sinh and cosh are off by up to 9 ulp)
-    e2 = jnp.expm1(-2 * y)
+    expm1_2y = jnp.expm1(-2 * y)
     e = jnp.exp(-y)
     z = u * agm
-    odd_sin = jnp.where(upper, -e2 / (2 + e2), jnp.sin(z))  # tanh y | sin z
+    odd_sin = jnp.where(upper, -expm1_2y / (2 + expm1_2y), jnp.sin(z))  # tanh y | sin z
     odd_cos = jnp.where(upper, 2 * e / (1 + e * e), jnp.cos(z))  # sech y | cos z
     c2 = jnp.where(upper, 1 / (odd_cos * odd_cos), odd_cos * odd_cos)  # cosh(y)^2 | cos(z)^2
     q2 = q * q
