@@ -64,18 +64,16 @@ from .carlson import (
 # Iteration counts, checked against mpmath for p = 1 - m down to 1e-300 (float64) / 1e-38 (float32).
 # AGM(1, sqrt(p)): the ratio b/a goes 1e-150 -> 2e-75 -> ... -> 1 - 4e-25 in 12 steps.
 _AGM_STEPS = {np.dtype(np.float32): 9, np.dtype(np.float64): 13}
+# AGM(1, sqrt(b)) for b >= 1/2: the relative gap 0.29 -> 1e-2 -> 1.4e-5 -> 2.4e-11 -> 7e-23.
+_AGM_STEPS_HALF = {np.dtype(np.float32): 4, np.dtype(np.float64): 5}
 
 
-def _agm_sequence(p):
-    """AGM of ``(1, sqrt(p))``: the lists ``a_0..a_{N-1}``, ``b_0..b_{N-1}`` and the limit ``a_N``."""
-    a = jnp.ones_like(p)
-    b = jnp.sqrt(p)
-    a_seq, b_seq = [], []
-    for _ in range(_steps(_AGM_STEPS, p.dtype)):
-        a_seq.append(a)
-        b_seq.append(b)
+def _agm(root, steps=_AGM_STEPS):
+    """``AGM(1, root)`` after the number of steps that ``steps`` gives for ``root``'s dtype."""
+    a, b = jnp.ones_like(root), root
+    for _ in range(_steps(steps, root.dtype)):
         a, b = 0.5 * (a + b), jnp.sqrt(a * b)
-    return a_seq, b_seq, a
+    return a
 
 
 def _is_zero(tangent) -> bool:
@@ -106,7 +104,7 @@ def _as_pair(m_or_p, name: str, complementary: bool):
 def _ellipk(m, p):
     """``K(m)`` from the AGM. ``m`` only enters the derivative; the value uses ``p = 1 - m``."""
     del m
-    value = (jnp.pi / 2) / _agm_sequence(p)[2]
+    value = (jnp.pi / 2) / _agm(jnp.sqrt(p))
     return jnp.where(p == 0, jnp.inf, value)
 
 
@@ -330,18 +328,6 @@ def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
 # Jacobi elliptic functions
 
 
-# AGM(1, sqrt(b)) for b >= 1/2: the relative gap 0.29 -> 1e-2 -> 1.4e-5 -> 2.4e-11 -> 7e-23.
-_AGM_STEPS_HALF = {np.dtype(np.float32): 4, np.dtype(np.float64): 5}
-
-
-def _agm_limit(root):
-    """``AGM(1, root)`` for ``root >= sqrt(1/2)``."""
-    a, b = jnp.ones_like(root), root
-    for _ in range(_steps(_AGM_STEPS_HALF, root.dtype)):
-        a, b = 0.5 * (a + b), jnp.sqrt(a * b)
-    return a
-
-
 def _nome_parts(m, p):
     """Per body: which side of ``m = 1/2``, ``AGM(1, sqrt(b))`` of the larger of ``b = m, p``, and the
     nome ``q`` of the smaller (``q = exp(-pi K'/K)`` for ``m <= 1/2``, ``q' = exp(-pi K/K')`` above),
@@ -358,7 +344,7 @@ def _nome_parts(m, p):
     small = jnp.where(upper, p, m)
     root = jnp.sqrt(big)
     quarter = jnp.sqrt(root)
-    agm = _agm_limit(root)
+    agm = _agm(root, _AGM_STEPS_HALF)
     lam = 0.5 * small / ((1 + root) * (1 + quarter) ** 2)
     l4 = lam**4
     excess = l4 * (2 + l4 * (15 + l4 * (150 + l4 * 1707)))
@@ -406,12 +392,10 @@ def _jacobi_values(u, m, p):
     a = jnp.abs(r)
     near = a <= half / 2
     y = jnp.where(near, a, half - a) * agm
-    # tanh y and sech y from exp and expm1 (2 ulp; XLA's sinh and cosh are off by up to 9 ulp)
-    expm1_2y = jnp.expm1(-2 * y)
-    e = jnp.exp(-y)
+    tanh, sech = _tanh_sech(y)  # 2 ulp; XLA's sinh and cosh are off by up to 9 ulp
     z = u * agm
-    odd_sin = jnp.where(upper, -expm1_2y / (2 + expm1_2y), jnp.sin(z))  # tanh y | sin z
-    odd_cos = jnp.where(upper, 2 * e / (1 + e * e), jnp.cos(z))  # sech y | cos z
+    odd_sin = jnp.where(upper, tanh, jnp.sin(z))
+    odd_cos = jnp.where(upper, sech, jnp.cos(z))
     c2 = jnp.where(upper, 1 / (odd_cos * odd_cos), odd_cos * odd_cos)  # cosh(y)^2 | cos(z)^2
     q2 = q * q
     q4 = q2 * q2
