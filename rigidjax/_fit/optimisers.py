@@ -26,72 +26,80 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
     parameters, many residuals).
 
     Returns ``(p, history, iterations, converged, J, r, raw)`` with the Jacobian, the residuals and
-    the raw residuals at the final ``p``. The Jacobian appears once in the program (at the top of
-    the loop body; the loop runs one extra, step-free pass to evaluate it at the final point), which
-    halves the compile time against evaluating it again after the loop. The residuals come with it
-    (the primal of the forward-mode pass), so the model is not evaluated again outside the loop.
+    the raw residuals at the final ``p``. The model appears once in the program: every pass of the
+    loop evaluates the Jacobian with the residuals (the primal of the forward-mode pass) at one
+    trial point, the first pass at ``p0``. An accepted trial's Jacobian is the next iteration's, and
+    a rejected trial only raises the damping, so no pass evaluates the model twice at one point and
+    there is no separate, residual-only copy of the model to compile.
     """
     jacobian = _jacobian_with_residuals(problem)
     n = problem.count()
+    max_tries = 12  # damping raised fourfold per rejected trial
+
+    def proposal(J, r, lam):
+        g = J.T @ r
+        A = J.T @ J
+        d = jnp.maximum(jnp.diag(A), 1e-12 * jnp.max(jnp.diag(A)) + 1e-300)
+        step = jnp.linalg.solve(A + lam * jnp.diag(d), -g)
+        return step, g
 
     def cond(carry):
         return ~carry["exit"]
 
     def body(carry):
-        p, lam, i = carry["p"], carry["lam"], carry["i"]
-        J, (r, raw) = jacobian(p)
-        f = jnp.sum(r * r)
-        # Accepted steps have a finite loss, so only the start can have none (a known torque's
-        # integration that fails there): no step is tried, and the fit reports the loss.
-        finished = carry["finished"] | ~jnp.isfinite(f)
-        g = J.T @ r
-        A = J.T @ J
-        d = jnp.maximum(jnp.diag(A), 1e-12 * jnp.max(jnp.diag(A)) + 1e-300)
+        J_t, (r_t, raw_t) = jacobian(carry["trial"])
+        f_t = jnp.sum(r_t * r_t)
+        first = carry["first"]
+        p, f, lam, i = carry["p"], carry["f"], carry["lam"], carry["i"]
+        improved = ~first & jnp.isfinite(f_t) & (f_t < f)
+        # An iteration ends when its trial lowers the loss or its last trial fails.
+        resolved = ~first & (improved | (carry["tries"] + 1 >= max_tries))
+        take = first | improved
+        p_next = jnp.where(take, carry["trial"], p)
+        f_next = jnp.where(take, f_t, f)
+        J = jnp.where(take, J_t, carry["J"])
+        r = jnp.where(take, r_t, carry["r"])
+        raw = jnp.where(take, raw_t, carry["raw"])
 
-        # Try the step, raising the damping until it lowers the loss (at most 12 tries).
-        def retry_cond(c):
-            _, _, f_new, tries = c
-            return ~finished & ((tries == 0) | (~(f_new < f) & (tries < 12)))
-
-        def retry_body(c):
-            lam, _, _, tries = c
-            lam = jnp.where(tries == 0, lam, lam * 4.0)
-            step = jnp.linalg.solve(A + lam * jnp.diag(d), -g)
-            r_new = problem.residuals(p + step)
-            return lam, step, jnp.sum(r_new * r_new), tries + 1
-
-        init = (lam, jnp.zeros_like(p), jnp.asarray(jnp.inf, f.dtype), 0)
-        lam, step, f_new, _ = jax.lax.while_loop(retry_cond, retry_body, init)
-        improved = ~finished & jnp.isfinite(f_new) & (f_new < f)
-        p_next = jnp.where(improved, p + step, p)
-        f_next = jnp.where(improved, f_new, f)
-        lam = jnp.where(improved, jnp.maximum(lam / 5.0, 1e-12), lam)
         small_change = (f - f_next) <= tol * f_next
-        small_step = jnp.max(jnp.abs(step)) <= tol * (1.0 + jnp.max(jnp.abs(p)))
-        tiny_gradient = jnp.max(jnp.abs(g)) <= tol * tol * (f + 1e-300)
-        converged = (improved & (small_change | small_step)) | tiny_gradient
+        small_step = jnp.max(jnp.abs(carry["trial"] - p)) <= tol * (1.0 + jnp.max(jnp.abs(p)))
+        converged = (improved & (small_change | small_step)) | carry["tiny_gradient"]
         # No damping makes the step lower the loss: a minimum to roundoff if the last accepted step
         # barely changed the loss, a failure otherwise.
-        stalled = ~finished & ~improved
-        converged = converged | (stalled & (carry["last_decrease"] <= jnp.sqrt(tol)))
+        stalled = resolved & ~improved
+        converged = resolved & (converged | (stalled & (carry["last_decrease"] <= jnp.sqrt(tol))))
         decrease = jnp.where(improved, (f - f_next) / jnp.maximum(f_next, 1e-300), carry["last_decrease"])
-        history = jnp.where(finished, carry["history"], carry["history"].at[i].set(f_next / n))
-        if callback is not None:  # not in the step-free pass after the last step
+        history = jnp.where(resolved, carry["history"].at[i].set(f_next / n), carry["history"])
+        if callback is not None:
 
             def report():
                 jax.debug.callback(callback, i + 1, f_next / n, jnp.linalg.norm(p_next - p), ordered=True)
 
-            jax.lax.cond(finished, lambda: None, report)
-        i_next = jnp.where(finished, i, i + 1)
+            jax.lax.cond(resolved, report, lambda: None)
+        i_next = jnp.where(resolved, i + 1, i)
+        # Accepted steps have a finite loss, so only the start can have none (a known torque's
+        # integration that fails there): no step is tried, and the fit reports the loss.
+        finished = (first & ((steps <= 0) | ~jnp.isfinite(f_t))) | (
+            resolved & (converged | stalled | (i_next >= steps))
+        )
+        lam_next = jnp.where(
+            improved, jnp.maximum(lam / 5.0, 1e-12), jnp.where(first | resolved, lam, lam * 4.0)
+        )
+        step, g = proposal(J, r, lam_next)
+        tiny_gradient = jnp.max(jnp.abs(g)) <= tol * tol * (f_next + 1e-300)
+        starts = first | resolved  # a new iteration from p_next: its gradient decides tiny_gradient
         return {
+            "trial": p_next + step,
+            "first": jnp.asarray(False),
+            "exit": finished,
             "p": p_next,
-            "lam": lam,
+            "f": f_next,
+            "lam": lam_next,
+            "tries": jnp.where(starts, 0, carry["tries"] + 1),
+            "tiny_gradient": jnp.where(starts, tiny_gradient, carry["tiny_gradient"]),
             "i": i_next,
             "history": history,
-            # The pass after the last step only evaluates J at the final point.
-            "exit": finished,
-            "finished": finished | converged | stalled | (i_next >= steps),
-            "converged": carry["converged"] | (~finished & converged),
+            "converged": carry["converged"] | converged,
             "last_decrease": decrease,
             "J": J,
             "r": r,
@@ -101,12 +109,16 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
     r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
     false = jnp.asarray(False)
     init = {
+        "trial": p0,
+        "first": jnp.asarray(True),
+        "exit": false,
         "p": p0,
+        "f": jnp.asarray(jnp.inf, p0.dtype),
         "lam": jnp.asarray(1.0, p0.dtype),
+        "tries": jnp.asarray(0),
+        "tiny_gradient": false,
         "i": jnp.asarray(0),
         "history": jnp.full((steps,), jnp.nan, p0.dtype),
-        "exit": false,
-        "finished": jnp.asarray(steps <= 0),
         "converged": false,
         "last_decrease": jnp.asarray(jnp.inf, p0.dtype),
         "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
@@ -178,7 +190,12 @@ sample and fit more to run (1800 samples: 0.43 -> 1.4 s), so the two break even 
 def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callback):
     """Minimises the mean loss with an optax optimiser until it stops changing (over the last ten
     iterations) or ``steps`` run out. Returns ``(p, history, iterations, converged, J, r, raw)`` with
-    the Jacobian, the residuals and the raw residuals at the final ``p``."""
+    the Jacobian, the residuals and the raw residuals at the final ``p``.
+
+    With forward-mode gradients each pass of the loop evaluates the Jacobian with the residuals at
+    its ``p`` and takes the loss and its gradient from them; one pass after the last step evaluates
+    it at the optimum. The program then holds the model twice (here and in a line search's trial
+    evaluations) rather than three times (a separate first gradient and a final Jacobian besides)."""
     optimizer = optax.with_extra_args_support(optimizer)
     state0 = optimizer.init(p0)
     try:  # line-search optimisers (L-BFGS) keep the last value and gradient in their state
@@ -190,43 +207,88 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     # A long record makes the run dominate: there the gradient is taken in reverse mode.
     forward = not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
     loss = _forward_mode_loss(problem, jacobian) if forward else problem.loss
-    if reuses_value:
-        value_and_grad = optax.value_and_grad_from_state(loss)
-    else:
+    n = problem.count()
+    # Converged when the loss has stopped changing over the last ten iterations. An integrated
+    # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump), so
+    # changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move by
+    # ~1e-4 of their standard errors).
+    loss_tol = tol if problem.torque is None else max(tol, 1e-8)
 
-        def value_and_grad(p, state):
-            del state
-            return jax.value_and_grad(loss)(p)
-
-    def cond(carry):
-        _, _, i, _, done, _ = carry
-        return (i < steps) & ~done
-
-    def body(carry):
-        p, state, i, history, _, previous = carry
-        value, grad = value_and_grad(p, state=state)
+    def advance(p, state, i, history, previous, value, grad):
         updates, state = optimizer.update(grad, state, p, value=value, grad=grad, value_fn=loss)
         p = optax.apply_updates(p, updates)
         history = history.at[i].set(value)
         if callback is not None:
             step_norm = jnp.sqrt(sum(jnp.sum(u * u) for u in jax.tree_util.tree_leaves(updates)))
             jax.debug.callback(callback, i + 1, value, step_norm, ordered=True)
-        # Converged when the loss has stopped changing over the last ten iterations. An integrated
-        # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump),
-        # so changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move
-        # by ~1e-4 of their standard errors).
-        loss_tol = tol if problem.torque is None else max(tol, 1e-8)
         previous = previous.at[i % 10].set(value)
         spread = jnp.max(previous) - jnp.min(previous)
         done = (i >= 10) & (spread <= loss_tol * jnp.abs(value))
-        return p, state, i + 1, history, done, previous
+        return p, state, i + 1, history, previous, done
 
     history = jnp.full((steps,), jnp.nan, p0.dtype)
     recent = jnp.full((10,), jnp.inf, p0.dtype)
-    init = (p0, state0, jnp.asarray(0), history, jnp.asarray(False), recent)
-    p, _, i, history, done, _ = jax.lax.while_loop(cond, body, init)
-    J, (r, raw) = jacobian(p)
-    return p, history, i, done, J, r, raw
+
+    if not forward:
+        if reuses_value:
+            value_and_grad = optax.value_and_grad_from_state(loss)
+        else:
+
+            def value_and_grad(p, state):
+                del state
+                return jax.value_and_grad(loss)(p)
+
+        def cond(carry):
+            *_, i, _, _, done = carry
+            return (i < steps) & ~done
+
+        def body(carry):
+            p, state, i, history, previous, _ = carry
+            value, grad = value_and_grad(p, state=state)
+            return advance(p, state, i, history, previous, value, grad)
+
+        init = (p0, state0, jnp.asarray(0), history, recent, jnp.asarray(False))
+        p, _, i, history, _, done = jax.lax.while_loop(cond, body, init)
+        J, (r, raw) = jacobian(p)
+        return p, history, i, done, J, r, raw
+
+    def forward_cond(carry):
+        return ~carry["exit"]
+
+    def forward_body(carry):
+        J, (r, raw) = jacobian(carry["p"])
+        value = jnp.sum(r * r) / n
+        grad = 2.0 * (J.T @ r) / n
+        keys = ("p", "state", "i", "history", "previous", "done")
+        moved = jax.lax.cond(
+            carry["finished"],
+            lambda: tuple(carry[k] for k in keys),
+            lambda: advance(*(carry[k] for k in keys[:-1]), value, grad),
+        )
+        out = dict(zip(keys, moved, strict=True))
+        # The pass after the last step only evaluates the Jacobian at the optimum.
+        out["exit"] = carry["finished"]
+        out["finished"] = out["done"] | (out["i"] >= steps)
+        out.update(J=J, r=r, raw=raw)
+        return out
+
+    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
+    false = jnp.asarray(False)
+    init = {
+        "p": p0,
+        "state": state0,
+        "i": jnp.asarray(0),
+        "history": history,
+        "previous": recent,
+        "done": false,
+        "exit": false,
+        "finished": jnp.asarray(steps <= 0),
+        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
+        "r": jnp.zeros(r0.shape, r0.dtype),
+        "raw": jnp.zeros(raw0.shape, raw0.dtype),
+    }
+    out = jax.lax.while_loop(forward_cond, forward_body, init)
+    return out["p"], out["history"], out["i"], out["done"], out["J"], out["r"], out["raw"]
 
 
 def _forward_mode_loss(problem: _Problem, jacobian):
