@@ -241,8 +241,60 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         verdict = "converged" if bool(converged) else "not converged (the iteration limit or a stall)"
         print(f"fit: {int(n_steps)} iterations, loss {float(final_loss):.6e}, {verdict}", file=sys.stderr)
     inertia_trace, known_moment = scale
-    omega_scale = data.omega_scale
     segments = data.starts.shape[0]
+
+    values = _user_values(
+        problem,
+        p,
+        covariance,
+        jnp.asarray(data.omega_scale, dtype),
+        None if inertia_trace is None else jnp.asarray(inertia_trace, dtype),
+        None if known_moment is None else (int(known_moment[0]), jnp.asarray(known_moment[1], dtype)),
+    )
+    inertia, w0_fit, inertia_stderr, w0_stderr, q0, q0_stderr, evals, evecs = values
+    initial = jnp.asarray(data.inertia_start, dtype)
+    if inertia_trace is not None:
+        initial = initial * inertia_trace
+    elif known_moment is not None:
+        diag0 = np.diag(data.inertia_start) if full_tensor else data.inertia_start
+        initial = initial * (known_moment[1] / diag0[known_moment[0]])
+    one = (lambda x: x[0]) if segments == 1 else (lambda x: x)
+    if problem.q_reference is not None:
+        orientation0, orientation0_stderr = one(q0), one(q0_stderr)
+    else:
+        orientation0 = orientation0_stderr = None
+    unit2 = data.residual_unit**2
+    return InertiaFit(
+        inertia=inertia,
+        omega0=one(w0_fit),
+        loss=final_loss * unit2,
+        history=history[: int(n_steps)] * unit2,
+        converged=converged,
+        num_steps=int(n_steps),
+        inertia_stderr=inertia_stderr,
+        omega0_stderr=one(w0_stderr),
+        orientation0=orientation0,
+        orientation0_stderr=orientation0_stderr,
+        principal_moments=evals,
+        principal_axes=evecs,
+        residual_rms=rms * data.residual_unit,
+        noise_estimate=jnp.asarray(data.noise, dtype),
+        segment_starts=jnp.asarray(data.starts, dtype),
+        initial_inertia=initial,
+        covariance=covariance,
+        normalised=inertia_trace is None and known_moment is None and problem.torque is None,
+        method=method,
+        torque=problem.torque,
+    )
+
+
+@eqx.filter_jit
+def _user_values(problem, p, covariance, omega_scale, inertia_trace, known_moment):
+    """The fit in the user's units from the scaled parameters ``p``: inertia, omega0, their standard
+    errors, the initial orientations of an orientation fit with theirs (else None), and the principal
+    moments and axes (a proper rotation). One compiled program rather than a few hundred eager
+    operations, each compiled on its own at a first fit."""
+    full_tensor = problem.full_tensor
 
     def user_values(p):
         p_inertia, w0, dq = problem.split(p)
@@ -257,7 +309,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
 
     # The covariance is that of the scaled parameters (dimensionless z, omega0 / omega_scale, the
     # orientation corrections in rad); user_values' Jacobian carries the units.
-    inertia, w0_fit, _ = user_values(p)
+    inertia, w0_fit, dq = user_values(p)
     jac_inertia, jac_w0, jac_dq = jax.jacfwd(user_values)(p)
 
     def stderr(jac):
@@ -267,42 +319,12 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
 
     tensor = inertia if full_tensor else jnp.diag(inertia)
     evals, evecs = jnp.linalg.eigh(tensor)
-    evecs = evecs * jnp.where(jnp.linalg.det(evecs) < 0, jnp.array([-1.0, 1.0, 1.0], dtype), 1.0)
-    initial = jnp.asarray(data.inertia_start, dtype)
-    if inertia_trace is not None:
-        initial = initial * inertia_trace
-    elif known_moment is not None:
-        diag0 = np.diag(data.inertia_start) if full_tensor else data.inertia_start
-        initial = initial * (known_moment[1] / diag0[known_moment[0]])
-    one = (lambda x: x[0]) if segments == 1 else (lambda x: x)
-    if problem.q_reference is not None:
-        q0 = problem.initial_orientations(problem.split(p)[2])
-        orientation0, orientation0_stderr = one(q0), one(stderr(jac_dq))
+    evecs = evecs * jnp.where(jnp.linalg.det(evecs) < 0, jnp.array([-1.0, 1.0, 1.0], p.dtype), 1.0)
+    if problem.q_reference is None:
+        q0 = q0_stderr = None
     else:
-        orientation0 = orientation0_stderr = None
-    unit2 = data.residual_unit**2
-    return InertiaFit(
-        inertia=inertia,
-        omega0=one(w0_fit),
-        loss=final_loss * unit2,
-        history=history[: int(n_steps)] * unit2,
-        converged=converged,
-        num_steps=int(n_steps),
-        inertia_stderr=stderr(jac_inertia),
-        omega0_stderr=one(stderr(jac_w0)),
-        orientation0=orientation0,
-        orientation0_stderr=orientation0_stderr,
-        principal_moments=evals,
-        principal_axes=evecs,
-        residual_rms=rms * data.residual_unit,
-        noise_estimate=jnp.asarray(data.noise, dtype),
-        segment_starts=jnp.asarray(data.starts, dtype),
-        initial_inertia=initial,
-        covariance=covariance,
-        normalised=inertia_trace is None and known_moment is None and problem.torque is None,
-        method=method,
-        torque=problem.torque,
-    )
+        q0, q0_stderr = problem.initial_orientations(dq), stderr(jac_dq)
+    return inertia, w0_fit, stderr(jac_inertia), stderr(jac_w0), q0, q0_stderr, evals, evecs
 
 
 _COMMON_ARGS_DOC = """\
