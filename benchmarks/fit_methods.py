@@ -7,7 +7,7 @@ Records (synthetic, from the closed-form torque-free motion; 2 % gyro noise, def
   earth  (C - A)/A = 3.3e-3 in SI units, 3 wobble periods (~2.5 years), 240 samples.
 
 Sections
-  1 methods     LM (the default) vs optax L-BFGS vs optax Adam (lr 1e-2) from the same data-driven
+  1 methods     LM vs optax L-BFGS (the default) vs optax Adam (lr 1e-2) from the same data-driven
                 start: iterations, wall time after compile (median of --repeats), compile time,
                 final loss, error against the truth in units of the standard error.
   2 derivatives the Jacobian of the residuals (what LM needs) by jacfwd vs jacrev, and the gradient of
@@ -70,7 +70,7 @@ def timed(fn, repeats):
 def methods_section(repeats):
     rows = []
     configs = {
-        "levenberg-marquardt": {},
+        "levenberg-marquardt": {"method": "levenberg-marquardt"},
         "optax L-BFGS": {"method": "optax"},
         "optax Adam 1e-2": {"optimizer": optax.adam(1e-2), "steps": 5000},
     }

@@ -340,10 +340,12 @@ _COMMON_ARGS_DOC = """\
     - `full_tensor`: fit a full tensor in sensor axes (principal moments and axes) instead of
       principal moments about the sensor axes.
     - `method`: ``"optax"`` (default: `optimizer` on the mean robust squared residual, the gradient
-      by reverse mode) or ``"levenberg-marquardt"`` (Gauss–Newton with damping, the Jacobian by
+      through the residuals' forward-mode Jacobian up to 4096 samples, by reverse mode beyond and
+      with a known torque) or ``"levenberg-marquardt"`` (Gauss–Newton with damping, the Jacobian by
       forward mode: few parameters, many residuals). Both reach the same optimum; Levenberg–Marquardt
-      needs 4-15x fewer iterations and is ~2.5x faster per fit once compiled (0.2 s vs 0.5-0.6 s on a
-      240-sample record, ``benchmarks/fit_methods.py``): pass it when fitting many records.
+      needs 5-17x fewer iterations, compiles faster (5-6 s vs 6.5-8 s) and runs up to 2x faster once
+      compiled (0.35 s vs 0.74 s on an 1800-sample record in 45 windows; about equal on 240 samples,
+      ``benchmarks/fit_methods.py`` on a 2-core CPU): pass it when fitting many records.
     - `optimizer`: any optax ``GradientTransformation`` (default ``optax.lbfgs()``) for ``"optax"``.
       It is part of the compiled fit: pass the same object again to avoid a recompile.
     - `steps`: iteration limit (default 200 for Levenberg–Marquardt, 2000 for optax).

@@ -192,10 +192,13 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     iterations) or ``steps`` run out. Returns ``(p, history, iterations, converged, J, r, raw)`` with
     the Jacobian, the residuals and the raw residuals at the final ``p``.
 
-    With forward-mode gradients each pass of the loop evaluates the Jacobian with the residuals at
-    its ``p`` and takes the loss and its gradient from them; one pass after the last step evaluates
-    it at the optimum. The program then holds the model twice (here and in a line search's trial
-    evaluations) rather than three times (a separate first gradient and a final Jacobian besides)."""
+    With forward-mode gradients and an optimiser without a line search (Adam, SGD, ...) each pass
+    of the loop evaluates the Jacobian with the residuals at its ``p`` and takes the loss and its
+    gradient from them; one pass after the last step evaluates it at the optimum, so the program
+    holds the model once. A line search (L-BFGS) evaluates the model at its own trial points and
+    keeps the value and gradient of the accepted one in its state; the loop reuses them, and the
+    Jacobian at the optimum is evaluated after it (a Jacobian per iteration would cost more run
+    time, 0.71 -> 0.99 s on an 1800-sample record, than the compile time it saves, 0.3 s)."""
     optimizer = optax.with_extra_args_support(optimizer)
     state0 = optimizer.init(p0)
     try:  # line-search optimisers (L-BFGS) keep the last value and gradient in their state
@@ -229,7 +232,7 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     history = jnp.full((steps,), jnp.nan, p0.dtype)
     recent = jnp.full((10,), jnp.inf, p0.dtype)
 
-    if not forward:
+    if not forward or reuses_value:
         if reuses_value:
             value_and_grad = optax.value_and_grad_from_state(loss)
         else:
