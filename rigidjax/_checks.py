@@ -154,17 +154,28 @@ def raise_collected(failures) -> None:
 
 
 def error_if(x, condition, message: str):
-    """``eqx.error_if``, or a recorded condition inside :func:`collected_failures`."""
+    """``eqx.error_if``, or a recorded condition inside :func:`collected_failures`. A condition with
+    a value (an eager call, also under eager ``grad``) is checked here and raises ``ValueError``: no
+    program of its own to compile for each shape and message."""
     if _collected is not None:
         _collected.append((jnp.any(condition), None, (message,)))
+        return x
+    if not isinstance(condition, jax.core.Tracer):
+        if np.any(np.asarray(condition)):
+            raise ValueError(message)
         return x
     return eqx.error_if(x, condition, message)
 
 
 def branched_error_if(x, condition, index, messages):
-    """``eqx.branched_error_if``, or a recorded condition inside :func:`collected_failures`."""
+    """``eqx.branched_error_if``, or a recorded condition inside :func:`collected_failures`; checked
+    here (``ValueError``) when the condition has a value, as in :func:`error_if`."""
     if _collected is not None:
         _collected.append((jnp.any(condition), jnp.max(index), tuple(messages)))
+        return x
+    if not isinstance(condition, jax.core.Tracer) and not isinstance(index, jax.core.Tracer):
+        if np.any(np.asarray(condition)):
+            raise ValueError(messages[int(np.max(np.asarray(index)))])
         return x
     return eqx.branched_error_if(x, condition, index, messages)
 

@@ -15,7 +15,7 @@ import pytest
 import rigidjax as rj
 from rigidjax import convert
 
-RUNTIME = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)
+RUNTIME = (ValueError, eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)  # eager, and inside jit
 
 
 def _random_quats(shape, seed=0):

@@ -13,7 +13,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .._checks import check_batch_shapes, check_finite, check_last_axis, common_float
+from .._checks import check_batch_shapes, check_finite, check_last_axis, common_float, error_if
 from .._types import Inertia, Scalar, Vector
 from .equations import is_full_tensor
 from .inertia import check_inertia
@@ -119,7 +119,7 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
     - `inertia`: principal moments ``(..., 3)`` (kg m^2). A full tensor ``(..., 3, 3)`` is
       rejected with a ``ValueError``: diagonalise it with :func:`rigidjax.principal_axes` first.
       Non-physical moments (non-positive, violating the triangle inequality, NaN) are an error
-      (``equinox.error_if``, so also inside ``jit``).
+      (``ValueError``; ``equinox.error_if`` inside ``jit``).
     - `omega_magnitude`: spin rate ``Omega`` (rad/s), shape ``(...)``, broadcast against the batch
       axes of `inertia`; its sign does not matter.
 
@@ -199,8 +199,8 @@ def sleeping_top(
     centre of mass on the symmetry axis. The moments are checked to within `symmetry_rtol`
     (``|I1 - I2| <= symmetry_rtol * (I1 + I2) / 2``) and their mean is used as ``I1``; a more
     asymmetric top is an error (its upright stability is not given by this criterion), as is a
-    centre of mass off the body z axis (``|(com_x, com_y)| > symmetry_rtol * |com|``). These are
-    ``equinox.error_if`` checks, so they also run inside ``jit``. ``l = com_z`` is signed: with the
+    centre of mass off the body z axis (``|(com_x, com_y)| > symmetry_rtol * |com|``). These raise
+    ``ValueError`` (``equinox.error_if`` checks inside ``jit``). ``l = com_z`` is signed: with the
     centre of mass below the pivot (``l < 0``, a hanging top) the criterion holds at any spin.
 
     **Arguments:**
@@ -229,7 +229,7 @@ def sleeping_top(
         check_finite(x, name, "sleeping_top")
         for x, name in ((mass, "mass"), (com, "com"), (omega3, "omega3"), (gravity, "gravity"))
     )
-    mass = eqx.error_if(mass, jnp.any(mass <= 0), "sleeping_top: mass must be positive (kg).")
+    mass = error_if(mass, jnp.any(mass <= 0), "sleeping_top: mass must be positive (kg).")
     inertia = _principal_moments(inertia, "sleeping_top")
     check_batch_shapes(
         "sleeping_top",
@@ -237,7 +237,7 @@ def sleeping_top(
         ("gravity", gravity, 0),
     )
     I1, I2, I3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
-    I1 = eqx.error_if(
+    I1 = error_if(
         I1,
         jnp.abs(I1 - I2) > symmetry_rtol * 0.5 * (I1 + I2),
         f"sleeping_top: inertia must be that of a symmetric top, I1 = I2 (to a relative "
@@ -245,7 +245,7 @@ def sleeping_top(
         "top. Put the symmetry axis along body z, or raise symmetry_rtol to use (I1 + I2) / 2.",
     )
     transverse = jnp.sqrt(com[..., 0] ** 2 + com[..., 1] ** 2)
-    lever = eqx.error_if(
+    lever = error_if(
         com[..., 2],
         transverse > symmetry_rtol * jnp.sqrt(transverse**2 + com[..., 2] ** 2),
         "sleeping_top: com must lie on the symmetry axis, com = (0, 0, l) in body axes: a centre of "

@@ -8,11 +8,17 @@ body-to-world quaternion as rigidjax's; its ``qvel`` is ``(vx, vy, vz, wx, wy, w
 velocity in world components, then the angular velocity in BODY components, as rigidjax's ``omega``.
 """
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_batch_shapes, check_finite, check_last_axis, common_float, unit_tolerance
+from .._checks import (
+    check_batch_shapes,
+    check_finite,
+    check_last_axis,
+    common_float,
+    error_if,
+    unit_tolerance,
+)
 from .._dynamics.models import State
 
 __all__ = [
@@ -42,7 +48,7 @@ def _check_unit(q, name: str, where: str):
     q = check_finite(q, name, where)
     tol = unit_tolerance(q.dtype)
     off = jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0)
-    return eqx.error_if(q, jnp.any(off > tol), _not_unit_message(name, where, tol))
+    return error_if(q, jnp.any(off > tol), _not_unit_message(name, where, tol))
 
 
 def _unit(q, name: str, where: str):
@@ -65,7 +71,7 @@ def quat_to_scalar_last(q):
     **Returns:** the same quaternion(s), scalar last ``(x, y, z, w)``, shape ``(..., 4)``: the same
     numbers, reordered (so a round trip is exact). A last axis other than 4 raises ``ValueError``; NaN or
     inf, or a norm off 1 by more than ``1e-6`` (float64) / ``1e-4`` (float32), raises at run time
-    (``EquinoxRuntimeError``, also inside ``jit``), naming `q`.
+    (``ValueError``; ``EquinoxRuntimeError`` inside ``jit``), naming `q`.
     """
     return _unit(q, "q", "quat_to_scalar_last")[..., _TO_LAST]
 
@@ -195,7 +201,8 @@ def to_mujoco_free_joint(state: State, position=None, velocity=None):
     widest float of the inputs). For ``mujoco.MjData`` of one free body: ``data.qpos[:] = qpos``.
 
     A state without an orientation or wrong last-axis sizes raise ``ValueError`` naming the argument;
-    NaN or inf, or a non-unit orientation, raise at run time (``EquinoxRuntimeError``).
+    NaN or inf, or a non-unit orientation, raise at run time (``ValueError``; ``EquinoxRuntimeError``
+    inside ``jit``).
     """
     if not isinstance(state, State):
         raise TypeError(f"to_mujoco_free_joint: state must be a rigidjax.State, got {type(state).__name__}.")
@@ -262,7 +269,7 @@ def from_mujoco_free_joint(qpos, qvel):
 
     Wrong last-axis sizes raise ``ValueError`` naming the argument; NaN or inf, or a quaternion whose
     norm is off 1 by more than ``1e-6`` (float64) / ``1e-4`` (float32), raise at run time
-    (``EquinoxRuntimeError``).
+    (``ValueError``; ``EquinoxRuntimeError`` inside ``jit``).
     """
     where = "from_mujoco_free_joint"
     qpos, qvel = common_float(qpos, qvel, names=["qpos", "qvel"])

@@ -10,16 +10,16 @@ at ``cos(theta) = 0``. There only ``phi ± psi`` is defined: the conversions bac
 documented split ``psi = 0`` (all of the rotation in ``phi``) and never NaN, with finite gradients.
 
 Bad input: wrong shapes, complex or boolean dtypes and unknown sequences raise ``ValueError`` /
-``TypeError`` while tracing (integer arrays are promoted to float). At run time (``eqx.error_if``, so
-also under ``jit`` and ``vmap``) NaN or inf in any input raises, as do a zero quaternion in
-:func:`euler_from_quat` (any other ``q`` means the rotation of ``q / |q|``, as in scipy) and a
-matrix in :func:`euler_from_matrix` that is not a rotation (``max|R R^T - 1|`` beyond ``1e-6`` in
-float64, ``1e-4`` in float32, or ``det R < 0``; tiny non-orthogonality is accepted).
+``TypeError`` while tracing (integer arrays are promoted to float). At run time (``ValueError``
+for concrete inputs, ``eqx.error_if`` under ``jit`` and ``vmap``) NaN or inf in any input raises, as
+do a zero quaternion in :func:`euler_from_quat` (any other ``q`` means the rotation of
+``q / |q|``, as in scipy) and a matrix in :func:`euler_from_matrix` that is not a rotation
+(``max|R R^T - 1|`` beyond ``1e-6`` in float64, ``1e-4`` in float32, or ``det R < 0``; tiny
+non-orthogonality is accepted).
 :func:`euler_rates` with ``throw=False`` raises nothing and returns NaN instead.
 Rigidjax's own integrators call unchecked private cores (``_euler_from_quat``...).
 """
 
-import equinox as eqx
 import jax.numpy as jnp
 
 from .._checks import (
@@ -30,6 +30,7 @@ from .._checks import (
     check_rotation_matrix,
     check_rotation_quaternion,
     common_float,
+    error_if,
 )
 from .._numerics import eps, safe_atan2, safe_hypot
 from .._types import Angles, Matrix, MatrixOut, Quaternion, Vector, VectorOut
@@ -227,7 +228,7 @@ def _euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool
     unreachable = locked & (jnp.abs(jnp.sum(omega * n23, axis=-1)) > 64.0 * eps(omega.dtype) * scale)
     rates = jnp.where(locked[..., None], split, regular)
     if throw:
-        rates = eqx.error_if(
+        rates = error_if(
             rates,
             unreachable,
             f"euler_rates: the Euler angles are at gimbal lock for seq={seq!r} "

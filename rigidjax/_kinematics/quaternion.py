@@ -5,9 +5,9 @@ body-frame components to space-frame components, ``v_space = R @ v_body = quat_r
 ``q`` and ``-q`` are the same rotation.
 
 Bad input: wrong shapes and complex or boolean dtypes raise ``ValueError``/``TypeError`` while
-tracing; integer arrays are promoted to float. Values are checked at run time (``eqx.error_if``, so
-also under ``jit`` and ``vmap``): NaN or inf raises. A quaternion read as a rotation
-(:func:`matrix_from_quat`, :func:`quat_rotate`, :func:`quat_normalize`,
+tracing; integer arrays are promoted to float. Values are checked at run time (``ValueError`` for
+concrete inputs, ``eqx.error_if`` under ``jit`` and ``vmap``): NaN or inf raises. A quaternion read
+as a rotation (:func:`matrix_from_quat`, :func:`quat_rotate`, :func:`quat_normalize`,
 :func:`rigidjax.euler_from_quat`) means the rotation of ``q / |q|``, as in scipy's ``from_quat``:
 drift off unit norm, small or large, is normalised away (documented, not an error), and only a zero
 quaternion -- which is no rotation -- raises. (A *state* is stricter: :func:`rigidjax.simulate`
