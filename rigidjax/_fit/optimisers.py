@@ -190,15 +190,7 @@ sample and fit more to run (1800 samples: 0.43 -> 1.4 s), so the two break even 
 def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callback):
     """Minimises the mean loss with an optax optimiser until it stops changing (over the last ten
     iterations) or ``steps`` run out. Returns ``(p, history, iterations, converged, J, r, raw)`` with
-    the Jacobian, the residuals and the raw residuals at the final ``p``.
-
-    With forward-mode gradients and an optimiser without a line search (Adam, SGD, ...) each pass
-    of the loop evaluates the Jacobian with the residuals at its ``p`` and takes the loss and its
-    gradient from them; one pass after the last step evaluates it at the optimum, so the program
-    holds the model once. A line search (L-BFGS) evaluates the model at its own trial points and
-    keeps the value and gradient of the accepted one in its state; the loop reuses them, and the
-    Jacobian at the optimum is evaluated after it (a Jacobian per iteration would cost more run
-    time, 0.71 -> 0.99 s on an 1800-sample record, than the compile time it saves, 0.3 s)."""
+    the Jacobian, the residuals and the raw residuals at the final ``p``."""
     optimizer = optax.with_extra_args_support(optimizer)
     state0 = optimizer.init(p0)
     try:  # line-search optimisers (L-BFGS) keep the last value and gradient in their state
@@ -210,88 +202,43 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     # A long record makes the run dominate: there the gradient is taken in reverse mode.
     forward = not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
     loss = _forward_mode_loss(problem, jacobian) if forward else problem.loss
-    n = problem.count()
-    # Converged when the loss has stopped changing over the last ten iterations. An integrated
-    # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump), so
-    # changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move by
-    # ~1e-4 of their standard errors).
-    loss_tol = tol if problem.torque is None else max(tol, 1e-8)
+    if reuses_value:
+        value_and_grad = optax.value_and_grad_from_state(loss)
+    else:
 
-    def advance(p, state, i, history, previous, value, grad):
+        def value_and_grad(p, state):
+            del state
+            return jax.value_and_grad(loss)(p)
+
+    def cond(carry):
+        _, _, i, _, done, _ = carry
+        return (i < steps) & ~done
+
+    def body(carry):
+        p, state, i, history, _, previous = carry
+        value, grad = value_and_grad(p, state=state)
         updates, state = optimizer.update(grad, state, p, value=value, grad=grad, value_fn=loss)
         p = optax.apply_updates(p, updates)
         history = history.at[i].set(value)
         if callback is not None:
             step_norm = jnp.sqrt(sum(jnp.sum(u * u) for u in jax.tree_util.tree_leaves(updates)))
             jax.debug.callback(callback, i + 1, value, step_norm, ordered=True)
+        # Converged when the loss has stopped changing over the last ten iterations. An integrated
+        # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump),
+        # so changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move
+        # by ~1e-4 of their standard errors).
+        loss_tol = tol if problem.torque is None else max(tol, 1e-8)
         previous = previous.at[i % 10].set(value)
         spread = jnp.max(previous) - jnp.min(previous)
         done = (i >= 10) & (spread <= loss_tol * jnp.abs(value))
-        return p, state, i + 1, history, previous, done
+        return p, state, i + 1, history, done, previous
 
     history = jnp.full((steps,), jnp.nan, p0.dtype)
     recent = jnp.full((10,), jnp.inf, p0.dtype)
-
-    if not forward or reuses_value:
-        if reuses_value:
-            value_and_grad = optax.value_and_grad_from_state(loss)
-        else:
-
-            def value_and_grad(p, state):
-                del state
-                return jax.value_and_grad(loss)(p)
-
-        def cond(carry):
-            *_, i, _, _, done = carry
-            return (i < steps) & ~done
-
-        def body(carry):
-            p, state, i, history, previous, _ = carry
-            value, grad = value_and_grad(p, state=state)
-            return advance(p, state, i, history, previous, value, grad)
-
-        init = (p0, state0, jnp.asarray(0), history, recent, jnp.asarray(False))
-        p, _, i, history, _, done = jax.lax.while_loop(cond, body, init)
-        J, (r, raw) = jacobian(p)
-        return p, history, i, done, J, r, raw
-
-    def forward_cond(carry):
-        return ~carry["exit"]
-
-    def forward_body(carry):
-        J, (r, raw) = jacobian(carry["p"])
-        value = jnp.sum(r * r) / n
-        grad = 2.0 * (J.T @ r) / n
-        keys = ("p", "state", "i", "history", "previous", "done")
-        moved = jax.lax.cond(
-            carry["finished"],
-            lambda: tuple(carry[k] for k in keys),
-            lambda: advance(*(carry[k] for k in keys[:-1]), value, grad),
-        )
-        out = dict(zip(keys, moved, strict=True))
-        # The pass after the last step only evaluates the Jacobian at the optimum.
-        out["exit"] = carry["finished"]
-        out["finished"] = out["done"] | (out["i"] >= steps)
-        out.update(J=J, r=r, raw=raw)
-        return out
-
-    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
-    false = jnp.asarray(False)
-    init = {
-        "p": p0,
-        "state": state0,
-        "i": jnp.asarray(0),
-        "history": history,
-        "previous": recent,
-        "done": false,
-        "exit": false,
-        "finished": jnp.asarray(steps <= 0),
-        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
-        "r": jnp.zeros(r0.shape, r0.dtype),
-        "raw": jnp.zeros(raw0.shape, raw0.dtype),
-    }
-    out = jax.lax.while_loop(forward_cond, forward_body, init)
-    return out["p"], out["history"], out["i"], out["done"], out["J"], out["r"], out["raw"]
+    init = (p0, state0, jnp.asarray(0), history, jnp.asarray(False), recent)
+    p, _, i, history, done, _ = jax.lax.while_loop(cond, body, init)
+    J, (r, raw) = jacobian(p)
+    return p, history, i, done, J, r, raw
 
 
 def _forward_mode_loss(problem: _Problem, jacobian):
