@@ -180,6 +180,23 @@ def branched_error_if(x, condition, index, messages):
     return eqx.branched_error_if(x, condition, index, messages)
 
 
+def call_checked(program, failures, *args):
+    """``program(*args, checked=...)`` with its inputs' value checks done where they cost least.
+
+    Inputs with values (concrete, or the primal values of an eager ``grad`` or ``jvp``) are checked by
+    ``failures(*values)``, a compiled function that returns the recorded conditions (see
+    :func:`collected_failures`); a failed one raises ``ValueError`` here and ``program`` runs with
+    ``checked=False``. Neither program then holds a host callback, so JAX's persistent compilation
+    cache keeps both and a new process compiles nothing. Inputs without values (the user's ``jit``
+    or ``vmap``) run ``program`` with ``checked=True``: ``eqx.error_if`` checks in the program.
+    """
+    values = known_values(args)
+    if values is None:
+        return program(*args, checked=True)
+    raise_collected(failures(*values))
+    return program(*args, checked=False)
+
+
 def unit_tolerance(dtype) -> float:
     """How far ``R R^T`` may be from ``1`` for a matrix to count as a rotation: ``1e-6`` in float64,
     ``1e-4`` in lower precision. The same tolerance as :func:`rigidjax.simulate` uses for the norm of

@@ -543,3 +543,62 @@ def test_orientation_near_separatrix_against_taylor_integration():
     assert abs(reference[1]) < 1.9  # really mid-flip: omega has left the intermediate axis
     np.testing.assert_allclose(omega[0, 0], reference[:3], atol=1e-14)
     np.testing.assert_allclose(q[0, 0], reference[3:], atol=1e-14)
+
+
+_CLOSED_FORMS_SCRIPT = """
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+import rigidjax as rj
+inertia, omega0, q0 = np.array([1.0, 2.0, 2.5]), np.array([0.05, 4.0, 0.05]), np.array([1.0, 0.0, 0.0, 0.0])
+ts = np.linspace(0.0, 5.0, 11)
+rj.torque_free_motion(inertia, omega0, q0, ts)
+rj.torque_free_omega(inertia, omega0, ts)
+rj.torque_free_period(inertia, omega0)
+"""
+
+
+@pytest.mark.slow
+def test_closed_form_programs_are_kept_between_processes(tmp_path):
+    """The public closed forms called on concrete arrays hold no host callback (their value checks
+    are a program of their own that returns the failed conditions), so JAX's persistent cache keeps
+    their programs and a second process loads every one of them instead of compiling it."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path / "cache"), JAX_LOG_COMPILES="1")
+    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+
+    def run():
+        child = subprocess.run(
+            [sys.executable, "-c", _CLOSED_FORMS_SCRIPT], env=env, capture_output=True, text=True, timeout=300
+        )
+        assert child.returncode == 0, child.stderr
+        return child.stderr
+
+    run()
+    second = run()
+    for name in ("motion", "omega", "period"):
+        for program in (f"_{name}_program", f"_{name}_failures"):
+            hit = f"Persistent compilation cache hit for 'jit_{program}'"
+            assert hit in second, (program, second[-3000:])
+
+
+def test_eager_bad_values_raise_value_error_and_jit_keeps_its_checks():
+    """Concrete bad values raise ValueError before the computing program runs; inside the user's
+    jit (no values) the checks are in the program and still fire."""
+    bad_inertia = np.array([1.0, 2.0, 3.0 * (1 + 1e-12)])  # beyond the flat plate
+    with pytest.raises(ValueError, match="triangle inequality"):
+        torque_free_omega(bad_inertia, np.array([0.1, 1.0, 0.1]), 0.5)
+    with pytest.raises(ValueError, match="omega0 contains NaN"):
+        torque_free_period(np.array([1.0, 2.0, 2.5]), np.array([np.nan, 1.0, 0.1]))
+    with pytest.raises(ValueError, match="q0"):
+        torque_free_motion(np.array([1.0, 2.0, 2.5]), np.array([0.1, 1.0, 0.1]), np.zeros(4), 0.5)
+    traced = jax.jit(lambda inertia: torque_free_omega(inertia, jnp.array([0.1, 1.0, 0.1]), 0.5))
+    with pytest.raises(Exception, match="triangle inequality"):
+        jax.block_until_ready(traced(jnp.asarray(bad_inertia)))
+    # valid inputs: the unchecked program gives what the checked one gives (under jit)
+    good = np.array([1.0, 2.0, 2.5])
+    eager = torque_free_omega(good, np.array([0.1, 1.0, 0.1]), 0.5)
+    np.testing.assert_array_equal(np.asarray(eager), np.asarray(traced(jnp.asarray(good))))

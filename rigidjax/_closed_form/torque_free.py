@@ -21,10 +21,12 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import (
+    call_checked,
     check_batch_shapes,
     check_finite,
     check_last_axis,
     check_rotation_quaternion,
+    collected_failures,
     common_float,
 )
 from .._dynamics.inertia import check_inertia
@@ -180,9 +182,6 @@ def _motion_parts(inertia, omega0, t):
     )
 
 
-# One compiled program per shape (eager calls would dispatch op by op); filter_jit so that a
-# failed value check raises as an EquinoxRuntimeError with its message.
-@eqx.filter_jit
 def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     """Body-frame angular velocity of a torque-free body at time ``t``, in closed form.
 
@@ -210,7 +209,23 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     the broadcast of the bodies' batch axes with ``t``'s shape. NaN or inf in any input raises at run
     time.
     """
-    return _torque_free_omega(inertia, omega0, t, checked=True)
+    return call_checked(_omega_program, _omega_failures, inertia, omega0, t)
+
+
+# One compiled program per shape (eager calls would dispatch op by op). Inputs with values are checked
+# by a program of their own that returns the failed conditions (a ValueError is raised from them), so
+# neither program holds a host callback and JAX's persistent cache keeps both: a new process compiles
+# nothing. Inputs without values (the user's jit or vmap) get eqx.error_if checks in the program.
+@eqx.filter_jit
+def _omega_program(inertia, omega0, t, *, checked):
+    return _torque_free_omega(inertia, omega0, t, checked=checked)
+
+
+@eqx.filter_jit
+def _omega_failures(inertia, omega0, t):
+    with collected_failures() as failures:
+        _broadcast_inputs(inertia, omega0, t)
+    return list(failures)
 
 
 def _torque_free_omega(inertia, omega0, t, *, checked):
@@ -228,7 +243,6 @@ def _torque_free_omega(inertia, omega0, t, *, checked):
     return jnp.broadcast_to(omega, batch + (3,))
 
 
-@eqx.filter_jit
 def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     """Period ``4 K(m) / lambda`` of the body-frame angular velocity of a torque-free body.
 
@@ -245,12 +259,29 @@ def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     **Returns:** the period (s), shape ``(...)``: infinite on the separatrix and for steady rotation
     (``lambda = 0``). NaN or inf in any input raises at run time.
     """
+    return call_checked(_period_program, _period_failures, inertia, omega0)
+
+
+def _period_inputs(inertia, omega0, checked):
     inertia, omega0 = common_float(inertia, omega0, names=["inertia", "omega0"])
     check_last_axis(inertia, 3, "inertia")
     check_last_axis(omega0, 3, "omega0")
     check_batch_shapes("torque_free_period", ("inertia", inertia, 1), ("omega0", omega0, 1))
-    inertia, omega0, _ = _checked(inertia, omega0, None, "torque_free_period")
-    inertia, omega0 = jnp.broadcast_arrays(inertia, omega0)
+    if checked:
+        inertia, omega0, _ = _checked(inertia, omega0, None, "torque_free_period")
+    return jnp.broadcast_arrays(inertia, omega0)
+
+
+@eqx.filter_jit
+def _period_failures(inertia, omega0):
+    with collected_failures() as failures:
+        _period_inputs(inertia, omega0, checked=True)
+    return list(failures)
+
+
+@eqx.filter_jit
+def _period_program(inertia, omega0, *, checked):
+    inertia, omega0 = _period_inputs(inertia, omega0, checked)
     _, moments, omega, _ = _sorted_frame(inertia, omega0)
     rate = _solution_parameters(moments, omega)[2]
     # rate = 0 (a sphere, a symmetric body in steady rotation): the period is infinite; a generic
@@ -462,7 +493,6 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t, checked=True):
     return inertia, omega0, q0, t, batch
 
 
-@eqx.filter_jit
 def torque_free_motion(
     inertia: Vector, omega0: Vector, q0: Quaternion, t: Scalar
 ) -> tuple[VectorOut, QuaternionOut]:
@@ -514,7 +544,19 @@ def torque_free_motion(
     ``q(0) = q0`` (the same sign as integrating ``dq/dt = q (0, omega) / 2``). Non-physical moments
     and NaN or inf inputs raise at run time.
     """
-    return _torque_free_motion(inertia, omega0, q0, t, checked=True)
+    return call_checked(_motion_program, _motion_failures, inertia, omega0, q0, t)
+
+
+@eqx.filter_jit
+def _motion_program(inertia, omega0, q0, t, *, checked):
+    return _torque_free_motion(inertia, omega0, q0, t, checked=checked)
+
+
+@eqx.filter_jit
+def _motion_failures(inertia, omega0, q0, t):
+    with collected_failures() as failures:
+        _broadcast_motion_inputs(inertia, omega0, q0, t)
+    return list(failures)
 
 
 def _torque_free_motion(inertia, omega0, q0, t, *, checked):
