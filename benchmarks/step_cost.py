@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import platform
-import time
 from pathlib import Path
 
 import jax
@@ -35,7 +34,7 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _harness import reference_scene  # noqa: E402
+from _harness import reference_scene, timed_calls  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
 from rigidjax._integrate import batching  # noqa: E402
@@ -106,13 +105,8 @@ def row_vector_field(inertia_rows):
 
 
 def median_time(fn, arg, repeats):
-    jax.block_until_ready(fn(arg))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(arg))
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
+    """Median seconds of ``repeats`` calls of ``fn(arg)`` after a first, compiling call."""
+    return timed_calls(lambda: fn(arg), repeats)[1]["run_s"]
 
 
 def main(argv=None):
