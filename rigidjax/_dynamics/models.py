@@ -30,9 +30,18 @@ def gravity_torque(orientation, weight_com):
     """Body-frame torque (N m) of uniform gravity along space -Z on a body held at a fixed point:
     ``(R^T Z) x (m g com)``, with ``weight_com = m g com`` the weight times the body-frame position of
     the centre of mass relative to the fixed point. The one formula behind :class:`HeavyTop`,
-    :class:`GravityTorque` and the heavy-top splitting's gravity kick."""
-    up_body = _quat_rotate(_quat_conjugate(orientation), jnp.array(_Z, orientation.dtype))
-    return jnp.cross(up_body, weight_com)
+    :class:`GravityTorque` and the heavy-top splitting's gravity kick.
+
+    ``R^T Z = (2 (x z - w y), 2 (y z + w x), 1 - 2 (x^2 + y^2))``, ``q* (0, Z) q`` expanded, written
+    component by component: inside an integrator's step XLA fuses it into plain elementwise code,
+    which it did not for the slices and concatenations of ``jnp.cross`` (10^4 heavy tops,
+    ``"balanced"``, 5 s, 11 samples: 0.34 -> 0.26 s, medians of four alternated runs)."""
+    w, x, y, z = (orientation[..., i] for i in range(4))
+    up = (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+    c = [weight_com[..., i] for i in range(3)]
+    return jnp.stack(
+        [up[1] * c[2] - up[2] * c[1], up[2] * c[0] - up[0] * c[2], up[0] * c[1] - up[1] * c[0]], axis=-1
+    )
 
 
 class State(eqx.Module):
