@@ -31,12 +31,45 @@ from .._numerics import eps
 from .._types import Inertia, Quaternion, Scalar, ScalarOut, Vector, VectorOut
 
 
+def _components(x):
+    return [x[..., i] for i in range(3)]
+
+
+def _cross(a, b):
+    """``a x b`` component by component (``jnp.cross`` slices and concatenates, which XLA does not
+    fuse into the elementwise code of an integrator's step)."""
+    a0, a1, a2 = _components(a)
+    b0, b1, b2 = _components(b)
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _solve_3x3(matrix, rhs):
+    """``matrix^-1 rhs`` for ``(..., 3, 3)`` matrices by the adjugate (Cramer's rule), elementwise.
+
+    A batched ``jnp.linalg.solve`` of 3 x 3 systems inside an integrator's step made a full-tensor
+    body 8x slower than one with principal moments (10^4 bodies, "balanced": 5.4 s against 0.68 s);
+    the adjugate is a few dozen fused multiplications. For an inertia tensor (symmetric positive
+    definite) its error is of the same order as LU's, ``cond * eps``."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = (_components(matrix[..., i, :]) for i in range(3))
+    c00, c01, c02 = a11 * a22 - a12 * a21, a12 * a20 - a10 * a22, a10 * a21 - a11 * a20
+    c10, c11, c12 = a02 * a21 - a01 * a22, a00 * a22 - a02 * a20, a01 * a20 - a00 * a21
+    c20, c21, c22 = a01 * a12 - a02 * a11, a02 * a10 - a00 * a12, a00 * a11 - a01 * a10
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    b0, b1, b2 = _components(rhs)
+    x0 = c00 * b0 + c10 * b1 + c20 * b2
+    x1 = c01 * b0 + c11 * b1 + c21 * b2
+    x2 = c02 * b0 + c12 * b1 + c22 * b2
+    return jnp.stack([x0, x1, x2], axis=-1) / det[..., None]
+
+
 def _inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
     """``I @ omega`` for principal moments or a full tensor."""
     inertia, omega = common_float(inertia, omega, names=["inertia", "omega"])
     check_last_axis(omega, 3, "omega")
-    if is_full_tensor(inertia):
-        return jnp.einsum("...ij,...j->...i", inertia, omega)
+    if is_full_tensor(inertia):  # written out: a batched einsum does not fuse into a step
+        w0, w1, w2 = _components(omega)
+        rows = [_components(inertia[..., i, :]) for i in range(3)]
+        return jnp.stack([a0 * w0 + a1 * w1 + a2 * w2 for a0, a1, a2 in rows], axis=-1)
     return inertia * omega
 
 
@@ -54,13 +87,7 @@ def _euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = No
         check_last_axis(torque, 3, "torque")
     check_last_axis(omega, 3, "omega")
     if is_full_tensor(inertia):
-        L = jnp.einsum("...ij,...j->...i", inertia, omega)
-        rhs = torque - jnp.cross(omega, L)
-        rhs, inertia = jnp.broadcast_arrays(rhs, inertia[..., 0])[0], inertia
-        batch = jnp.broadcast_shapes(rhs.shape[:-1], inertia.shape[:-2])
-        return jnp.linalg.solve(
-            jnp.broadcast_to(inertia, batch + (3, 3)), jnp.broadcast_to(rhs, batch + (3,))[..., None]
-        )[..., 0]
+        return _solve_3x3(inertia, torque - _cross(omega, _inertia_times(inertia, omega)))
     I1, I2, I3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
     w1, w2, w3 = omega[..., 0], omega[..., 1], omega[..., 2]
     gyro = jnp.stack([(I2 - I3) * w2 * w3, (I3 - I1) * w3 * w1, (I1 - I2) * w1 * w2], axis=-1)
