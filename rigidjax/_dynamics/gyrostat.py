@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import as_float_array, check_last_axis, is_full_tensor
-from .equations import _euler_equations, _inertia_times
+from .equations import _cross, _euler_equations, _inertia_times
 from .models import AbstractModel, _as_torque_tuple, _inertia_field, _total_torque
 
 
@@ -89,7 +89,7 @@ class Gyrostat(AbstractModel):
         omega = state.omega
         h = self.rotor_momentum.astype(omega.dtype)
         # The rotors enter as the gyroscopic torque -omega x h on top of the external ones.
-        tau = _total_torque(self.torques, t, state, args) - jnp.cross(omega, h)
+        tau = _total_torque(self.torques, t, state, args) - _cross(omega, h)
         return _euler_equations(self.inertia, omega, tau)
 
     def omega_scale(self, state, duration, args):
