@@ -35,12 +35,16 @@ def _components(x):
     return [x[..., i] for i in range(3)]
 
 
+def _cross_components(a, b):
+    """The three components of ``a x b`` from those of ``a`` and ``b``."""
+    (a0, a1, a2), (b0, b1, b2) = a, b
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
 def _cross(a, b):
     """``a x b`` component by component (``jnp.cross`` slices and concatenates, which XLA does not
     fuse into the elementwise code of an integrator's step)."""
-    a0, a1, a2 = _components(a)
-    b0, b1, b2 = _components(b)
-    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    return jnp.stack(_cross_components(_components(a), _components(b)), axis=-1)
 
 
 def _solve_3x3(matrix, rhs):

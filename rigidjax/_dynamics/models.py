@@ -21,7 +21,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import as_float_array, check_last_axis
 from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
 from .._repr import dataclass_fields, fields_repr, summarizing
-from .equations import _euler_equations, _inertia_times, is_full_tensor
+from .equations import _components, _cross_components, _euler_equations, _inertia_times, is_full_tensor
 
 _Z = (0.0, 0.0, 1.0)
 
@@ -38,10 +38,7 @@ def gravity_torque(orientation, weight_com):
     ``"balanced"``, 5 s, 11 samples: 0.34 -> 0.26 s, medians of four alternated runs)."""
     w, x, y, z = (orientation[..., i] for i in range(4))
     up = (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
-    c = [weight_com[..., i] for i in range(3)]
-    return jnp.stack(
-        [up[1] * c[2] - up[2] * c[1], up[2] * c[0] - up[0] * c[2], up[0] * c[1] - up[1] * c[0]], axis=-1
-    )
+    return jnp.stack(_cross_components(up, _components(weight_com)), axis=-1)
 
 
 class State(eqx.Module):
