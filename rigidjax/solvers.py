@@ -5,6 +5,9 @@
 - :class:`LiePoissonSplitting`: the free body's symplectic splitting (energy error bounded,
   ``|L|`` and space-frame ``L`` kept to roundoff).
 - :class:`HeavyTopSplitting`: the heavy top's splitting (vertical ``L`` kept to roundoff).
+- :class:`UnrolledDopri8`: :class:`diffrax.Dopri8` with its stages written out, the same values at
+  about half the cost per step on a batch stored as one array (the ``"balanced"`` and ``"precise"``
+  presets).
 
 Each is a diffrax solver: pass it to ``rigidjax.simulate(..., solver=..., dt0=...)`` (the scene's
 parameters then come from the model) or to ``diffrax.diffeqsolve`` with the vector fields of this
@@ -29,12 +32,14 @@ from ._integrate.solvers.splitting import heavy_top_vector_field as heavy_top_ve
 from ._integrate.solvers.splitting import split_free_body as split_free_body
 from ._integrate.solvers.splitting import split_heavy_top as split_heavy_top
 from ._integrate.solvers.splitting import splitting_step as splitting_step
+from ._integrate.solvers.unrolled import UnrolledDopri8 as UnrolledDopri8
 
 __all__ = [
     "PRESETS",
     "RKMK",
     "HeavyTopSplitting",
     "LiePoissonSplitting",
+    "UnrolledDopri8",
     "dexpinv",
     "free_body_vector_field",
     "heavy_top_splitting_step",

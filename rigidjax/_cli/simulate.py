@@ -397,8 +397,8 @@ def add_parser(subparsers) -> None:
     sim.add_argument(
         "--chunk-size",
         type=positive_int,
-        default=1024,
-        help="bodies per shared-step chunk inside rigidjax.simulate",
+        default=None,
+        help="bodies per shared-step chunk inside rigidjax.simulate (default: 256 on CPU, 65536 on GPU)",
     )
     sim.add_argument(
         "--out",

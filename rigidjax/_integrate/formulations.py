@@ -1,10 +1,10 @@
 """How a chunk of bodies is written as one ODE for the driver: its state layout, vector field,
 solver and the way back to angular velocity and orientation.
 
-- :class:`ScaledODE`: any diffrax solver, adaptive or not. The state is ``(u, attitude)`` with
-  bodies on the last (contiguous) axis, ``u = omega / sigma`` (per-body, per-component scales that
-  make tolerances dimensionless) and the attitude a quaternion (norm made attracting) or Euler
-  angles.
+- :class:`ScaledODE`: any diffrax solver, adaptive or not. The state is one array, rows ``u`` then
+  the attitude, bodies on the last (contiguous) axis: ``u = omega / sigma`` (per-body,
+  per-component scales that make tolerances dimensionless) and the attitude a quaternion (norm made
+  attracting) or Euler angles.
 - :class:`LieGroupODE`: :class:`rigidjax.solvers.RKMK` on ``(omega, q)``, bodies first.
 - :class:`SplittingODE`: the Lie–Poisson splittings on ``(L, q)`` in each body's principal axes;
   the solver is built per chunk from the scene's parameters.
@@ -51,7 +51,13 @@ def _time_first(x):
 
 
 class ScaledODE(eqx.Module):
-    """Omega scaled per body and component; bodies on the last axis; any diffrax solver."""
+    """Omega scaled per body and component; bodies on the last axis; any diffrax solver.
+
+    The state is one array ``(3 + a, bodies)``: rows 0-2 the scaled angular velocity ``u``, then the
+    ``a`` attitude rows (4 for a quaternion, 3 for Euler angles, none without an orientation). One
+    array rather than a ``(u, attitude)`` pair: the written-out stages of
+    :class:`.solvers.unrolled.UnrolledDopri8` then fuse into one loop per stage (on 10^4
+    tennis-racket bodies the pair ran 1.9x slower)."""
 
     euler_seq: str | None = eqx.field(static=True, default=None)
     lock_tolerance: float = eqx.field(static=True, default=1e-3)
@@ -63,30 +69,41 @@ class ScaledODE(eqx.Module):
         return values
 
     def initial_state(self, values, leaves, omega0, q0, sigma):
-        attitude = q0
-        if self.euler_seq is not None and q0 is not None:
-            attitude = _euler_from_quat(q0, self.euler_seq)
-        return (omega0 / sigma).T, None if attitude is None else attitude.T
+        u = (omega0 / sigma).T
+        if q0 is None:
+            return u
+        attitude = q0 if self.euler_seq is None else _euler_from_quat(q0, self.euler_seq)
+        return jnp.concatenate([u, attitude.T.astype(u.dtype)])
 
     def vector_field(self, shell, leaves, values, sigma):
         euler_seq = self.euler_seq
 
-        def body_rhs(body_values, t, y, s, args):
-            u, attitude = y
-            w = u * s
+        def body_rhs(body_values, t, w, attitude, args):
+            body = shell.replace_body_leaves(leaves, body_values)
+            if attitude is None:
+                return body.angular_acceleration(t, State(w, None), args), None
             if euler_seq is None:
                 q = attitude
-                dattitude = None if q is None else _quat_derivative(q, w)
+                dattitude = _quat_derivative(q, w)
             else:
                 q = _quat_from_euler(attitude, euler_seq)
                 dattitude = _euler_rates(attitude, w, euler_seq, throw=False)
-            body = shell.replace_body_leaves(leaves, body_values)
-            return body.angular_acceleration(t, State(w, q), args) / s, dattitude
+            return body.angular_acceleration(t, State(w, q), args), dattitude
+
+        scale = sigma.T
 
         def vector_field(t, y, args):
             # Bodies on the last (contiguous) axis of the state: measured 1.5-2x faster than
-            # bodies-first on CPU (benchmarks/batch_strategies.py).
-            return jax.vmap(body_rhs, in_axes=(0, None, 1, 0, None), out_axes=1)(values, t, y, sigma, args)
+            # bodies-first on CPU (benchmarks/batch_strategies.py). The rows are split and joined
+            # outside the per-body function: inside it (slices and a concatenation per body) the
+            # "balanced" preset ran 2x slower.
+            attitude = y[3:] if y.shape[0] > 3 else None
+            in_axes = (0, None, 1, None if attitude is None else 1, None)
+            domega, dattitude = jax.vmap(body_rhs, in_axes=in_axes, out_axes=1)(
+                values, t, y[:3] * scale, attitude, args
+            )
+            du = (domega / scale).astype(y.dtype)
+            return du if attitude is None else jnp.concatenate([du, dattitude.astype(y.dtype)])
 
         return vector_field
 
@@ -97,8 +114,8 @@ class ScaledODE(eqx.Module):
         """A first trial step of 1% of the fastest body's turn (or of sqrt(1/|omega_dot|) for a body
         at rest): diffrax's generic guess overshoots by orders of magnitude at 1e4 rad/s, overflows,
         and the rejected NaN step poisons reverse-mode gradients."""
-        speed = jnp.max(jnp.abs(y0[0].T * sigma))
-        accel = jnp.max(jnp.abs(vector_field(ts[0], y0, args)[0] * sigma.T))
+        speed = jnp.max(jnp.abs(y0[:3].T * sigma))
+        accel = jnp.max(jnp.abs(vector_field(ts[0], y0, args)[:3] * sigma.T))
         rate = jax.lax.stop_gradient(jnp.maximum(speed, jnp.sqrt(accel)))
         span = ts[-1] - ts[0]
         first = jnp.where(rate > 0, jnp.minimum(0.01 / jnp.where(rate > 0, rate, 1.0), span), span)
@@ -110,22 +127,24 @@ class ScaledODE(eqx.Module):
         seq, tolerance = self.euler_seq, self.lock_tolerance
 
         def near_lock(t, y, args, **kwargs):
-            return jnp.any(lock_distance(y[1].T, seq) < tolerance)
+            return jnp.any(lock_distance(y[3:].T, seq) < tolerance)
 
         return diffrax.Event(near_lock)
 
     @staticmethod
     def save_fn(t, y, args):
-        """Each sample is kept bodies-first, ``(bodies, components)``: transposing one sample (a few
-        kB, in cache) as it is saved is far cheaper than transposing the whole ``(T, components,
-        bodies)`` record afterwards (measured with 10^4 bodies and 800 samples: the whole-record
-        transpose made "fast" 45 % and "balanced" 20 % slower)."""
-        return tuple(None if x is None else x.T for x in y)
+        """Each sample is kept bodies-first, ``(bodies, rows)``: transposing one sample (a few kB, in
+        cache) as it is saved is far cheaper than transposing the whole ``(T, rows, bodies)`` record
+        afterwards (measured with 10^4 bodies and 800 samples: the whole-record transpose made
+        "fast" 45 % and "balanced" 20 % slower)."""
+        return y.T
 
     def outputs(self, ys, values, leaves, sigma):
-        u, attitude = ys  # (T, bodies, components): saved transposed by save_fn
-        omega = jnp.transpose(u, (1, 0, 2)) * sigma[:, None, :]
-        q = None if attitude is None else jnp.transpose(attitude, (1, 0, 2))
+        ys = jnp.transpose(ys, (1, 0, 2))  # (T, bodies, rows), saved transposed by save_fn
+        omega = ys[..., :3] * sigma[:, None, :]
+        if ys.shape[-1] == 3:
+            return omega, None
+        q = ys[..., 3:]
         if self.euler_seq is not None:
             q = _quat_from_euler(q, self.euler_seq)
         return omega, q

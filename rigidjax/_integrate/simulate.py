@@ -38,7 +38,7 @@ from . import progress as _progress
 from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
 from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
-from .presets import MIN_MAX_STEPS, PRESETS, FaultStopPIDController, default_max_steps
+from .presets import MIN_MAX_STEPS, PRESETS, FaultStopPIDController, default_chunk_size, default_max_steps
 from .solvers import STRUCTURE_PRESERVING, HeavyTopSplitting, LiePoissonSplitting
 from .trajectory import Trajectory
 
@@ -279,8 +279,9 @@ def simulate(
       ``orientation=None`` and a scene that does not need it, only Euler's equations (three per
       body) are integrated.
     - `ts`: strictly increasing sample times (s), shape ``(T,)``; ``ts[0]`` is the initial time.
-    - `accuracy`: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8, 1e-8) or ``"precise"``
-      (Dopri8, 1e-11, a step on every sample time), or ``"exact"``: a closed form, no
+    - `accuracy`: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8 with its stages written out,
+      :class:`rigidjax.solvers.UnrolledDopri8`, 1e-8) or ``"precise"`` (the same, 1e-11, a step on
+      every sample time), or ``"exact"``: a closed form, no
       integration. For a torque-free body with principal moments, omega by Jacobi elliptic
       functions and, when ``state0`` has an orientation, the orientation by Carlson's ``R_J`` (see
       :func:`rigidjax.torque_free_motion`). For Lagrange's top, a :class:`HeavyTop` with principal
@@ -313,7 +314,7 @@ def simulate(
       1e5 inside ``jit``, where the values are unknown, and with ``adjoint=diffrax.DirectAdjoint()``
       (whose loop is sized by the limit). Otherwise the limit costs no memory (reverse mode keeps
       ``log(max_steps)`` checkpoints).
-    - `chunk_size`: bodies per shared-step chunk. Default: 1024 on CPU (cache-sized chunks run one
+    - `chunk_size`: bodies per shared-step chunk. Default: 256 on CPU (cache-sized chunks run one
       after another), 65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk
       than as ten; ``benchmarks/README.md``).
     - `sort_by_speed`: group bodies of similar angular-velocity scale into the same chunk.
@@ -408,7 +409,7 @@ def simulate(
     q0 = None if state0.orientation is None else state0.orientation.astype(dtype)
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
     if chunk_size is None:
-        chunk_size = 1024 if jax.default_backend() == "cpu" else 65536
+        chunk_size = default_chunk_size()
     if max_steps is None:
         # DirectAdjoint runs nested scans sized by max_steps: its cost grows with the limit.
         direct = isinstance(adjoint, diffrax.DirectAdjoint)

@@ -1,0 +1,78 @@
+"""Dormand–Prince 8(7) with its stages written out: the solver of ``simulate``'s presets.
+
+diffrax's :class:`diffrax.Dopri8` runs its 14 stages in a loop over a stage buffer, each stage a dot
+product of one tableau row with the whole buffer. Here every stage is written out with only the
+tableau's nonzero coefficients, and each stage's value is fenced by ``jax.lax.optimization_barrier``:
+without the fence XLA fuses the cheap vector field into every later stage sum that reads it
+(computing it up to 13 times), which made the written-out step slower than diffrax's loop. Same
+tableau, error estimate and dense output as :class:`diffrax.Dopri8`, so the two agree to rounding.
+
+Measured on the tennis-racket scene (10^4 free bodies, 20 s, rtol 1e-5, float64, 2-core CPU, chunks
+of 256 bodies, state one ``(7, bodies)`` array, medians of seven alternated runs): 0.12 s against
+0.28 s for ``diffrax.Dopri8``.
+"""
+
+from typing import ClassVar
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+_TABLEAU = diffrax.Dopri8.tableau
+_A = tuple(np.asarray(row, np.float64) for row in _TABLEAU.a_lower)
+_C = np.asarray(_TABLEAU.c, np.float64)
+_B_ERROR = np.asarray(_TABLEAU.b_error, np.float64)
+
+
+def _fence(tree):
+    """Materialise ``tree`` here: XLA may not recompute it inside the fusions that read it."""
+    return jax.lax.optimization_barrier(tree)
+
+
+def _stage_sum(start, coefficients, stages):
+    """``start + sum_j c_j k_j`` over the nonzero ``c_j``, leaf by leaf (``start`` None: zero)."""
+
+    def leaf(y, *ks):
+        total = y
+        for c, k in zip(coefficients, ks, strict=False):
+            if c != 0.0:
+                term = float(c) * k
+                total = term if total is None else total + term
+        return total
+
+    if start is None:
+        return jtu.tree_map(lambda *ks: leaf(None, *ks), *stages)
+    return jtu.tree_map(leaf, start, *stages)
+
+
+class UnrolledDopri8(diffrax.Dopri8):
+    """:class:`diffrax.Dopri8` (Dormand–Prince 8(7), 14 stages, first same as last, 7th-order
+    dense output) with the stages written out and fenced: the same values to rounding at about
+    half the cost per step on a batch of bodies stored as one array.
+
+    For ordinary differential equations (``diffrax.ODETerm``) only. The error estimate and dense
+    output are diffrax's, so it works with any step-size controller, ``SaveAt`` and adjoint.
+    """
+
+    term_structure: ClassVar = diffrax.ODETerm
+    stages: ClassVar[int] = len(_C) + 1
+
+    def init(self, terms, t0, t1, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        f0 = jax.lax.cond(made_jump, lambda: terms.vf(t0, y0, args), lambda: solver_state)
+        h = terms.contr(t0, t1)
+        stages = [_fence(terms.prod(f0, h))]
+        for row, c in zip(_A, _C, strict=True):
+            y_stage = _stage_sum(y0, row, stages)
+            t_stage = t1 if c == 1.0 else t0 + float(c) * h
+            f_stage = _fence(terms.vf(t_stage, y_stage, args))
+            stages.append(_fence(terms.prod(f_stage, h)))
+        # The last stage is evaluated at the solution (first same as last): y1 and f(t1, y1).
+        y1, f1 = y_stage, f_stage
+        y_error = _stage_sum(None, _B_ERROR, stages)
+        dense_info = dict(y0=y0, y1=y1, k=jtu.tree_map(lambda *ks: jnp.stack(ks), *stages))
+        return y1, y_error, dense_info, f1, diffrax.RESULTS.successful
