@@ -66,12 +66,13 @@ def _rf_series(dev_x, dev_y, a_f, scale):
     return rf
 
 
-def _carlson_rf_rd(x, y, z):
+def _carlson_rf_rd(x, y, z, with_rd=True):
     """Carlson's ``R_F(x, y, z)`` and ``R_D(x, y, z)`` (DLMF 19.16.5, 19.16.6) by duplication.
 
     Both share the duplication sequence; ``R_D`` is symmetric in ``x, y`` only. Arguments are
     nonnegative with at most one zero (``R_D`` needs ``z > 0``); a zero ``z`` gives ``R_D = inf``.
     The truncated series are DLMF 19.36.1 (to degree 7) and Carlson (1995) eq. 2.21 (degree 5).
+    ``with_rd=False`` returns ``(R_F, None)`` and leaves ``R_D``'s sum out of the loop.
     """
     a_f = (x + y + z) / 3
     a_d = (x + y + 3 * z) / 5
@@ -85,14 +86,18 @@ def _carlson_rf_rd(x, y, z):
         x, y, z, a_f, a_d, tail, scale = carry
         sx, sy, sz = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z)
         lam = sx * (sy + sz) + sy * sz
-        tail = tail + scale / (sz * (z + lam))
+        if with_rd:
+            tail = tail + scale / (sz * (z + lam))
+            a_d = (a_d + lam) / 4
         x, y, z = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4
-        return x, y, z, (a_f + lam) / 4, (a_d + lam) / 4, tail, scale / 4
+        return x, y, z, (a_f + lam) / 4, a_d, tail, scale / 4
 
     carry = (x, y, z, a_f, a_d, jnp.zeros_like(x), jnp.ones_like(x))
     *_, a_f, a_d, tail, scale = jax.lax.fori_loop(0, _steps(_CARLSON_STEPS, x.dtype), step, carry)
 
     rf = _rf_series(fx, fy, a_f, scale)
+    if not with_rd:
+        return rf, None
 
     X = dx * (scale / a_d)
     Y = dy * (scale / a_d)

@@ -19,6 +19,7 @@ nearly symmetric bodies (m -> 0). Steady rotations (spin about a principal axis,
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import (
     call_checked,
@@ -33,40 +34,59 @@ from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
 from .._numerics import safe_norm
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
-from .carlson import _carlson_rf_rj
-from .elliptic import _ellipj_checked, ellipkm1
+from .carlson import _carlson_rf_rd, _steps
+from .elliptic import _ellipj_checked, _nome_parts, ellipkm1
+
+# The comparators of a sorting network for three elements.
+_NETWORK = ((0, 1), (1, 2), (0, 1))
 
 
 def _sorted_frame(inertia, omega0):
-    """Moments ascending, omega permuted alike, and the permutation's parity (+1 even, -1 odd).
+    """Moments ascending, omega permuted alike, the permutation and its parity (+1 even, -1 odd).
 
-    Every gather here and below indexes with a permutation of ``0, 1, 2``, so it is declared in
-    bounds: the default out-of-bounds handling adds masking to each gather and to its derivatives,
-    a sizeable part of every compiled copy of the model.
+    Sorted by a three-comparator network of elementwise selects: ``jnp.argsort`` sorts every row by a
+    comparator loop and takes gathers to apply, which on CPU cost more than the elliptic solution.
+    Returns ``(swaps, index, moments, omega, parity)``: ``swaps`` are the comparators' outcomes (undone
+    by :func:`_unsort`), ``index`` the body axis of each sorted one (three integer arrays). A swap needs a
+    strictly larger moment, so equal moments keep their order, as in a stable sort.
     """
-    perm = jnp.argsort(inertia, axis=-1)
-    moments = jnp.take_along_axis(inertia, perm, axis=-1, mode="promise_in_bounds")
-    omega = jnp.take_along_axis(omega0, perm, axis=-1, mode="promise_in_bounds")
-    p0, p1, p2 = perm[..., 0], perm[..., 1], perm[..., 2]
-    inversions = sum((x > y).astype(jnp.int32) for x, y in ((p0, p1), (p0, p2), (p1, p2)))
-    parity = jnp.where(inversions % 2 == 0, 1.0, -1.0).astype(inertia.dtype)
-    return perm, moments, omega, parity
+    moments = [inertia[..., k] for k in range(3)]
+    omega = [omega0[..., k] for k in range(3)]
+    index = [jnp.full(inertia.shape[:-1], k, jnp.int32) for k in range(3)]
+    swaps = []
+    for i, j in _NETWORK:
+        swap = moments[i] > moments[j]
+        for v in (moments, omega, index):
+            v[i], v[j] = jnp.where(swap, v[j], v[i]), jnp.where(swap, v[i], v[j])
+        swaps.append(swap)
+    parity = jnp.where(swaps[0] ^ swaps[1] ^ swaps[2], -1.0, 1.0).astype(inertia.dtype)
+    return swaps, index, moments, omega, parity
 
 
-def _take(x, index):
-    """``take_along_axis`` on the last axis, ``index`` broadcast against ``x``'s batch axes."""
-    shape = jnp.broadcast_shapes(x.shape[:-1], index.shape[:-1]) + index.shape[-1:]
+def _unsort(x, index):
+    """``x`` (sorted frame, last axis) in the body's axis order, ``index`` from :func:`_sorted_frame`.
+
+    A gather by the inverse permutation, declared in bounds (the default out-of-bounds handling adds
+    masking to it and to its derivatives). Not selects: XLA fuses the whole elliptic solution into a
+    select that forms the output, which made it several times slower on CPU.
+    """
+    inverse = [sum(jnp.where(i == k, j, 0) for j, i in enumerate(index)) for k in range(3)]
+    inverse = jnp.stack(inverse, axis=-1)
+    shape = jnp.broadcast_shapes(x.shape[:-1], inverse.shape[:-1]) + (3,)
     return jnp.take_along_axis(
-        jnp.broadcast_to(x, shape[:-1] + x.shape[-1:]),
-        jnp.broadcast_to(index, shape),
-        axis=-1,
-        mode="promise_in_bounds",
+        jnp.broadcast_to(x, shape), jnp.broadcast_to(inverse, shape), axis=-1, mode="promise_in_bounds"
     )
+
+
+def _cycle(v, shift):
+    """``[v[(k + shift) % 3] for k in range(3)]`` for a per-body ``shift`` in ``{0, 1, 2}``, by selects."""
+    one, two = shift == 1, shift == 2
+    return [jnp.where(one, v[(k + 1) % 3], jnp.where(two, v[(k + 2) % 3], v[k])) for k in range(3)]
 
 
 def _momentum_defect(moments, x, j):
     """``L^2 - 2 E I_j`` written without cancellation: ``sum_i I_i (I_i - I_j) omega_i^2``."""
-    return sum(moments[..., i] * (moments[..., i] - moments[..., j]) * x[..., i] for i in range(3) if i != j)
+    return sum(moments[i] * (moments[i] - moments[j]) * x[i] for i in range(3) if i != j)
 
 
 def _safe_div(num, den):
@@ -85,11 +105,15 @@ def _clip(x, low, high):
 
 
 def _solution_parameters(moments, omega):
-    """Amplitudes, rate, parameter m and 1 - m of the elliptic solution, in the sorted frame."""
-    x = omega * omega
+    """Amplitudes, rate, parameter m, 1 - m and ``nu = n / m`` of the elliptic solution, in the sorted frame.
+
+    ``nu = I_c (L^2 - 2 E I_a) / (I_a (2 E I_c - L^2))`` (with ``n`` of :func:`torque_free_motion`) stays
+    finite as ``m`` and ``n`` vanish together (symmetric bodies).
+    """
+    x = [w * w for w in omega]
     D = [_momentum_defect(moments, x, j) for j in range(3)]
     around_largest = D[1] >= 0  # L^2 >= 2 E I2: omega circles the axis of the largest moment
-    I1, I2, I3 = moments[..., 0], moments[..., 1], moments[..., 2]
+    I1, I2, I3 = moments
     Ia = jnp.where(around_largest, I1, I3)
     Ic = jnp.where(around_largest, I3, I1)
     Ib = I2
@@ -102,7 +126,8 @@ def _solution_parameters(moments, omega):
     rate = jnp.sqrt(jnp.maximum(_safe_div((Ic - Ib) * Da, Ia * Ib * Ic), 0.0))
     m = _clip(_safe_div((Ib - Ia) * -Dc, (Ic - Ib) * Da), 0.0, 1.0)
     p = _clip(_safe_div((Ic - Ia) * Db, (Ic - Ib) * Da), 0.0, 1.0)
-    return around_largest, (amp_a, amp_b, amp_c), rate, m, p
+    nu = _safe_div(Ic * Da, Ia * -Dc)
+    return around_largest, (amp_a, amp_b, amp_c), rate, m, p, nu
 
 
 def _checked(inertia, omega0, t, where):
@@ -134,14 +159,33 @@ def _broadcast_inputs(inertia, omega0, t, checked=True):
     return inertia, omega0, t, batch
 
 
-def _motion_parts(inertia, omega0, t):
-    """The elliptic solution at ``t`` and the pieces the orientation reuses (all in the sorted frame)."""
-    perm, moments, omega, parity = _sorted_frame(inertia, omega0)
-    around_largest, (amp_a, amp_b, amp_c), rate, m, p = _solution_parameters(moments, omega)
-    w_a = jnp.where(around_largest, omega[..., 0], omega[..., 2])
-    w_b = omega[..., 1]
-    w_c = jnp.where(around_largest, omega[..., 2], omega[..., 0])
-    sign_c = jnp.where(w_c < 0, -1.0, 1.0).astype(omega.dtype)
+def _frame(inertia, omega0):
+    """The sorted frame (:func:`_sorted_frame`), which bodies rotate steadily, and in the sorted frame a
+    generic body that stands in for those: the elliptic parametrisation is singular there (its
+    amplitudes are square roots of zero), and their motion and derivatives come from
+    :func:`_steady_omega` instead.
+
+    Steady: rotation about a fixed body axis, i.e. a principal axis, any axis of a sphere, one in the
+    degenerate plane of a symmetric body (``rate = 0``), or ``omega0 = 0``.
+    """
+    swaps, index, moments, omega, parity = _sorted_frame(inertia, omega0)
+    rate = _solution_parameters(moments, omega)[2]
+    zeros = sum((w == 0).astype(jnp.int32) for w in omega)
+    steady = (rate == 0) | (zeros >= 2)
+    moments = [jnp.where(steady, float(k + 1), i) for k, i in enumerate(moments)]
+    omega = [jnp.where(steady, 1.0, w) for w in omega]
+    return dict(swaps=swaps, index=index, moments=moments, omega=omega, parity=parity, steady=steady)
+
+
+def _motion_parts(frame, t):
+    """The elliptic solution at ``t`` in the body's axes, and in the sorted frame the pieces the
+    orientation reuses."""
+    moments, omega, parity = frame["moments"], frame["omega"], frame["parity"]
+    around_largest, (amp_a, amp_b, amp_c), rate, m, p, nu = _solution_parameters(moments, omega)
+    w_a = jnp.where(around_largest, omega[0], omega[2])
+    w_b = omega[1]
+    w_c = jnp.where(around_largest, omega[2], omega[0])
+    sign_c = jnp.where(w_c < 0, -1.0, 1.0).astype(w_c.dtype)
     # Jacobi functions of the initial phase, straight from omega0.
     # amp_a and amp_b vanish together (pure spin about axis c): phase 0, so that cn0^2 + sn0^2 = 1.
     cn0 = jnp.where(amp_a > 0, w_a / jnp.where(amp_a > 0, amp_a, 1.0), 1.0)
@@ -149,7 +193,8 @@ def _motion_parts(inertia, omega0, t):
     dn0 = jnp.where(amp_c > 0, jnp.abs(w_c) / jnp.where(amp_c > 0, amp_c, 1.0), 1.0)
     # The sign of d(tau)/dt follows the sense of rotation about axis c; an odd relabelling of the
     # body axes reverses it (it flips the cross product in Euler's equations).
-    u = parity * sign_c * rate * t
+    speed = parity * sign_c * rate
+    u = speed * t
     sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
     # separatrix, where m = 1).
@@ -158,27 +203,18 @@ def _motion_parts(inertia, omega0, t):
     cn_t = (cn * cn0 - sn * sn0 * dn * dn0) / denominator
     dn_t = (dn * dn0 - m * sn * sn0 * cn * cn0) / denominator
     out_a, out_b, out_c = amp_a * cn_t, amp_b * sn_t, sign_c * amp_c * dn_t
-    sorted_out = jnp.stack(
-        [jnp.where(around_largest, out_a, out_c), out_b, jnp.where(around_largest, out_c, out_a)], axis=-1
-    )
-    # rate = 0: spin about a principal axis of a symmetric body or a sphere. w_a = w_c = 0: spin about
-    # the intermediate axis, the unstable equilibrium on the separatrix.
-    steady = (rate == 0) | ((w_a == 0) & (w_c == 0))
-    sorted_out = jnp.where(steady[..., None], omega, sorted_out)
-    omega_t = _take(sorted_out, jnp.argsort(perm, axis=-1))
+    sorted_out = [jnp.where(around_largest, out_a, out_c), out_b, jnp.where(around_largest, out_c, out_a)]
+    omega_t = _unsort(jnp.stack(sorted_out, axis=-1), frame["index"])
     return omega_t, dict(
-        perm=perm,
-        moments=moments,
-        omega=omega,
         around_largest=around_largest,
-        rate=rate,
         m=m,
         p=p,
-        steady=steady,
+        nu=nu,
         u=u,
-        speed=parity * sign_c * rate,
+        speed=speed,
         start=(sn0, cn0, dn0),
-        now=(sn_t, cn_t, dn_t),
+        omega_start=(w_a, w_b, w_c),
+        omega_now=(out_a, out_b, out_c),
     )
 
 
@@ -233,12 +269,9 @@ def _torque_free_omega(inertia, omega0, t, *, checked):
     errors, host callbacks: JAX's persistent cache keeps no program that holds one) for callers
     whose values are valid by construction, such as the fit's parametrised moments."""
     inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t, checked)
-    steady = _steady(inertia, omega0)
-    # A generic body stands in for steady ones (the elliptic parametrisation is singular there: its
-    # amplitudes are square roots of zero), whose motion and derivatives are _steady_omega's.
-    inertia_g = jnp.where(steady[..., None], jnp.array([1.0, 2.0, 3.0], inertia.dtype), inertia)
-    omega0_g = jnp.where(steady[..., None], jnp.array([1.0, 1.0, 1.0], inertia.dtype), omega0)
-    omega_g = _motion_parts(inertia_g, omega0_g, t)[0]
+    frame = _frame(inertia, omega0)
+    steady = frame["steady"]
+    omega_g = _motion_parts(frame, t)[0]
     omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
     return jnp.broadcast_to(omega, batch + (3,))
 
@@ -282,14 +315,14 @@ def _period_failures(inertia, omega0):
 @eqx.filter_jit
 def _period_program(inertia, omega0, *, checked):
     inertia, omega0 = _period_inputs(inertia, omega0, checked)
-    _, moments, omega, _ = _sorted_frame(inertia, omega0)
+    _, _, moments, omega, _ = _sorted_frame(inertia, omega0)
     rate = _solution_parameters(moments, omega)[2]
     # rate = 0 (a sphere, a symmetric body in steady rotation): the period is infinite; a generic
     # body stands in so that the square roots of zero do not make the gradient NaN.
     still = rate == 0
-    moments = jnp.where(still[..., None], jnp.array([1.0, 2.0, 3.0], moments.dtype), moments)
-    omega = jnp.where(still[..., None], jnp.array([1.0, 1.0, 1.0], moments.dtype), omega)
-    _, _, rate, _, p = _solution_parameters(moments, omega)
+    moments = [jnp.where(still, float(k + 1), i) for k, i in enumerate(moments)]
+    omega = [jnp.where(still, 1.0, w) for w in omega]
+    _, _, rate, _, p, _ = _solution_parameters(moments, omega)
     quarter = ellipkm1(jnp.where(p > 0, p, 1.0))
     return jnp.where(~still & (p > 0), 4.0 * quarter / rate, jnp.inf)
 
@@ -298,49 +331,188 @@ def _period_program(inertia, omega0, *, checked):
 # Orientation
 
 
-def _reduced_phase(sn, cn, dn, p, n, quarter=None):
-    """Reduced phase of the point ``(sn, cn, dn)`` of the elliptic solution and ``G`` there.
+# Factors of the theta products in _precession_phase: with q <= exp(-pi) the last omitted one differs
+# from 1 by at most q^(2 J) (float64: 4e-17; float32: 7e-9).
+_THETA_FACTORS = {np.dtype(np.float32): 3, np.dtype(np.float64): 6}
 
-    ``G(tau) = int_0^tau dtau' / (1 + n sn^2(tau')) = Pi(-n; am(tau) | m)``. The point fixes ``tau`` up to
-    multiples of ``2K``: ``tau = rho + 2 j K`` with ``|rho| <= K``, and then ``G(tau) = gamma + 2 j G(K)``.
-    Returns ``rho``, ``gamma``, ``am(rho)`` and ``quarter = (K, G(K))`` (DLMF 19.25.1-2; pass them back
-    for further points of the same body, or None to evaluate them in the same ``R_F``/``R_J`` call:
-    one duplication loop fewer to compile and differentiate). Carlson forms (DLMF 19.25.5, 19.25.14)
-    on ``|sn| <= 1/sqrt 2``; above, the same integrals measured back from ``K`` (substituting
-    ``theta -> pi/2 - theta``), whose ``R_F``/``R_J`` arguments are ``O(p)`` but never zero, so that the
-    terms are positive and ``rho``, ``gamma`` keep their accuracy as ``p = 1 - m -> 0``. One
-    ``R_F``/``R_J`` evaluation per point: the two forms' arguments are selected before it (both are
-    positive, so gradients stay finite). ``p = 0`` is handled by the caller.
+
+def _precession_parts(m, p, n, nu, start):
+    """Per body: what the precession integral ``G(tau) = int_0^tau dtau' / (1 + n sn^2(tau')) =
+    Pi(-n; am(tau) | m)`` needs, and the reduced initial phase.
+
+    Jacobi's form of the integral of the third kind (Whittaker & Watson 22.74) with the imaginary
+    parameter ``i beta``, ``sn^2(i beta | m) = -n / m``, i.e. ``sc^2(beta | 1 - m) = nu``::
+
+        G(tau) = g tau + c V(tau),   c = sqrt(nu / ((1 + nu) (1 + n))),
+
+    with ``V`` the phase of ``Theta(tau + i beta)`` less a part linear in ``tau``, moved into the slope
+    ``g``: ``V`` is bounded and ``2K``-periodic up to a constant step per half period. It is evaluated
+    as a product of theta factors in the nome of the smaller of ``m`` and ``1 - m`` (at most
+    ``exp(-pi)``, as in :func:`.elliptic._jacobi_values`):
+
+    - ``m <= 1/2``: the ordinary nome ``q``, ``V = arg Theta(tau + i beta)`` (``2K``-periodic) from
+      the product ``prod (1 - q^(2j-1) e^(2 y) e^(-2 i x)) (1 - q^(2j-1) e^(-2 y) e^(2 i x))``,
+      ``x + i y = pi (tau + i beta) / (2 K)``, and ``g = 1 - c Im Z(i beta)`` from its logarithmic
+      derivative (``V`` is periodic; ``g = G(K) / K``).
+    - ``m > 1/2``: Jacobi's imaginary transformation, the complementary nome ``q'``; ``Theta``
+      becomes ``theta_2`` of ``i pi (tau + i beta) / (2 K')`` times a Gaussian, whose phase is linear
+      in ``tau`` (moved into ``g = cn^2(beta | 1 - m) + c Z(beta | 1 - m)``) and steps by ``pi beta / K'``
+      per half period. The product runs over ``e^(-2a) q'^(2j)``, ``a = pi |rho| / (2 K')``.
+
+    ``beta`` is an incomplete integral of the first kind (one ``R_F`` per body), taken from 0
+    (``beta = sqrt(nu) R_F(1, 1 + n, 1 + nu)``) or from ``K'`` (``K' - beta = R_F(n, n + m, 1 + n)``),
+    whichever is nearer, so that the leading factors, which vanish at ``beta = K'``, keep their
+    relative accuracy (``1 - r`` by ``expm1``). All terms of the slopes are positive except ``1 - c Im
+    Z``, which loses ``~eps sqrt(n)`` relative for nearly symmetric bodies with ``n >> 1``.
+
+    The initial phase: ``rho0 = F(am0 | m)`` reduced to ``[-K, K]`` from ``(sn0, cn0, dn0)``, by
+    Carlson's ``R_F`` (DLMF 19.25.5) on ``|sn| <= 1/sqrt 2`` and measured back from ``K`` above, whose
+    arguments are ``O(p)`` but never zero, so it keeps its accuracy as ``p = 1 - m -> 0``; stacked with
+    ``beta``'s ``R_F`` in one duplication loop. On the separatrix (``p = 0``) the same formulas hold
+    with ``K = inf``, ``q' = 0`` and ``rho0 = atanh(sn0)``.
+
+    **Arguments:**
+
+    - `m`, `p`: the parameter and ``p = 1 - m``; `n` ``>= 0`` and `nu` ``= n / m`` (``inf`` for
+      ``m = 0 < n``; 0 for ``n = 0``).
+    - `start`: ``(sn0, cn0, dn0)`` of the initial phase.
+
+    **Returns:** a dict: ``quarter`` (``K``), ``slope`` (``g``), ``c``, ``rho0`` and what
+    :func:`_precession_phase` reads.
     """
-    c = jnp.abs(cn)
-    s = jnp.abs(sn)
-    sign_s = jnp.where(sn < 0, -1.0, 1.0).astype(sn.dtype)
-    sign_c = jnp.where(cn < 0, -1.0, 1.0).astype(sn.dtype)
+    upper, agm, nome, big_l = _nome_parts(m, p)
+    finite_l = jnp.isfinite(big_l)
+    l_safe = jnp.where(finite_l, big_l, 1.0)
+    quarter = jnp.where(upper, jnp.where(finite_l, big_l, jnp.inf) / (2 * agm), (jnp.pi / 2) / agm)
+    quarter_safe = jnp.where(jnp.isfinite(quarter), quarter, 1.0)
+
+    # One duplication loop: the imaginary shift (from 0 or from K') and the initial phase.
+    from_zero = n <= jnp.sqrt(m)
+    nu_safe = jnp.where(from_zero, nu, 1.0)
+    sn0, cn0, dn0 = start
+    s, c = jnp.abs(sn0), jnp.abs(cn0)
     direct = s * s <= 0.5
-    pc = jnp.where(p > 0, p, jnp.ones_like(p))
-    pole = 1 + n * s * s
+    pc = jnp.where(p > 0, p, 1.0)
     args = (
-        jnp.where(direct, c * c, pc * s * s),
-        dn * dn,
-        jnp.where(direct, jnp.ones_like(s), pc),
-        jnp.where(direct, pole, pc * pole / (1 + n)),
+        (jnp.where(from_zero, 1.0, n), jnp.where(direct, c * c, pc * s * s)),
+        (jnp.where(from_zero, 1 + n, n + m), dn0 * dn0),
+        (jnp.where(from_zero, 1 + nu_safe, 1 + n), jnp.where(direct, 1.0, pc)),
     )
-    weight = n / (1 + n) * pc / 3
-    if quarter is None:  # K = R_F(0, 1, p), G(K) from R_J(0, 1, p, p / (1 + n)), stacked with the point
-        extra = (jnp.zeros_like(pc), jnp.ones_like(pc), pc, pc / (1 + n))
-        rf, rj = _carlson_rf_rj(
-            *(jnp.stack(jnp.broadcast_arrays(a, b)) for a, b in zip(args, extra, strict=True))
-        )
-        quarter = rf[1], (rf[1] + weight * rj[1]) / (1 + n)
-        rf, rj = rf[0], rj[0]
-    else:
-        rf, rj = _carlson_rf_rj(*args)
-    quarter_f, quarter_g = quarter
-    f = sign_s * jnp.where(direct, s * rf, quarter_f - c * rf)
-    g = sign_s * jnp.where(
-        direct, s * rf - (n / 3) * s**3 * rj, quarter_g - (c * rf + weight * c**3 * rj) / (1 + n)
+    rf, _ = _carlson_rf_rd(*(jnp.stack(jnp.broadcast_arrays(*a)) for a in args), with_rd=False)
+    shift = jnp.where(from_zero, jnp.sqrt(nu_safe), 1.0) * rf[0]  # beta or K' - beta
+    # p = 0: F = atanh(s) = log((1 + s) / c), from c (not 1 - s) where s -> 1; c = 0 is steady.
+    c_safe = jnp.where(c > 0, c, 1.0)
+    f = jnp.where(direct, s * rf[1], jnp.where(p > 0, quarter_safe - c * rf[1], jnp.log((1 + s) / c_safe)))
+    sign_s = jnp.where(sn0 < 0, -1.0, 1.0).astype(sn0.dtype)
+    sign_c = jnp.where(cn0 < 0, -1.0, 1.0).astype(sn0.dtype)
+    rho0 = sign_c * sign_s * f  # cn0 < 0: half a period on, tau0 = rho0 +- 2K
+
+    # The share of the precession that the phase carries: c = sn cn / dn (beta | 1 - m).
+    c_factor = jnp.sqrt(1 / ((1 + 1 / nu) * (1 + n)))
+    factors = _steps(_THETA_FACTORS, m.dtype)
+    nome2 = nome * nome
+
+    # m > 1/2: b = pi beta / (2 K') = agm beta, from 0 or from pi/2.
+    angle = agm * shift
+    sin_a, cos_a = jnp.sin(angle), jnp.cos(angle)
+    sin_b, cos_b = jnp.where(from_zero, sin_a, cos_a), jnp.where(from_zero, cos_a, sin_a)
+    b = jnp.where(from_zero, angle, jnp.pi / 2 - angle)
+    sin_2b, cos_2b = 2 * sin_b * cos_b, (cos_b - sin_b) * (cos_b + sin_b)
+    zeta = jnp.zeros_like(b)  # Z(beta | 1 - m) / agm: the logarithmic derivative of theta_4(b | q')
+    power = nome
+    for _ in range(factors):
+        zeta = zeta + 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power)
+        power = power * nome2
+    slope_upper = 1 / (1 + nu) + c_factor * agm * zeta
+
+    # m <= 1/2: r = q e^(2y), s = q e^(-2y) with y = pi beta / (2 K) = agm beta.
+    e = 2 * agm * shift
+    r_lower = jnp.where(from_zero, nome * jnp.exp(e), jnp.exp(-e))
+    s_lower = jnp.where(from_zero, nome * jnp.exp(-e), nome2 * jnp.exp(e))
+    gap_lower = jnp.where(from_zero, 1 - r_lower, -jnp.expm1(-e))  # 1 - r
+    im_zeta = jnp.zeros_like(b)  # Im Z(i beta | m) / agm
+    r_j, s_j, gap_j = r_lower, s_lower, gap_lower
+    for _ in range(factors):
+        im_zeta = im_zeta + 2 * (r_j - s_j) / (gap_j * (1 - s_j))
+        r_j, s_j = r_j * nome2, s_j * nome2
+        gap_j = 1 - r_j
+    slope_lower = 1 - c_factor * agm * im_zeta
+
+    return dict(
+        quarter=quarter,
+        slope=jnp.where(upper, slope_upper, slope_lower),
+        c=c_factor,
+        rho0=rho0,
+        upper=upper,
+        agm=agm,
+        nome2=nome2,
+        l_safe=jnp.where(upper & finite_l, l_safe, jnp.inf),
+        b=b,
+        bend=(cos_b * cos_b, sin_2b, cos_2b),
+        lower=(r_lower, s_lower, gap_lower),
     )
-    return sign_c * f, sign_c * g, jnp.arctan2(sign_c * sn, c), quarter
+
+
+def _reduce(tau, quarter):
+    """``tau = rho + 2 j K`` with ``|rho| <= K`` (``j = 0`` for ``K = inf``): ``(j, rho)``."""
+    finite = jnp.isfinite(quarter)
+    quarter = jnp.where(finite, quarter, 1.0)
+    turns = jnp.where(finite, jnp.round(tau / (2 * quarter)), 0.0)
+    return turns, tau - 2 * quarter * turns
+
+
+def _precession_phase(rho, turns, body):
+    """``V`` of :func:`_precession_parts` at ``tau = rho + 2 j K`` (``|rho| <= K``, ``j = turns``):
+    ``G(tau) = g tau + c V``.
+
+    ``V`` is odd in ``rho``; it is evaluated at ``|rho|`` as the phase of one theta product (the
+    factors of both nomes' forms selected per body before it), with one ``atan2``, one ``sin``/``cos``
+    and one ``exp``/``expm1`` pair per point. Every factor has a positive real part.
+    """
+    upper, agm, nome2 = body["upper"], body["agm"], body["nome2"]
+    cos_b2, sin_2b, cos_2b = body["bend"]
+    r_lower, s_lower, gap_lower = body["lower"]
+    sign = jnp.where(rho < 0, -1.0, 1.0).astype(rho.dtype)
+    x = agm * (sign * rho)  # pi |rho| / (2 K) for m <= 1/2, pi |rho| / (2 K') above
+    sin_x, cos_x = jnp.sin(x), jnp.cos(x)
+    e = jnp.expm1(-2 * x)
+    # The leading factor 1 + sigma r w (w = e^(-2ix), sigma = -1 | w = e^(-2ib), sigma = +1) has real
+    # part (1 - r) + r (1 + sigma cos(arg w)), formed without cancellation where r -> 1.
+    r = jnp.where(upper, 1 + e, r_lower)
+    gap = jnp.where(upper, -e, gap_lower)
+    s = jnp.where(upper, jnp.exp(2 * x - 2 * body["l_safe"]), s_lower)
+    bend = jnp.where(upper, 2 * cos_b2, 2 * sin_x * sin_x)
+    w_re = jnp.where(upper, cos_2b, 1 - 2 * sin_x * sin_x)
+    w_im = jnp.where(upper, -sin_2b, -2 * sin_x * cos_x)
+    sigma = jnp.where(upper, 1.0, -1.0).astype(rho.dtype)
+    re, im = gap + r * bend, sigma * r * w_im
+    r_j, s_j = r, s
+    for k in range(_steps(_THETA_FACTORS, rho.dtype)):
+        if k:
+            r_j = r_j * nome2
+            f_re, f_im = 1 + sigma * r_j * w_re, sigma * r_j * w_im
+            re, im = re * f_re - im * f_im, re * f_im + im * f_re
+        f_re, f_im = 1 + sigma * s_j * w_re, -sigma * s_j * w_im
+        re, im = re * f_re - im * f_im, re * f_im + im * f_re
+        s_j = s_j * nome2
+    b = jnp.where(upper, body["b"], 0.0)
+    return sign * (b + jnp.arctan2(im, re)) + 2 * turns * b
+
+
+def _rough_angle(y, x):
+    """``atan2(y, x)`` to within 0.005 rad, for counting turns only (no derivative).
+
+    ``atan(z) ~ z (pi/4 + 0.273 (1 - z))`` on ``[0, 1]``. ``y = 0`` gives ``+pi`` on the negative ``x``
+    axis, like the half-angle quaternions of :func:`_half_angles`.
+    """
+    y, x = jax.lax.stop_gradient(y), jax.lax.stop_gradient(x)
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    big = jnp.maximum(ax, ay)
+    z = jnp.minimum(ax, ay) / jnp.where(big > 0, big, 1.0)
+    a = z * (jnp.pi / 4 + 0.273 * (1 - z))
+    a = jnp.where(ay > ax, jnp.pi / 2 - a, a)
+    a = jnp.where(x < 0, jnp.pi - a, a)
+    return jnp.where(y < 0, -a, a)
 
 
 def _half_angles(momentum):
@@ -368,19 +540,9 @@ def _half_angles(momentum):
 
 
 def _nutation_spin_quat(momentum):
-    """``Rx(theta) Rz(psi)`` as a quaternion (it turns ``momentum`` onto ``+z``) and ``psi`` in (-pi, pi]."""
+    """``Rx(theta) Rz(psi)`` as a quaternion (it turns ``momentum`` onto ``+z``), ``psi`` in (-pi, pi]."""
     ct, st, cp, sp = _half_angles(momentum)
-    q = jnp.stack([ct * cp, st * cp, -st * sp, ct * sp], axis=-1)
-    return q, 2 * jnp.arctan2(sp, cp)
-
-
-def _steady(inertia, omega0):
-    """Rotations about a fixed body axis: a principal axis, or any axis of a sphere, or one in the
-    degenerate plane of a symmetric body (also ``omega0 = 0``)."""
-    _, moments, omega, _ = _sorted_frame(inertia, omega0)
-    _, _, rate, _, _ = _solution_parameters(moments, omega)
-    zeros = sum((omega[..., i] == 0).astype(jnp.int32) for i in range(3))
-    return (rate == 0) | (zeros >= 2)
+    return jnp.stack([ct * cp, st * cp, -st * sp, ct * sp], axis=-1)
 
 
 def _series_or(y, terms, closed):
@@ -508,20 +670,21 @@ def torque_free_motion(
         n = I_c (I_b - I_a) / (I_a (I_c - I_b)) >= 0,
 
     integrated in closed form: ``phi = (|L| / I_c) (t + (I_c - I_a)/I_a [G(tau(t)) - G(tau(0))] / (dtau/dt))``
-    with ``G(tau) = Pi(-n; am(tau) | m)`` from Carlson's ``R_F`` and ``R_J`` (whole half-periods ``2 G(K)``
-    plus reduced parts). The space-frame momentum ``R(t) I omega(t)`` is therefore constant to roundoff at
-    any ``t``. Accuracy: an absolute error of a few ``eps * (|omega| t + precession angle per period)``
-    (the first term is the conditioning of ``q`` in ``t``, the second that of the reduced third-kind
-    integrals; ``G(tau) = Pi(-n; am tau | m)`` is within a few ulp of ``K(m)`` of mpmath's). For elongated
+    with ``G(tau) = Pi(-n; am(tau) | m)`` from Jacobi's theta-function form of the integral of the third
+    kind (a rate times ``t`` plus the bounded phase of a theta function at ``tau + i beta``, see
+    :func:`_precession_parts`). The space-frame momentum ``R(t) I omega(t)`` is therefore constant to
+    roundoff at any ``t``. Accuracy: an absolute error of a few ``eps * (|omega| t + precession angle per
+    period)`` (the first term is the conditioning of ``q`` in ``t``, the second that of the third-kind
+    integral; ``G(tau) = Pi(-n; am tau | m)`` is within a few ulp of ``K(m)`` of mpmath's). For elongated
     bodies (``I_a << I_c``, where the precession rate peaks at ``|L| / I_a``) the error is larger than
     that: 3.3e-11 over 40 s for ``(1e-3, 1, 1.001)``, where an integrator at rtol 1e-11 reaches 3e-12
-    (``tests/test_extreme_bodies.py``). Near the
-    separatrix the integrals are measured from the nearest quarter period, so the accuracy holds for
-    ``p = 1 - m`` down to the smallest normal number: at ``s = (L^2 - 2 E I_2) / L^2 = 1.5e-9`` and
-    ``-4e-10``, ``q`` agrees with a 30-digit Taylor integration to 3e-15 and 1.5e-14 over a period (the
-    motion itself amplifies input perturbations there, by ``~1/sqrt(|s|)`` per pass near the
-    intermediate axis). Exactly on it (``p = 0``),
-    ``G = (tau + sqrt(n) atan(sqrt(n) tanh tau)) / (1 + n)``. Symmetric bodies (``m = n = 0``) give the
+    (``tests/test_extreme_bodies.py``). Near the separatrix the initial phase is measured from the nearest
+    quarter period, so the accuracy holds for ``p = 1 - m`` down to the smallest normal number: at
+    ``s = (L^2 - 2 E I_2) / L^2 = 1.5e-9`` and ``-4e-10``, ``q`` agrees with a 30-digit Taylor integration
+    to 3e-15 and 1.5e-14 over a period (the motion itself amplifies input perturbations there, by
+    ``~1/sqrt(|s|)`` per pass near the intermediate axis). Exactly on it (``p = 0``) the same formulas
+    give ``G = (tau + sqrt(n) atan(sqrt(n) tanh tau)) / (1 + n)``.
+    Symmetric bodies (``m = n = 0``) give the
     familiar rotation about ``L`` at ``|L| / I_1`` composed with the body spin, with no NaN as two moments
     meet (the derivative there is the one-sided, analytic one). Steady rotations (about a principal axis,
     the intermediate one included; any axis of a sphere; ``omega0 = 0``) return
@@ -562,14 +725,10 @@ def _motion_failures(inertia, omega0, q0, t):
 def _torque_free_motion(inertia, omega0, q0, t, *, checked):
     """:func:`torque_free_motion`; ``checked=False`` as in :func:`_torque_free_omega`."""
     inertia, omega0, q0, t, batch = _broadcast_motion_inputs(inertia, omega0, q0, t, checked)
-    dtype = inertia.dtype
-    steady = _steady(inertia, omega0)
-    # A generic body stands in for steady ones, whose motion is below: no 0/0 in the general branch.
-    inertia_g = jnp.where(steady[..., None], jnp.array([1.0, 2.0, 3.0], dtype), inertia)
-    omega0_g = jnp.where(steady[..., None], jnp.array([1.0, 1.0, 1.0], dtype), omega0)
-    omega_g, parts = _motion_parts(inertia_g, omega0_g, t)
-    q_g = _general_orientation(inertia_g, omega0_g, omega_g, t, parts)
-    q_g = _quat_multiply(q0, q_g)
+    frame = _frame(inertia, omega0)
+    steady = frame["steady"]
+    omega_g, parts = _motion_parts(frame, t)
+    q_g = _quat_multiply(q0, _general_orientation(frame, parts, t))
 
     half = safe_norm(omega0) * t / 2
     # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
@@ -581,62 +740,60 @@ def _torque_free_motion(inertia, omega0, q0, t, *, checked):
     return jnp.broadcast_to(omega, batch + (3,)), jnp.broadcast_to(q, batch + (4,))
 
 
-def _general_orientation(inertia, omega0, omega_t, t, parts):
+def _general_orientation(frame, parts, t):
     """``q0* q(t)`` for a body that is not in steady rotation (see :func:`torque_free_motion`)."""
-    perm, moments = parts["perm"], parts["moments"]
-    around_largest, m, p, u = parts["around_largest"], parts["m"], parts["p"], parts["u"]
-    del m
-    I_a = jnp.where(around_largest, moments[..., 0], moments[..., 2])
-    I_b = moments[..., 1]
-    I_c = jnp.where(around_largest, moments[..., 2], moments[..., 0])
+    moments, index = frame["moments"], frame["index"]
+    around_largest, m, p, nu, u = (parts[k] for k in ("around_largest", "m", "p", "nu", "u"))
+    I_a = jnp.where(around_largest, moments[0], moments[2])
+    I_b = moments[1]
+    I_c = jnp.where(around_largest, moments[2], moments[0])
     n = _clip(_safe_div(I_c * (I_b - I_a), I_a * (I_c - I_b)), 0.0, jnp.inf)
 
-    # The precession angle phi. K, G(K) and the start's reduced phase depend on the body only (they
-    # keep its shape when t has more axes: computed once per body, not per sample time).
-    (sn0, cn0, dn0), (sn1, cn1, dn1) = parts["start"], parts["now"]
-    rho0, gamma0, am0, quarter = _reduced_phase(sn0, cn0, dn0, p, n)
-    rho1, gamma1, am1, _ = _reduced_phase(sn1, cn1, dn1, p, n, quarter)
-    quarter_f, quarter_g = quarter
-    on_separatrix = p == 0
-    quarter_f = jnp.where(on_separatrix, 1.0, quarter_f)
-    turns = jnp.where(on_separatrix, 0.0, jnp.round((u + rho0 - rho1) / (2 * quarter_f)))
-    delta_g = gamma1 - gamma0 + 2 * turns * jnp.where(on_separatrix, 0.0, quarter_g)
-    # p = 0: G(tau) = tau / (1 + n) + sqrt(n) atan(sqrt(n) tanh(tau)) / (1 + n), tanh(tau) = sn.
-    root_n = jnp.sqrt(jnp.where(on_separatrix, n, 1.0))
-    delta_g_separatrix = (u + root_n * (jnp.arctan(root_n * sn1) - jnp.arctan(root_n * sn0))) / (1 + n)
-    delta_g = jnp.where(on_separatrix, delta_g_separatrix, delta_g)
-    delta_am = am1 - am0 + jnp.pi * turns
+    # The precession angle phi = (|L| / I_c) (t + (I_c - I_a) / I_a (G(tau) - G(tau0)) / (dtau/dt)) with
+    # G = g tau + c V: the linear part is a rate, and (|L| / I_c) ((I_c - I_a) / I_a) c / (dtau/dt) = +-1
+    # (an identity of the elliptic parameters), so V enters as it is. What depends on the body only
+    # (K, g, the initial phase) keeps the body's shape: computed once per body, not per sample time.
+    body = _precession_parts(m, p, n, nu, parts["start"])
+    rho0 = body["rho0"]
+    turns, rho1 = _reduce(rho0 + u, body["quarter"])
     speed = parts["speed"]
-    size = safe_norm(inertia * omega0)
-    phi = (size / I_c) * (t + (I_c - I_a) / I_a * delta_g / jnp.where(speed != 0, speed, 1.0))
+    size = safe_norm(jnp.stack([i * w for i, w in zip(moments, frame["omega"], strict=True)], axis=-1))
+    kappa = jnp.where((I_c > I_a) == (speed > 0), 1.0, -1.0).astype(u.dtype)
+    delta_v = _precession_phase(rho1, turns, body) - _precession_phase(rho0, jnp.zeros_like(rho0), body)
+    phi = (size / I_c) * (1 + (I_c - I_a) / I_a * body["slope"]) * t + kappa * delta_v
 
-    # Cyclic relabelling of the body axes: (x, y, c) = (c + 1, c + 2, c) mod 3, a proper rotation.
-    c_index = jnp.take_along_axis(
-        perm, jnp.where(around_largest, 2, 0)[..., None], axis=-1, mode="promise_in_bounds"
-    )
-    a_index = jnp.take_along_axis(
-        perm, jnp.where(around_largest, 0, 2)[..., None], axis=-1, mode="promise_in_bounds"
-    )[..., 0]
-    to_cyclic = (c_index + jnp.arange(1, 4)) % 3
-    from_cyclic = (jnp.arange(3) - c_index - 1) % 3
-    l0 = jnp.take_along_axis(inertia * omega0, to_cyclic, axis=-1, mode="promise_in_bounds")
-    l1 = _take(inertia * omega_t, to_cyclic)
-    b0, psi0 = _nutation_spin_quat(l0)
-    b1, psi1 = _nutation_spin_quat(l1)
+    # Cyclic relabelling of the body axes: (x, y, c) = (c + 1, c + 2, c) mod 3, a proper rotation; (x, y)
+    # is (a, b) (eps = -1) or (b, a) (eps = +1).
+    c_index = jnp.where(around_largest, index[2], index[0])
+    a_index = jnp.where(around_largest, index[0], index[2])
+    eps = jnp.where((c_index + 1) % 3 == a_index, -1.0, 1.0).astype(u.dtype)
+    (w_a0, w_b0, w_c0), (w_a1, w_b1, w_c1) = parts["omega_start"], parts["omega_now"]
+    l_a0, l_b0, l_c0 = I_a * w_a0, I_b * w_b0, I_c * w_c0
+    l_a1, l_b1, l_c1 = I_a * w_a1, I_b * w_b1, I_c * w_c1
+    x0, y0 = jnp.where(eps < 0, l_a0, l_b0), jnp.where(eps < 0, l_b0, l_a0)
+    x1, y1 = jnp.where(eps < 0, l_a1, l_b1), jnp.where(eps < 0, l_b1, l_a1)
+    b0 = _nutation_spin_quat(jnp.stack([x0, y0, l_c0], axis=-1))
+    b1 = _nutation_spin_quat(jnp.stack(jnp.broadcast_arrays(x1, y1, l_c1), axis=-1))
 
-    # psi is continuous in t; its principal values wrap. Relative to am(tau), psi = eps beta + const
-    # with |beta - am| < pi/2 (beta the angle of (l_a, l_b)), eps = -1 when (x, y) = (a, b); the number
-    # of wraps k flips the sign of the half-angle quaternion.
-    eps = jnp.where(to_cyclic[..., 0] == a_index, -1.0, 1.0).astype(inertia.dtype)
-    wraps = jnp.round((eps * delta_am - (psi1 - psi0)) / (2 * jnp.pi))
-    flip = jnp.where(jnp.mod(wraps, 2) == 0, 1.0, -1.0).astype(inertia.dtype)
+    # psi = atan2(l_x, l_y) is continuous in t; the quaternions hold its principal value, and each wrap
+    # flips the sign of the half-angle quaternion. psi = eps beta + const with beta the angle of
+    # (l_a, l_b) ~ (cn, sn), which turns by pi per half period: at the reduced phases (cn >= 0) beta is in
+    # [-pi/2, pi/2], so its continuous change is beta(rho1) - beta(rho0) + pi j exactly, and rough
+    # angles (errors of 0.005 rad) count the wraps.
+    sign0 = jnp.where(parts["start"][1] < 0, -1.0, 1.0).astype(u.dtype)
+    sign1 = sign0 * (1 - 2 * jnp.mod(turns, 2))
+    beta0 = _rough_angle(sign0 * l_b0, sign0 * l_a0)
+    beta1 = _rough_angle(sign1 * l_b1, sign1 * l_a1)
+    turned = eps * (beta1 - beta0 + jnp.pi * turns)
+    wraps = jnp.round((turned - (_rough_angle(x1, y1) - _rough_angle(x0, y0))) / (2 * jnp.pi))
+    flip = jnp.where(jnp.mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
 
     zero = jnp.zeros_like(phi)
     precession = jnp.stack([jnp.cos(phi / 2), zero, zero, jnp.sin(phi / 2)], axis=-1)
-    b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], inertia.dtype)
+    b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], u.dtype)
     q = _quat_multiply(b0_conj, _quat_multiply(precession, b1)) * flip[..., None]
-    vector = _take(q[..., 1:], from_cyclic)
-    return jnp.concatenate([q[..., :1], vector], axis=-1)
+    vector = _cycle([q[..., 1], q[..., 2], q[..., 3]], (2 - c_index) % 3)
+    return jnp.stack([q[..., 0], *vector], axis=-1)
 
 
 @eqx.filter_jit
