@@ -32,15 +32,17 @@ def _fence(tree):
 
 
 def _stage_sum(start, coefficients, stages):
-    """``start + sum_j c_j k_j`` over the nonzero ``c_j``, leaf by leaf (``start`` None: zero)."""
+    """``start + sum_j c_j k_j`` over the nonzero ``c_j``, leaf by leaf (``start`` None: zero). The
+    increments are summed first and added to ``start`` once, as diffrax does: adding them to
+    ``start`` one by one would round each partial sum at the scale of the state."""
 
     def leaf(y, *ks):
-        total = y
+        increment = None
         for c, k in zip(coefficients, ks, strict=False):
             if c != 0.0:
                 term = float(c) * k
-                total = term if total is None else total + term
-        return total
+                increment = term if increment is None else increment + term
+        return increment if y is None else y + increment
 
     if start is None:
         return jtu.tree_map(lambda *ks: leaf(None, *ks), *stages)
