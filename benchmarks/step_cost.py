@@ -1,22 +1,23 @@
 """Where an adaptive Runge-Kutta integration spends its time, in nanoseconds per body and step.
 
 Scene: the tennis-racket bodies of ``work_precision.py`` (``_harness.reference_scene``), float64,
-one chunk of ``--chunk`` bodies (the CPU default), Dormand-Prince 8(7) (diffrax's ``Dopri8``, the
-``"balanced"`` and ``"precise"`` presets' method) at rtol = atol = 1e-8 over T = 20 s.
+Dormand-Prince 8(7) at rtol = atol = 1e-8 over T = 20 s (the ``"balanced"`` preset).
 
 Rows, each the median of ``--repeats`` timed calls after a first (compiling) call:
 
-- ``simulate(accuracy="balanced")`` on ``--n`` bodies: run time / (steps summed over chunks x chunk);
-- the vector field alone, as ``simulate`` evaluates it (state ``(u (3, N), q (4, N))``, the scene's
-  one-body ``angular_acceleration`` under ``jax.vmap``), and written row by row on a ``(7, N)``
-  state (Euler's equations and the quaternion rate for principal moments), per body-evaluation;
-- one step in a ``fori_loop``: diffrax's ``Dopri8.step`` on the first vector field; the same
-  tableau with its 14 stages unrolled, on ``simulate``'s state and field and on the row-wise ones;
-- ``diffeqsolve`` with that unrolled step (a diffrax solver written here) saving only the end point
-  (``SaveAt(t1=True)``) and saving at two sample times (``SaveAt(ts=[0, T])``, dense output).
+- ``simulate`` on ``--n`` bodies, run time / (steps summed over chunks x chunk): the preset
+  (:class:`rigidjax.solvers.UnrolledDopri8`, chunks of 256 bodies on CPU), the same with chunks of
+  1024, with diffrax's ``Dopri8`` (a loop over a stage buffer) in its place, and the preset with 801
+  sample times (the dense output at every step);
+- the vector field alone, as ``simulate`` evaluates it (state one ``(7, N)`` array, the scene's
+  one-body ``angular_acceleration`` under ``jax.vmap``) and written row by row (Euler's equations
+  and the quaternion rate for principal moments), per body-evaluation, on one chunk of ``--chunk``;
+- one step in a ``fori_loop`` on that chunk and field: diffrax's ``Dopri8.step``, ``UnrolledDopri8``
+  and ``UnrolledDopri8`` without its fences (XLA then fuses each stage's field evaluation into every
+  later stage sum that reads it).
 
 Usage:
-    python benchmarks/step_cost.py                 # ~2 min on 2 cores
+    python benchmarks/step_cost.py                 # ~3 min on 2 cores
     python benchmarks/step_cost.py --chunk 512 --repeats 7
 Writes benchmarks/results/step_cost.md (``--out`` to change).
 """
@@ -38,52 +39,18 @@ from _harness import reference_scene, timed_calls  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
 from rigidjax._integrate import batching  # noqa: E402
-from rigidjax._integrate.chunked import max_norm  # noqa: E402
 from rigidjax._integrate.formulations import ScaledODE  # noqa: E402
+from rigidjax._integrate.solvers import unrolled  # noqa: E402
+from rigidjax.solvers import UnrolledDopri8  # noqa: E402
 
 T_END = 20.0
 RTOL = 1e-8
 LOOP_STEPS = 200
-TABLEAU = diffrax.Dopri8.tableau
-A_ROWS = [np.asarray(a, np.float64) for a in TABLEAU.a_lower]
-C_NODES = np.asarray(TABLEAU.c, np.float64)
-B_ERROR = np.asarray(TABLEAU.b_error, np.float64)
-
-
-def _combine(y, coefficients, ks):
-    """``y + sum_j coefficients[j] ks[j]`` leaf by leaf, skipping the tableau's zeros."""
-
-    def leaf(y, *k):
-        for c, k_j in zip(coefficients, k, strict=False):
-            if c != 0.0:
-                y = y + c * k_j
-        return y
-
-    return jax.tree_util.tree_map(leaf, y, *ks)
-
-
-class UnrolledDopri8(diffrax.Dopri8):
-    """diffrax's Dopri8 tableau with its stages unrolled (first-same-as-last, the same dense output)."""
-
-    def init(self, terms, t0, t1, y0, args):
-        return terms.vf(t0, y0, args)
-
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        f0 = jax.lax.cond(made_jump, lambda: terms.vf(t0, y0, args), lambda: solver_state)
-        h = terms.contr(t0, t1)
-        ks = [terms.prod(f0, h)]
-        for a, c in zip(A_ROWS, C_NODES, strict=True):
-            y_stage = _combine(y0, a, ks)
-            f_stage = terms.vf(t1 if c == 1.0 else t0 + c * h, y_stage, args)
-            ks.append(terms.prod(f_stage, h))
-        y1, f1 = y_stage, f_stage  # the last stage is evaluated at y1 (first same as last)
-        y_error = _combine(jax.tree_util.tree_map(jnp.zeros_like, y0), B_ERROR, ks)
-        dense_info = dict(y0=y0, y1=y1, k=jax.tree_util.tree_map(lambda *k: jnp.stack(k), *ks))
-        return y1, y_error, dense_info, f1, diffrax.RESULTS.successful
 
 
 def row_vector_field(inertia_rows):
-    """Euler's equations (principal moments) and the quaternion rate, row by row on ``(7, N)``."""
+    """Euler's equations (principal moments) and the quaternion rate, row by row on ``(7, N)``, with
+    the norm-attracting pull of the package's quaternion rate."""
     i1, i2, i3 = inertia_rows
 
     def field(t, y, args):
@@ -104,6 +71,18 @@ def row_vector_field(inertia_rows):
     return field
 
 
+class UnfencedDopri8(UnrolledDopri8):
+    """``UnrolledDopri8`` with its stage fences lifted (for this comparison only)."""
+
+    def step(self, *args):
+        fence = unrolled._fence
+        unrolled._fence = lambda tree: tree
+        try:
+            return super().step(*args)
+        finally:
+            unrolled._fence = fence
+
+
 def median_time(fn, arg, repeats):
     """Median seconds of ``repeats`` calls of ``fn(arg)`` after a first, compiling call."""
     return timed_calls(lambda: fn(arg), repeats)[1]["run_s"]
@@ -112,7 +91,7 @@ def median_time(fn, arg, repeats):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--n", type=int, default=10_000, help="bodies for the simulate row")
-    parser.add_argument("--chunk", type=int, default=1024, help="bodies per chunk for the other rows")
+    parser.add_argument("--chunk", type=int, default=256, help="bodies for the field and step rows")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "step_cost.md"))
     opts = parser.parse_args(argv)
@@ -121,11 +100,19 @@ def main(argv=None):
     inertia, omega0, q0 = reference_scene(opts.n)
     model = rj.FreeBody(jnp.asarray(inertia))
     state0 = rj.State(jnp.asarray(omega0), jnp.asarray(q0))
-    ts = jnp.array([0.0, T_END])
-    trajectory = rj.simulate(model, state0, ts, accuracy="balanced")
-    steps = int(np.sum(trajectory.stats["num_steps"])) * trajectory.stats["chunk_size"]
-    run = median_time(lambda s: rj.simulate(model, s, ts, accuracy="balanced").omega, state0, opts.repeats)
-    rows.append(("simulate(accuracy='balanced'), whole run", run / steps, f"{opts.n} bodies"))
+    ends = jnp.array([0.0, T_END])
+    for name, ts, settings in (
+        ("simulate(accuracy='balanced'), whole run", ends, {}),
+        ("the same, chunk_size=1024", ends, {"chunk_size": 1024}),
+        ("the same with diffrax's Dopri8", ends, {"solver": diffrax.Dopri8(), "rtol": RTOL, "atol": RTOL}),
+        ("simulate(accuracy='balanced'), 801 sample times", jnp.linspace(0.0, T_END, 801), {}),
+    ):
+        trajectory = rj.simulate(model, state0, ts, **settings)
+        steps = int(np.sum(trajectory.stats["num_steps"])) * trajectory.stats["chunk_size"]
+        run = median_time(
+            lambda s, ts=ts, kw=settings: rj.simulate(model, s, ts, **kw).omega, state0, opts.repeats
+        )
+        rows.append((name, run / steps, f"{opts.n} bodies, chunks of {trajectory.stats['chunk_size']}"))
 
     n = opts.chunk
     inertia, omega0, q0 = (jnp.asarray(x[:n]) for x in (inertia, omega0, q0))
@@ -135,21 +122,15 @@ def main(argv=None):
     package_field = ScaledODE().vector_field(shell, leaves, flat, sigma)
     y_package = ScaledODE().initial_state(flat, leaves, omega0, q0, sigma)
     field = row_vector_field(inertia.T)
-    y_rows = jnp.concatenate([omega0.T, q0.T])
 
     def field_loop(vf):
         def loop(y):
-            return jax.lax.fori_loop(
-                0,
-                LOOP_STEPS,
-                lambda i, y: jax.tree_util.tree_map(lambda a, b: a + 1e-9 * b, y, vf(0.0, y, None)),
-                y,
-            )
+            return jax.lax.fori_loop(0, LOOP_STEPS, lambda i, y: y + 1e-9 * vf(0.0, y, None), y)
 
         return jax.jit(loop)
 
-    for name, vf, y in (("simulate's", package_field, y_package), ("row-wise (7, N)", field, y_rows)):
-        cost = median_time(field_loop(vf), y, opts.repeats) / (LOOP_STEPS * n)
+    for name, vf in (("simulate's", package_field), ("written row by row", field)):
+        cost = median_time(field_loop(vf), y_package, opts.repeats) / (LOOP_STEPS * n)
         rows.append((f"vector field alone, {name}, per evaluation", cost, f"{n} bodies"))
 
     def step_loop(solver, vf):
@@ -159,40 +140,19 @@ def main(argv=None):
             def body(i, carry):
                 y, state = carry
                 y1, error, dense, state, _ = solver.step(term, 0.0, 1e-4, y, None, state, jnp.array(False))
-                keep = jax.tree_util.tree_map(lambda a, e, k: a + 1e-30 * (e + k[-1]), y1, error, dense["k"])
-                return keep, state
+                return y1 + 1e-30 * (error + dense["k"][-1]), state
 
             return jax.lax.fori_loop(0, LOOP_STEPS, body, (y, solver.init(term, 0.0, 1e-4, y, None)))[0]
 
         return jax.jit(loop)
 
-    for name, solver, vf, y in (
-        ("diffrax Dopri8.step, simulate's field", diffrax.Dopri8(), package_field, y_package),
-        ("unrolled Dopri8 step, simulate's field and state", UnrolledDopri8(), package_field, y_package),
-        ("unrolled Dopri8 step, row-wise (7, N)", UnrolledDopri8(), field, y_rows),
+    for name, solver in (
+        ("diffrax Dopri8.step", diffrax.Dopri8()),
+        ("UnrolledDopri8.step", UnrolledDopri8()),
+        ("UnrolledDopri8.step without its fences", UnfencedDopri8()),
     ):
-        cost = median_time(step_loop(solver, vf), y, opts.repeats) / (LOOP_STEPS * n)
+        cost = median_time(step_loop(solver, package_field), y_package, opts.repeats) / (LOOP_STEPS * n)
         rows.append((f"one step in a loop: {name}", cost, f"{n} bodies"))
-
-    for name, saveat in (
-        ("end point only", diffrax.SaveAt(t1=True)),
-        ("two sample times", diffrax.SaveAt(ts=ts)),
-    ):
-
-        def solve(y, saveat=saveat):
-            solution = diffrax.diffeqsolve(
-                diffrax.ODETerm(field), UnrolledDopri8(), 0.0, T_END, 1e-3, y, saveat=saveat,
-                stepsize_controller=diffrax.PIDController(rtol=RTOL, atol=RTOL, norm=max_norm),
-                max_steps=100_000, throw=False,
-            )  # fmt: skip
-            return solution.ys, solution.stats["num_steps"]
-
-        solve = jax.jit(solve)
-        taken = int(solve(y_rows)[1])
-        cost = median_time(lambda y, solve=solve: solve(y)[0], y_rows, opts.repeats) / (taken * n)
-        rows.append(
-            (f"diffeqsolve, unrolled step, row-wise (7, N), {name}", cost, f"{n} bodies, {taken} steps")
-        )
 
     header = (
         f"Step cost, tennis-racket scene, Dopri8 at rtol {RTOL:g}, T = {T_END:g} s, float64, "

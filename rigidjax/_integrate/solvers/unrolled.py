@@ -5,7 +5,9 @@ product of one tableau row with the whole buffer. Here every stage is written ou
 tableau's nonzero coefficients, and each stage's value is fenced by ``jax.lax.optimization_barrier``:
 without the fence XLA fuses the cheap vector field into every later stage sum that reads it
 (computing it up to 13 times), which made the written-out step slower than diffrax's loop. Same
-tableau, error estimate and dense output as :class:`diffrax.Dopri8`, so the two agree to rounding.
+tableau, error estimate and dense output as :class:`diffrax.Dopri8`, so the two agree to rounding;
+the dense output's stage sums are done once per step (:class:`_PolynomialInterpolation`), not once
+per sample.
 
 Measured on the tennis-racket scene (10^4 free bodies, 20 s, rtol 1e-5, float64, 2-core CPU, chunks
 of 256 bodies, state one ``(7, bodies)`` array, medians of seven alternated runs): 0.12 s against
@@ -19,11 +21,15 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+from jax.typing import ArrayLike
+from jaxtyping import PyTree
 
 _TABLEAU = diffrax.Dopri8.tableau
 _A = tuple(np.asarray(row, np.float64) for row in _TABLEAU.a_lower)
 _C = np.asarray(_TABLEAU.c, np.float64)
 _B_ERROR = np.asarray(_TABLEAU.b_error, np.float64)
+# diffrax's dense output for this tableau: y(t0 + theta h) = y0 + sum_i theta polyval(row_i, theta) k_i.
+_DENSE = np.asarray(diffrax.Dopri8.interpolation_cls.eval_coeffs, np.float64)  # (stages, degree)
 
 
 def _fence(tree):
@@ -49,6 +55,33 @@ def _stage_sum(start, coefficients, stages):
     return jtu.tree_map(leaf, start, *stages)
 
 
+class _PolynomialInterpolation(diffrax.AbstractLocalInterpolation):
+    """The dense output of one step as a polynomial in ``theta = (t - t0) / (t1 - t0)``:
+    ``y0 + theta (P_0 theta^5 + P_1 theta^4 + ... + P_5)``, diffrax's Dopri8 interpolant with its
+    stage sums done once per step. A sample then costs six multiply-adds per component instead of a
+    sum over the 14 stages."""
+
+    t0: ArrayLike
+    t1: ArrayLike
+    y0: PyTree
+    powers: PyTree  # per leaf (6, ...): P_0 ... P_5
+
+    def evaluate(self, t0, t1=None, left=True):
+        del left
+        if t1 is not None:
+            return jtu.tree_map(lambda a, b: a - b, self.evaluate(t1), self.evaluate(t0))
+        theta = (t0 - self.t0) / (self.t1 - self.t0)
+
+        def leaf(y0, powers):
+            theta_ = jnp.asarray(theta, y0.dtype)
+            total = powers[0]
+            for power in powers[1:]:
+                total = total * theta_ + power
+            return y0 + theta_ * total
+
+        return jtu.tree_map(leaf, self.y0, self.powers)
+
+
 class UnrolledDopri8(diffrax.Dopri8):
     """:class:`diffrax.Dopri8` (Dormand–Prince 8(7), 14 stages, first same as last, 7th-order
     dense output) with the stages written out and fenced: the same values to rounding at about
@@ -59,6 +92,7 @@ class UnrolledDopri8(diffrax.Dopri8):
     """
 
     term_structure: ClassVar = diffrax.ODETerm
+    interpolation_cls: ClassVar = _PolynomialInterpolation
     stages: ClassVar[int] = len(_C) + 1
 
     def init(self, terms, t0, t1, y0, args):
@@ -76,5 +110,6 @@ class UnrolledDopri8(diffrax.Dopri8):
         # The last stage is evaluated at the solution (first same as last): y1 and f(t1, y1).
         y1, f1 = y_stage, f_stage
         y_error = _stage_sum(None, _B_ERROR, stages)
-        dense_info = dict(y0=y0, y1=y1, k=jtu.tree_map(lambda *ks: jnp.stack(ks), *stages))
+        powers = [_stage_sum(None, _DENSE[:, degree], stages) for degree in range(_DENSE.shape[1])]
+        dense_info = dict(y0=y0, powers=jtu.tree_map(lambda *p: jnp.stack(p), *powers))
         return y1, y_error, dense_info, f1, diffrax.RESULTS.successful
