@@ -68,6 +68,26 @@ def plan_bodies(model, omega0, q0, ts, args, formulation, chunk_size, sort):
     return batch, leaves, flat, omega0, q0, sigma, plan
 
 
+def _kept_samples(omega, q):
+    """Per body ``(bodies, T, .)``: the first sample that is not finite (``T`` if none), the samples
+    from there on NaN (a failed chunk leaves its unreached samples at inf, a body whose state turned
+    non-finite NaN: everything before the first bad sample is kept), the quaternions normalised and
+    the largest deviation of their norm from 1 over the kept samples. Returns ``(omega, q,
+    first_bad, q_norm_error)``."""
+    n_times = omega.shape[-2]
+    bad = ~jnp.all(jnp.isfinite(omega), axis=-1)
+    if q is not None:
+        bad = bad | ~jnp.all(jnp.isfinite(q), axis=-1)
+    first_bad = jnp.where(jnp.any(bad, axis=-1), jnp.argmax(bad, axis=-1), n_times)
+    keep = jnp.arange(n_times) < first_bad[:, None]
+    omega = jnp.where(keep[..., None], omega, jnp.nan)
+    if q is None:
+        return omega, None, first_bad, None
+    q_norm = jnp.linalg.norm(q, axis=-1, keepdims=True)
+    q_norm_error = jnp.max(jnp.where(keep, jnp.abs(q_norm[..., 0] - 1.0), 0.0), axis=-1)
+    return omega, jnp.where(keep[..., None], q / q_norm, jnp.nan), first_bad, q_norm_error
+
+
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces, for the no-recompile tests
 def _integrate_traced(
     model,
@@ -88,12 +108,12 @@ def _integrate_traced(
     batch, leaves, flat, omega0, q0, sigma, plan = plan_bodies(
         model, omega0, q0, ts, args, formulation, chunk_size, sort
     )
-    has_orientation = q0 is not None
     n_times = ts.shape[0]
 
     if n_times == 1:
-        omega_all = omega0[:, None, :]
-        q_all = None if q0 is None else q0[:, None, :]
+        omega, q, first_bad, q_norm_error = _kept_samples(
+            omega0[:, None, :], None if q0 is None else q0[:, None, :]
+        )
         codes = jnp.zeros((plan.n_chunks,), jnp.int32)
         steps = jnp.zeros((plan.n_chunks,), jnp.int32)
     else:
@@ -125,33 +145,25 @@ def _integrate_traced(
                 event=formulation.event(),
                 save_fn=formulation.save_fn,
             )
-            omega, q = formulation.outputs(solution.ys, values, leaves, s)
-            return omega, q, solution.result, solution.num_steps
+            # Per chunk, while its samples are in cache, not in passes over the whole batch's
+            # samples afterwards.
+            kept = _kept_samples(*formulation.outputs(solution.ys, values, leaves, s))
+            return (*kept, solution.result, solution.num_steps)
 
-        omega_all, q_all, codes, steps = batching.map_chunks(solve_chunk, chunks, shared, plan)
-        omega_all = batching.from_chunks(plan, omega_all)
-        q_all = batching.from_chunks(plan, q_all) if has_orientation else None
+        per_chunk = batching.map_chunks(solve_chunk, chunks, shared, plan)
+        omega, q, first_bad, q_norm_error, codes, steps = per_chunk
+        omega = batching.from_chunks(plan, omega)
+        q = None if q0 is None else batching.from_chunks(plan, q)
+        first_bad = batching.from_chunks(plan, first_bad)
+        q_norm_error = None if q0 is None else batching.from_chunks(plan, q_norm_error)
 
-    # Per body and sample: a failed chunk leaves its unreached samples at inf, a body whose state
-    # turned non-finite NaN from then on. Everything before the first bad sample is kept.
-    bad = ~jnp.all(jnp.isfinite(omega_all), axis=-1)
-    if q_all is not None:
-        bad = bad | ~jnp.all(jnp.isfinite(q_all), axis=-1)
-    first_bad = jnp.where(jnp.any(bad, axis=-1), jnp.argmax(bad, axis=-1), n_times)
     code = batching.from_chunks(plan, jnp.broadcast_to(codes[:, None], (plan.n_chunks, plan.chunk)))
     code = jnp.where((code == driver.SUCCESSFUL) & (first_bad < n_times), NON_FINITE, code)
     ok = code == driver.SUCCESSFUL
-    keep = jnp.arange(n_times) < first_bad[:, None]
-    omega = jnp.where(keep[..., None], omega_all, jnp.nan)
-    out_q = q_norm_error = None
-    if q_all is not None:
-        q_norm = jnp.linalg.norm(q_all, axis=-1, keepdims=True)
-        q_norm_error = jnp.max(jnp.where(keep, jnp.abs(q_norm[..., 0] - 1.0), 0.0), axis=-1).reshape(batch)
-        out_q = jnp.where(keep[..., None], q_all / q_norm, jnp.nan).reshape(batch + (n_times, 4))
     return Trajectory(
         ts=ts,
         omega=omega.reshape(batch + (n_times, 3)),
-        orientation=out_q,
+        orientation=None if q is None else q.reshape(batch + (n_times, 4)),
         # As given (checked, cast), not broadcast: (3,) moments broadcast to a batch ending in 3
         # would read as a (..., 3, 3) tensor.
         model=model,
@@ -159,7 +171,7 @@ def _integrate_traced(
         stats={
             "num_steps": steps,
             "chunk_size": plan.chunk,
-            "quaternion_norm_error": q_norm_error,
+            "quaternion_norm_error": None if q_norm_error is None else q_norm_error.reshape(batch),
             "result": code.reshape(batch),
             "first_failed_sample": first_bad.reshape(batch),
         },
