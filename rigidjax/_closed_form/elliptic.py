@@ -20,7 +20,8 @@ Algorithms:
 - ``ellipj``, ``ellipj_m1``: theta series (DLMF 22.2) in a nome of at most ``exp(-pi)``: the ordinary
   nome for ``m <= 1/2``, the complementary one (Jacobi's imaginary transformation) above, so three
   or four terms reach double precision and each ``u`` costs a ``sin``/``cos`` and an
-  ``exp``/``expm1`` pair (both sides are evaluated, then one is selected). The nome comes from its
+  ``exp``/``expm1`` pair (both sides are evaluated, then one is selected; ``sin``/``cos`` by fdlibm's
+  polynomials, which vectorize). The nome comes from its
   series in the modulus (no second AGM), the argument is reduced to a quarter period, and near
   ``u = K`` the functions are shifted by a quarter period, so ``cn`` and ``dn`` keep their *relative*
   accuracy near ``m = 1`` (where both are tiny, ``~ sech(u)``), unlike the angle recurrence of
@@ -393,9 +394,9 @@ def _jacobi_values(u, m, p):
     near = a <= half / 2
     y = jnp.where(near, a, half - a) * agm
     tanh, sech = _tanh_sech(y)  # 2 ulp; XLA's sinh and cosh are off by up to 9 ulp
-    z = u * agm
-    odd_sin = jnp.where(upper, tanh, jnp.sin(z))
-    odd_cos = jnp.where(upper, sech, jnp.cos(z))
+    sin_z, cos_z = _sin_cos(u * agm)
+    odd_sin = jnp.where(upper, tanh, sin_z)
+    odd_cos = jnp.where(upper, sech, cos_z)
     c2 = jnp.where(upper, 1 / (odd_cos * odd_cos), odd_cos * odd_cos)  # cosh(y)^2 | cos(z)^2
     q2 = q * q
     q4 = q2 * q2
@@ -437,6 +438,70 @@ def _jacobi_values(u, m, p):
     theta = jnp.arctan2(sn, cn)
     am = theta + (2 * jnp.pi) * jnp.round((v - theta) / (2 * jnp.pi))
     return sn, cn, dn, am
+
+
+# pi/2 in three parts (fdlibm's pio2_1, pio2_2, pio2_2t): the first two have 33 significant bits, so
+# k times them is exact for |k| < 2^20.
+_HALF_PI_PARTS = (1.57079632673412561417e00, 6.07710050630396597660e-11, 2.02226624879595063154e-21)
+# fdlibm's kernels: sin r = r + r^3 S(r^2), cos r = 1 - r^2/2 + r^4 C(r^2) on |r| <= pi/4 (< 1 ulp).
+_SIN_KERNEL = (
+    -1.66666666666666324348e-01,
+    8.33333333332248946124e-03,
+    -1.98412698298579493134e-04,
+    2.75573137070700676789e-06,
+    -2.50507602534068634195e-08,
+    1.58969099521155010221e-10,
+)
+_COS_KERNEL = (
+    4.16666666666666019037e-02,
+    -1.38888888888741095749e-03,
+    2.48015872894767294178e-05,
+    -2.75573143513906633035e-07,
+    2.08757232129817482790e-09,
+    -1.13596475577881948265e-11,
+)
+
+
+def _half_pi_parts(dtype) -> tuple[float, float, float]:
+    """``pi/2`` in three parts for ``dtype``: the float64 split, or for float32 two parts of 12 bits
+    (``k`` times them exact for ``|k| < 2^12``) and the rest."""
+    if np.dtype(dtype) == np.float64:
+        return _HALF_PI_PARTS
+    first = float(np.ldexp(np.floor(np.ldexp(_HALF_PI_PARTS[0], 11)), -11))
+    rest = (_HALF_PI_PARTS[0] - first) + _HALF_PI_PARTS[1]
+    second = float(np.ldexp(np.floor(np.ldexp(rest, 23)), -23))
+    return first, second, float(np.float32((rest - second) + _HALF_PI_PARTS[2]))
+
+
+@jax.custom_jvp
+def _sin_cos(x):
+    """``(sin x, cos x)`` from polynomials: within 2 ulp for ``|x| < 2^20 pi/2`` (float32: ``2^12 pi/2``),
+    beyond that within a few ulp of ``x`` (the conditioning).
+
+    XLA's ``sin`` and ``cos`` are calls per element on CPU (about three times the cost of this pair,
+    which vectorizes). ``x = k pi/2 + r`` (Cody & Waite, three parts), fdlibm's kernels on ``r``, and
+    the quadrant ``k mod 4`` exchanges and negates them.
+    """
+    hi, mid, lo = _half_pi_parts(x.dtype)
+    k = jnp.round(x * (2 / np.pi))
+    r = ((x - k * hi) - k * mid) - k * lo
+    z = r * r
+    sin_poly, cos_poly = _SIN_KERNEL[-1], _COS_KERNEL[-1]
+    for a, b in zip(_SIN_KERNEL[-2::-1], _COS_KERNEL[-2::-1], strict=True):
+        sin_poly, cos_poly = sin_poly * z + a, cos_poly * z + b
+    s = r + r * z * sin_poly
+    c = 1 - (0.5 * z - z * z * cos_poly)
+    quadrant = jnp.mod(k, 4)
+    odd = (quadrant == 1) | (quadrant == 3)
+    s, c = jnp.where(odd, c, s), jnp.where(odd, s, c)
+    return jnp.where(quadrant >= 2, -s, s), jnp.where((quadrant == 1) | (quadrant == 2), -c, c)
+
+
+@_sin_cos.defjvp
+def _sin_cos_jvp(primals, tangents):
+    (x,), (x_dot,) = primals, tangents
+    s, c = _sin_cos(x)
+    return (s, c), (c * x_dot, -s * x_dot)
 
 
 def _tanh_sech(u):

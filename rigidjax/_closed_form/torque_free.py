@@ -35,7 +35,7 @@ from .._kinematics.quaternion import _quat_multiply
 from .._numerics import safe_norm
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 from .carlson import _carlson_rf_rd, _steps
-from .elliptic import _ellipj_checked, _nome_parts, ellipkm1
+from .elliptic import _ellipj_checked, _nome_parts, _sin_cos, ellipkm1
 
 # The comparators of a sorting network for three elements.
 _NETWORK = ((0, 1), (1, 2), (0, 1))
@@ -414,7 +414,7 @@ def _precession_parts(m, p, n, nu, start):
 
     # m > 1/2: b = pi beta / (2 K') = agm beta, from 0 or from pi/2.
     angle = agm * shift
-    sin_a, cos_a = jnp.sin(angle), jnp.cos(angle)
+    sin_a, cos_a = _sin_cos(angle)
     sin_b, cos_b = jnp.where(from_zero, sin_a, cos_a), jnp.where(from_zero, cos_a, sin_a)
     b = jnp.where(from_zero, angle, jnp.pi / 2 - angle)
     sin_2b, cos_2b = 2 * sin_b * cos_b, (cos_b - sin_b) * (cos_b + sin_b)
@@ -474,7 +474,7 @@ def _precession_phase(rho, turns, body):
     r_lower, s_lower, gap_lower = body["lower"]
     sign = jnp.where(rho < 0, -1.0, 1.0).astype(rho.dtype)
     x = agm * (sign * rho)  # pi |rho| / (2 K) for m <= 1/2, pi |rho| / (2 K') above
-    sin_x, cos_x = jnp.sin(x), jnp.cos(x)
+    sin_x, cos_x = _sin_cos(x)
     e = jnp.expm1(-2 * x)
     # The leading factor 1 + sigma r w (w = e^(-2ix), sigma = -1 | w = e^(-2ib), sigma = +1) has real
     # part (1 - r) + r (1 + sigma cos(arg w)), formed without cancellation where r -> 1.
@@ -732,9 +732,13 @@ def _torque_free_motion(inertia, omega0, q0, t, *, checked):
 
     half = safe_norm(omega0) * t / 2
     # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
-    # d q/d w0 = q0 (0, t/2 I) (a body at rest turned by a small w0 turns by w0 t).
-    vector = (t / 2 * jnp.sinc(half / jnp.pi))[..., None] * omega0
-    q_s = _quat_multiply(q0, jnp.concatenate([jnp.cos(half)[..., None], vector], -1))
+    # d q/d w0 = q0 (0, t/2 I) (a body at rest turned by a small w0 turns by w0 t). sinc by its series
+    # below 1e-3 (the next term is 2e-22).
+    sin_h, cos_h = _sin_cos(half)
+    small = jnp.abs(half) < 1e-3
+    sinc = jnp.where(small, 1 - half * half / 6, sin_h / jnp.where(small, 1.0, half))
+    vector = (t / 2 * sinc)[..., None] * omega0
+    q_s = _quat_multiply(q0, jnp.concatenate([cos_h[..., None], vector], -1))
     omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
     q = jnp.where(steady[..., None], q_s, q_g)
     return jnp.broadcast_to(omega, batch + (3,)), jnp.broadcast_to(q, batch + (4,))
