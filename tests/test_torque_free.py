@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 import rigidjax as rj
 from rigidjax import torque_free_motion, torque_free_omega, torque_free_period
-from rigidjax._closed_form.torque_free import (  # the third-kind integral itself
+from rigidjax._closed_form.precession import (  # the third-kind integral itself
     _precession_parts,
     _precession_phase,
 )
