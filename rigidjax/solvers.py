@@ -6,7 +6,7 @@
   ``|L|`` and space-frame ``L`` kept to roundoff).
 - :class:`HeavyTopSplitting`: the heavy top's splitting (vertical ``L`` kept to roundoff).
 - :class:`UnrolledDopri8`: :class:`diffrax.Dopri8` with its stages written out, the same values at
-  about half the cost per step on a batch stored as one array (the ``"balanced"`` and ``"precise"``
+  about 0.6 of the cost per step on a batch stored as one array (the ``"balanced"`` and ``"precise"``
   presets).
 
 Each is a diffrax solver: pass it to ``rigidjax.simulate(..., solver=..., dt0=...)`` (the scene's

@@ -3,7 +3,7 @@
 Chosen by measurement (``benchmarks/batch_strategies.py``, 10^4 tennis-racket bodies, shared step,
 max norm): Dopri8 needs 185 shared steps at rtol 1e-8 where Tsit5 needs 1048, and is faster at every
 error below ~1e-5. The presets run it with its stages written out (:class:`.solvers.unrolled.UnrolledDopri8`,
-the same values at about half the cost per step).
+the same values at about 0.6 of the cost per step).
 """
 
 from types import MappingProxyType
@@ -31,9 +31,9 @@ ACCURACIES = (*PRESETS, "exact")
 
 def default_chunk_size() -> int:
     """Bodies per shared-step chunk when the caller names none: 256 on CPU, where a chunk's stages
-    stay in the core's cache (10^4 tennis-racket bodies, "balanced" at rtol 1e-5: 0.12 s in chunks
-    of 256 against 0.19 s in chunks of 1024), and 65536 on accelerators (one H100 ran 10^4 bodies
-    9.4x faster as one chunk than as ten)."""
+    stay in the core's cache (``benchmarks/step_cost.py``, 10^4 tennis-racket bodies, "balanced":
+    190 ns per body and step in chunks of 256 against 249 and 315 in chunks of 1024, two runs), and
+    65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk than as ten)."""
     return 256 if jax.default_backend() == "cpu" else 65536
 
 

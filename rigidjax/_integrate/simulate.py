@@ -283,7 +283,8 @@ def simulate(
       :class:`rigidjax.solvers.UnrolledDopri8`, 1e-8) or ``"precise"`` (the same, 1e-11, a step on
       every sample time), or ``"exact"``: a closed form, no
       integration. For a torque-free body with principal moments, omega by Jacobi elliptic
-      functions and, when ``state0`` has an orientation, the orientation by Carlson's ``R_J`` (see
+      functions and, when ``state0`` has an orientation, the orientation by Jacobi's theta form of the
+      third-kind integral (see
       :func:`rigidjax.torque_free_motion`). For Lagrange's top, a :class:`HeavyTop` with principal
       moments ``I1 = I2`` about the pivot, the centre of mass on the body z axis (above or below
       the pivot) and no extra torques, the nutation by Jacobi functions and the precession and

@@ -85,7 +85,7 @@ class _PolynomialInterpolation(diffrax.AbstractLocalInterpolation):
 class UnrolledDopri8(diffrax.Dopri8):
     """:class:`diffrax.Dopri8` (Dormand–Prince 8(7), 14 stages, first same as last, 7th-order
     dense output) with the stages written out and fenced: the same values to rounding at about
-    half the cost per step on a batch of bodies stored as one array.
+    0.6 of the cost per step on a batch of bodies stored as one array.
 
     For ordinary differential equations (``diffrax.ODETerm``) only. The error estimate and dense
     output are diffrax's, so it works with any step-size controller, ``SaveAt`` and adjoint.
