@@ -64,18 +64,33 @@ except ImportError:  # pragma: no cover
     _JVP_TRACER = None
 
 
-def _carries_tangents(x) -> bool:
-    """Whether ``x`` is a tracer of forward-mode autodiff (``jax.jvp``, ``jax.jacfwd``), at any depth
-    of nesting: under ``jacfwd(vmap(f))`` it is wrapped in a batching tracer, under ``jit(jacfwd(f))``
-    it wraps a jit tracer. Reverse mode (``grad``, ``vjp``, ``jacrev``) uses linearize tracers."""
+def _traced_by(x, names: tuple[str, ...]) -> bool:
+    """Whether ``x`` is, at any depth of nesting, a tracer whose class is named in ``names``: under
+    ``jacfwd(vmap(f))`` a forward-mode tracer is wrapped in a batching tracer, under
+    ``jit(jacfwd(f))`` it wraps a jit tracer."""
     for _ in range(64):  # tracers nest once per transformation
         if not isinstance(x, jax.core.Tracer):
             return False
-        if (_JVP_TRACER is not None and isinstance(x, _JVP_TRACER)) or type(x).__name__ == "JVPTracer":
+        if type(x).__name__ in names or (
+            "JVPTracer" in names and _JVP_TRACER is not None and isinstance(x, _JVP_TRACER)
+        ):
             return True
         inner = [getattr(x, name, None) for name in ("primal", "val")]
         x = next((v for v in inner if isinstance(v, jax.core.Tracer)), None)
     return False
+
+
+def _carries_tangents(x) -> bool:
+    """Whether ``x`` is a tracer of forward-mode autodiff (``jax.jvp``, ``jax.jacfwd``). Reverse mode
+    (``grad``, ``vjp``, ``jacrev``) uses linearize tracers."""
+    return _traced_by(x, ("JVPTracer",))
+
+
+def is_differentiated(*inputs) -> bool:
+    """Whether any array among ``inputs`` (pytrees) is being differentiated, in either mode, when
+    the call is traced. A tracer closed over by a function among them is not seen."""
+    leaves = jax.tree_util.tree_leaves(inputs)
+    return any(_traced_by(x, ("JVPTracer", "LinearizeTracer")) for x in leaves)
 
 
 def default_adjoint(*inputs) -> diffrax.AbstractAdjoint:

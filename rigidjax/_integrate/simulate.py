@@ -6,6 +6,7 @@ through the one driver; ``accuracy="exact"`` evaluates the closed form instead.
 """
 
 import contextlib
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -38,7 +39,14 @@ from . import progress as _progress
 from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
 from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
-from .presets import MIN_MAX_STEPS, PRESETS, FaultStopPIDController, default_chunk_size, default_max_steps
+from .presets import (
+    MIN_MAX_STEPS,
+    PRESETS,
+    FaultStopPIDController,
+    default_chunk_size,
+    default_max_steps,
+    preset_solver,
+)
 from .solvers import STRUCTURE_PRESERVING, HeavyTopSplitting, LiePoissonSplitting
 from .trajectory import Trajectory
 
@@ -279,9 +287,10 @@ def simulate(
       ``orientation=None`` and a scene that does not need it, only Euler's equations (three per
       body) are integrated.
     - `ts`: strictly increasing sample times (s), shape ``(T,)``; ``ts[0]`` is the initial time.
-    - `accuracy`: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8 with its stages written out,
-      :class:`rigidjax.solvers.UnrolledDopri8`, 1e-8) or ``"precise"`` (the same, 1e-11, a step on
-      every sample time), or ``"exact"``: a closed form, no
+    - `accuracy`: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8, 1e-8) or ``"precise"``
+      (Dopri8, 1e-11, a step on every sample time); on 1024 bodies or more, when not differentiated,
+      Dopri8 runs with its stages written out (:class:`rigidjax.solvers.UnrolledDopri8`: the same
+      values, cheaper steps, a longer compile). Or ``"exact"``: a closed form, no
       integration. For a torque-free body with principal moments, omega by Jacobi elliptic
       functions and, when ``state0`` has an orientation, the orientation by Jacobi's theta form of the
       third-kind integral (see
@@ -426,9 +435,12 @@ def simulate(
         max_steps = max(n_steps, 1)  # exactly the grid's steps
     else:
         formulation = ScaledODE(euler_seq if representation == "euler" else None, float(lock_tolerance))
-        preset_solver, preset_rtol = PRESETS[accuracy]
+        preset_rtol = PRESETS[accuracy][1]
         solver_from_preset = solver is None
-        solver = preset_solver() if solver is None else solver
+        if solver is None:
+            differentiated = driver.is_differentiated(model, state0, ts, args)
+            n_bodies = math.prod(batching.batch_shape(model, omega0, q0))
+            solver = preset_solver(accuracy, differentiated, n_bodies)
         controller = stepsize_controller
         if controller is None:
             controller = _preset_controller(
