@@ -45,7 +45,7 @@ import jax.numpy as jnp
 
 from .._numerics import safe_norm
 from .carlson import _carlson_rf_rj
-from .elliptic import _ellipj_checked
+from .elliptic import _ellipj_checked, _sin_cos
 
 
 def _safe_div(num, den):
@@ -289,7 +289,7 @@ def _half(half, body, t, now, reduced):
     linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3) * body["pole_gap"]) & (body["g0"] > 0)
     nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
     k1, udot0, dist0 = body["k1"], body["udot0"], half["dist0"]
-    cos_t, sin_t = jnp.cos(nu * t), jnp.sin(nu * t)
+    sin_t, cos_t = _sin_cos(nu * t)
     x_lin = -(k1 / 2) * (1 - cos_t) + udot0 * sin_t / nu
     xdot_lin = -(k1 / 2) * nu * sin_t + udot0 * cos_t
     xint_lin = -(k1 / 2) * (t - sin_t / nu) + udot0 * (1 - cos_t) / nu**2
@@ -300,7 +300,8 @@ def _half(half, body, t, now, reduced):
     integral = jnp.where(linear, _safe_div(t, dist0) - k * _safe_div(xint_lin, dist0 * dist0), integral)
     regular_coeff = jnp.where(half["reached"], 0.0, coeff)
     phase = 0.5 * (spin * t + regular_coeff * integral)
-    rotor = jax.lax.complex(jnp.cos(phase), jnp.sin(phase))
+    sin_phase, cos_phase = _sin_cos(phase)
+    rotor = jax.lax.complex(cos_phase, sin_phase)
     regular = (_unit(half["z0"]), modulus, modulus_rate)
     # A pole on a turning circle: the modulus is sqrt(P_far / 2) J(tau) with J = sn when the start
     # circle is the pole (cn otherwise), and the phase turns uniformly.
