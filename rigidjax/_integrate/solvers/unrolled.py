@@ -1,4 +1,4 @@
-"""Dormand–Prince 8(7) with its stages written out: the solver of ``simulate``'s presets.
+"""Dormand–Prince 8(7) with its stages written out: the solver of ``simulate``'s presets on large batches.
 
 diffrax's :class:`diffrax.Dopri8` runs its 14 stages in a loop over a stage buffer, each stage a dot
 product of one tableau row with the whole buffer. Here every stage is written out with only the
