@@ -56,16 +56,36 @@ def _exact(model, omega0, q0, ts, values_checked: bool):
     """The closed forms' program; ``values_checked``: the inputs' values were checked before it (no
     run-time checks, and so no host callback, in the program)."""
     with checks_done() if values_checked else contextlib.nullcontext():
-        model = check_model(model, "simulate")
-        omega0, q0 = check_state(omega0, q0, "simulate")
-        ts = check_times(ts, "simulate")
+        inputs = _exact_inputs(model, omega0, q0, ts)
+    return _exact_motion(*inputs)
+
+
+@eqx.filter_jit
+def _exact_collected(model, omega0, q0, ts):
+    """The closed forms' program for concrete inputs: the conditions of the input checks are returned
+    beside the motion (for :func:`.raise_collected`), one program and no host callback."""
+    with collected_failures() as failures:
+        inputs = _exact_inputs(model, omega0, q0, ts)
+    return _exact_motion(*inputs), list(failures)
+
+
+def _exact_inputs(model, omega0, q0, ts):
+    model = check_model(model, "simulate")
+    omega0, q0 = check_state(omega0, q0, "simulate")
+    ts = check_times(ts, "simulate")
+    if isinstance(model, HeavyTop):
+        model = eqx.tree_at(
+            lambda top: (top.inertia, top.com), model, _lagrange_checked(model.inertia, model.com)
+        )
+    return model, omega0, q0, ts
+
+
+def _exact_motion(model, omega0, q0, ts):
     batch = batching.batch_shape(model, omega0, q0)
     inertia = jnp.broadcast_to(model.inertia, batch + (3,))
     omega0 = jnp.broadcast_to(omega0, batch + (3,))
     if isinstance(model, HeavyTop):
         com = jnp.broadcast_to(model.com, batch + (3,))
-        if not values_checked:
-            inertia, com = _lagrange_checked(inertia, com)
         mass = jnp.broadcast_to(model.mass, batch)[..., None]
         gravity = jnp.broadcast_to(model.gravity, batch)[..., None]
         q0 = jnp.broadcast_to(q0, batch + (4,))
@@ -123,8 +143,8 @@ def _lagrange_checked(inertia, com):
     """``inertia`` and ``com`` with the conditions of Lagrange's top checked at run time (values traced
     under jit or vmap; known ones are checked earlier, in :func:`_check_lagrange_top`)."""
     asymmetric, off_axis = _lagrange_failures(inertia, com)
-    inertia = eqx.error_if(inertia, jnp.any(asymmetric), _ASYMMETRIC.format(""))
-    com = eqx.error_if(com, jnp.any(off_axis), _OFF_AXIS.format(""))
+    inertia = error_if(inertia, jnp.any(asymmetric), _ASYMMETRIC.format(""))
+    com = error_if(com, jnp.any(off_axis), _OFF_AXIS.format(""))
     return inertia, com
 
 
@@ -171,7 +191,7 @@ def _simulate_exact(model, state0, ts):
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
         top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
         omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
-        return _exact(top, omega0, q0, ts, _raise_on_bad_values(top, omega0, q0, ts))
+        return _run_exact(top, omega0, q0, ts)
     if not model.torque_free:
         raise ValueError(
             "accuracy='exact' is a closed form: for torque-free bodies (a FreeBody, or a RigidBody "
@@ -191,7 +211,15 @@ def _simulate_exact(model, state0, ts):
         state0.omega.astype(dtype),
         ts.astype(dtype),
     )
-    return _exact(body, omega0, q0, ts, _raise_on_bad_values(body, omega0, q0, ts))
+    return _run_exact(body, omega0, q0, ts)
+
+
+def _run_exact(model, omega0, q0, ts):
+    if not is_traced(model, omega0, q0, ts):
+        traj, failures = _exact_collected(model, omega0, q0, ts)
+        raise_collected(failures)
+        return traj
+    return _exact(model, omega0, q0, ts, _raise_on_bad_values(model, omega0, q0, ts))
 
 
 def _raise_on_bad_values(model, omega0, q0, ts) -> bool:
