@@ -2,10 +2,9 @@
 
 It checks the arguments, resolves the accuracy preset (or the user's solver) into a formulation, a
 solver and a step-size rule, and hands the batch to :func:`.chunked.integrate`, which runs it
-through the one driver; ``accuracy="exact"`` evaluates the closed form instead.
+through the one driver; ``accuracy="exact"`` evaluates the closed form instead (:mod:`.exact`).
 """
 
-import contextlib
 import math
 from collections.abc import Callable
 from typing import Any
@@ -16,29 +15,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import (
-    check_model,
-    check_state,
-    check_times,
-    check_times_shape,
-    checks_done,
-    collected_failures,
-    error_if,
-    float_dtype,
-    is_full_tensor,
-    is_traced,
-    known_values,
-    raise_collected,
-)
-from .._closed_form.heavy_top import lagrange_top_motion
-from .._closed_form.torque_free import torque_free_motion, torque_free_omega
-from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, State
-from .._kinematics.euler import _euler_from_quat, is_proper_sequence
+from .._checks import check_times_shape, float_dtype
+from .._dynamics.models import AbstractModel, HeavyTop, State
+from .._kinematics.euler import is_proper_sequence
 from . import batching, driver
 from . import progress as _progress
 from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
-from .formulations import LieGroupODE, ScaledODE, SplittingODE, lock_distance
+from .exact import simulate_exact
+from .formulations import LieGroupODE, ScaledODE, SplittingODE
+from .inputs import checked_inputs
 from .presets import (
     MIN_MAX_STEPS,
     PRESETS,
@@ -49,188 +35,6 @@ from .presets import (
 )
 from .solvers import STRUCTURE_PRESERVING, HeavyTopSplitting, LiePoissonSplitting
 from .trajectory import Trajectory
-
-
-@eqx.filter_jit
-def _exact(model, omega0, q0, ts, values_checked: bool):
-    """The closed forms' program; ``values_checked``: the inputs' values were checked before it (no
-    run-time checks, and so no host callback, in the program)."""
-    with checks_done() if values_checked else contextlib.nullcontext():
-        inputs = _exact_inputs(model, omega0, q0, ts)
-    return _exact_motion(*inputs)
-
-
-@eqx.filter_jit
-def _exact_collected(model, omega0, q0, ts):
-    """The closed forms' program for concrete inputs: the conditions of the input checks are returned
-    beside the motion (for :func:`.raise_collected`), one program and no host callback."""
-    with collected_failures() as failures:
-        inputs = _exact_inputs(model, omega0, q0, ts)
-    return _exact_motion(*inputs), list(failures)
-
-
-def _exact_inputs(model, omega0, q0, ts):
-    model = check_model(model, "simulate")
-    omega0, q0 = check_state(omega0, q0, "simulate")
-    ts = check_times(ts, "simulate")
-    if isinstance(model, HeavyTop):
-        model = eqx.tree_at(
-            lambda top: (top.inertia, top.com), model, _lagrange_checked(model.inertia, model.com)
-        )
-    return model, omega0, q0, ts
-
-
-def _exact_motion(model, omega0, q0, ts):
-    batch = batching.batch_shape(model, omega0, q0)
-    inertia = jnp.broadcast_to(model.inertia, batch + (3,))
-    omega0 = jnp.broadcast_to(omega0, batch + (3,))
-    if isinstance(model, HeavyTop):
-        com = jnp.broadcast_to(model.com, batch + (3,))
-        mass = jnp.broadcast_to(model.mass, batch)[..., None]
-        gravity = jnp.broadcast_to(model.gravity, batch)[..., None]
-        q0 = jnp.broadcast_to(q0, batch + (4,))
-        omega, orientation = lagrange_top_motion(
-            inertia[..., None, :], mass, com[..., None, :], gravity, omega0[..., None, :],
-            q0[..., None, :], ts - ts[0],
-        )  # fmt: skip
-        q_norm_error = jnp.max(jnp.abs(jnp.linalg.norm(orientation, axis=-1) - 1.0), axis=-1)
-    elif q0 is None:
-        omega = torque_free_omega(inertia[..., None, :], omega0[..., None, :], ts - ts[0])
-        orientation = q_norm_error = None
-    else:
-        q0 = jnp.broadcast_to(q0, batch + (4,))
-        omega, orientation = torque_free_motion(
-            inertia[..., None, :], omega0[..., None, :], q0[..., None, :], ts - ts[0]
-        )
-        q_norm_error = jnp.max(jnp.abs(jnp.linalg.norm(orientation, axis=-1) - 1.0), axis=-1)
-    return Trajectory(
-        ts=ts,
-        omega=omega,
-        orientation=orientation,
-        model=model,
-        success=jnp.ones(batch, bool),
-        stats={"num_steps": jnp.zeros((), jnp.int32), "chunk_size": 0, "quaternion_norm_error": q_norm_error},
-    )
-
-
-def _lagrange_failures(inertia, com):
-    """The conditions of Lagrange's top that ``inertia`` and ``com`` violate (elementwise masks).
-
-    ``|I1 - I2| <= 100 eps max(I1, I2)`` and ``|(com_x, com_y)| <= 100 eps |com|``: roundoff in moments
-    or positions computed by the user passes, a physical asymmetry does not.
-    """
-    tol = 100 * float(jnp.finfo(inertia.dtype).eps)
-    asymmetric = jnp.abs(inertia[..., 0] - inertia[..., 1]) > tol * jnp.maximum(
-        jnp.abs(inertia[..., 0]), jnp.abs(inertia[..., 1])
-    )
-    off_axis = jnp.hypot(com[..., 0], com[..., 1]) > tol * jnp.linalg.norm(com, axis=-1)
-    return asymmetric, off_axis
-
-
-_ASYMMETRIC = (
-    "accuracy='exact' for a HeavyTop is Lagrange's top: it needs equal transverse moments I1 = I2 "
-    "(inertia about the pivot, (I1, I1, I3) with body z the symmetry axis){}. Use "
-    "accuracy='precise' (or 'balanced') to integrate an asymmetric top."
-)
-_OFF_AXIS = (
-    "accuracy='exact' for a HeavyTop is Lagrange's top: it needs the centre of mass on the body z "
-    "axis, com = (0, 0, l) with l of either sign{}. Use accuracy='precise' (or 'balanced') to "
-    "integrate a top whose centre of mass is off the symmetry axis."
-)
-
-
-def _lagrange_checked(inertia, com):
-    """``inertia`` and ``com`` with the conditions of Lagrange's top checked at run time (values traced
-    under jit or vmap; known ones are checked earlier, in :func:`_check_lagrange_top`)."""
-    asymmetric, off_axis = _lagrange_failures(inertia, com)
-    inertia = error_if(inertia, jnp.any(asymmetric), _ASYMMETRIC.format(""))
-    com = error_if(com, jnp.any(off_axis), _OFF_AXIS.format(""))
-    return inertia, com
-
-
-def _check_lagrange_top(model, state0):
-    """Trace-time checks of ``accuracy='exact'`` for a :class:`HeavyTop` (values where they are known)."""
-    if model.torques:
-        raise ValueError(
-            "accuracy='exact' for a HeavyTop is Lagrange's top under gravity alone; it has no closed "
-            "form with extra torques. Use accuracy='precise' (or 'balanced')."
-        )
-    if is_full_tensor(model.inertia):
-        raise ValueError(
-            "accuracy='exact' for a HeavyTop needs principal moments (..., 3) about the pivot, with "
-            "body z the symmetry axis; diagonalise the tensor with rigidjax.principal_axes and express "
-            "com and omega in those axes first."
-        )
-    if state0.orientation is None:
-        raise ValueError(
-            "HeavyTop needs an orientation: pass State(omega, orientation=q) with a unit quaternion q "
-            "(e.g. rigidjax.quat_from_euler(angles))."
-        )
-    values = known_values((model.inertia, model.com))
-    if values is None:
-        return  # traced: checked at run time by _lagrange_checked
-    inertia, com = (np.asarray(x, np.float64) for x in values)
-    dtype = float_dtype(model.inertia, model.com)
-    asymmetric, off_axis = (
-        np.asarray(x) for x in _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
-    )
-    if np.any(asymmetric):
-        bad = np.broadcast_to(inertia, asymmetric.shape + (3,))[asymmetric][0]
-        raise ValueError(_ASYMMETRIC.format(f"; got I1 = {bad[0]:g}, I2 = {bad[1]:g}"))
-    if np.any(off_axis):
-        bad = np.broadcast_to(com, off_axis.shape + (3,))[off_axis][0]
-        raise ValueError(_OFF_AXIS.format(f"; got com = ({bad[0]:g}, {bad[1]:g}, {bad[2]:g})"))
-
-
-def _simulate_exact(model, state0, ts):
-    """``accuracy="exact"``: a closed form, no integration (torque-free bodies, Lagrange's top)."""
-    if isinstance(model, HeavyTop):
-        _check_lagrange_top(model, state0)
-        ts = check_times_shape(ts)
-        leaves = (model.inertia, model.mass, model.com, model.gravity)
-        dtype = float_dtype(state0.omega, state0.orientation, *leaves)
-        top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
-        omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
-        return _run_exact(top, omega0, q0, ts)
-    if not model.torque_free:
-        raise ValueError(
-            "accuracy='exact' is a closed form: for torque-free bodies (a FreeBody, or a RigidBody "
-            "without torques) and for Lagrange's top (a HeavyTop with I1 = I2 and the centre of mass on "
-            f"the body z axis); got {type(model).__name__} with torques or a field."
-        )
-    if is_full_tensor(model.inertia):
-        raise ValueError(
-            "accuracy='exact' needs principal moments (..., 3); diagonalise the tensor with "
-            "rigidjax.principal_axes and rotate omega into those axes first."
-        )
-    ts = check_times_shape(ts)
-    dtype = float_dtype(state0.omega, state0.orientation, model.inertia)
-    q0 = None if state0.orientation is None else jnp.asarray(state0.orientation, dtype)
-    body, omega0, ts = (
-        FreeBody(jnp.asarray(model.inertia, dtype)),
-        state0.omega.astype(dtype),
-        ts.astype(dtype),
-    )
-    return _run_exact(body, omega0, q0, ts)
-
-
-def _run_exact(model, omega0, q0, ts):
-    if not is_traced(model, omega0, q0, ts):
-        traj, failures = _exact_collected(model, omega0, q0, ts)
-        raise_collected(failures)
-        return traj
-    return _exact(model, omega0, q0, ts, _raise_on_bad_values(model, omega0, q0, ts))
-
-
-def _raise_on_bad_values(model, omega0, q0, ts) -> bool:
-    """The closed forms' inputs get the same ``ValueError`` as the integrators' where their values are
-    known (concrete, or the primal values of an eager grad or jvp); returns whether they were
-    checked. The closed form's program keeps its own checks for the others (jit, vmap)."""
-    values = known_values((model, omega0, q0, ts))
-    if values is None:
-        return False
-    _checked_inputs(*values, None, 0.0)
-    return True
 
 
 def _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given):
@@ -415,7 +219,7 @@ def simulate(
         )  # fmt: skip
     report = _progress.check_progress(progress)
     if accuracy == "exact":
-        traj = _simulate_exact(model, state0, ts)
+        traj = simulate_exact(model, state0, ts)
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
         return traj
@@ -475,7 +279,7 @@ def simulate(
                 accuracy, solver_from_preset, preset_rtol, rtol, atol, ts, omega0, dtype, representation
             )
     euler = formulation.euler_seq if isinstance(formulation, ScaledODE) else None
-    model, omega0, q0, ts = _checked_inputs(model, omega0, q0, ts, euler, float(lock_tolerance))
+    model, omega0, q0, ts = checked_inputs(model, omega0, q0, ts, euler, float(lock_tolerance))
 
     def run(model, omega0, q0, chunk_size, sort):
         def call(adjoint):
@@ -498,45 +302,6 @@ def simulate(
     if throw:
         _raise_if_failed(traj, max_steps, formulation)
     return traj
-
-
-def _checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
-    """simulate's inputs after their run-time checks. With concrete inputs the checks are a program
-    of their own that returns the failed conditions, from which a ``ValueError`` is raised here: it
-    holds no host callback, so JAX's persistent compilation cache keeps it and a second run in a new
-    process compiles nothing. The tracers of an eager grad or jvp carry their primal values: those
-    are checked the same way, and the differentiated program gets no checks of its own. Inputs
-    without values (the user's jit or vmap) get ``eqx.error_if`` checks in the user's program."""
-    values = known_values((model, omega0, q0, ts))
-    if values is None:
-        return _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
-    checked, failures = _checks_collected(*values, euler_seq, lock_tolerance)
-    raise_collected(failures)
-    if not is_traced(model, omega0, q0, ts):
-        return checked
-    with checks_done():
-        return _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
-
-
-@eqx.filter_jit
-def _checks_collected(model, omega0, q0, ts, euler_seq, lock_tolerance):
-    with collected_failures() as failures:
-        checked = _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
-    return checked, list(failures)
-
-
-def _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance):
-    model = check_model(model, "simulate")
-    omega0, q0 = check_state(omega0, q0, "simulate")
-    ts = check_times(ts, "simulate")
-    if euler_seq is not None:
-        q0 = error_if(
-            q0,
-            jnp.any(lock_distance(_euler_from_quat(q0, euler_seq), euler_seq) < lock_tolerance),
-            f"simulate: the initial orientation is within {lock_tolerance:g} of gimbal lock for the "
-            f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
-        )
-    return model, omega0, q0, ts
 
 
 def _isolate_faults(traj, model, omega0, q0, run):
