@@ -36,6 +36,7 @@ def _api_pages():
     return {page: page.read_text() for page in sorted((DOCS / "api").glob("*.md"))}
 
 
+@pytest.mark.slow  # a full mkdocs build (~10 s); the pages' own checks stay in the fast tier
 def test_site_builds_strictly_without_warnings(tmp_path):
     env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
     result = subprocess.run(

@@ -82,7 +82,16 @@ CASES = {
 _computed = {}
 
 
-@pytest.fixture(params=list(CASES))
+# The fast tier keeps one case per stored layout (moments and tensor, omega only and with
+# orientation, float32, torques, the closed form); these two repeat layouts covered there.
+_REPEATED_LAYOUTS = {"free-moments-batch(2,3)-omega-only-f32", "exact-omega-only-f32"}
+
+
+@pytest.fixture(
+    params=[
+        pytest.param(name, marks=pytest.mark.slow) if name in _REPEATED_LAYOUTS else name for name in CASES
+    ]
+)
 def case(request):
     """(name, trajectory): each scene is simulated once per test session."""
     if request.param not in _computed:
