@@ -44,8 +44,9 @@ import jax
 import jax.numpy as jnp
 
 from .._numerics import safe_norm
-from .carlson import _carlson_rf_rj
 from .elliptic import _ellipj_checked, _sin_cos
+from .heavy_phase import _quarter_period, _start_phase, _theta_parts
+from .precession import _precession_phase, _reduce
 
 
 def _safe_div(num, den):
@@ -116,61 +117,6 @@ def _largest_root(c2, c1, c0):
     return newton(g, (c2, c1, c0)).astype(dtype)
 
 
-def _third_kind(sn, cn, dn, m, p, n, n1, quarter=None):
-    """Reduced phase ``rho`` and ``G(rho) = int_0^rho dtau / (1 + n sn^2)`` of the point ``(sn, cn, dn)``.
-
-    The point fixes ``tau = rho + 2 j K`` (``|rho| <= K``); ``G(tau) = G(rho) + 2 j G(K)``. ``n1 = 1 + n``
-    is passed on its own (``n > -1``). Carlson forms (DLMF 19.25.5, 19.25.14) for ``sn^2 <= 1/2``, else
-    measured back from ``K`` so that the arguments stay accurate as ``p = 1 - m -> 0`` (the same
-    construction as in :mod:`.torque_free`). Near the pole (``n1 < 1/2``, a turning circle close to
-    the vertical) ``R_J``'s last argument would grow like ``1 / n1``; there the characteristic
-    ``N = -n`` is exchanged for ``N' = m / N`` (DLMF 19.7.9), which leaves the near-singular part as
-    an arctangent: ``G = -(N'/3) s^3 R_J(c^2, dn^2, 1, 1 - N' s^2) + atan2(s r, c dn) / r`` with
-    ``r = sqrt(n1 (1 - N'))``. Returns ``rho``, ``G(rho)`` and ``quarter = (K, G(K))``.
-    """
-    c, s = jnp.abs(cn), jnp.abs(sn)
-    sign_s = jnp.where(sn < 0, -1.0, 1.0).astype(sn.dtype)
-    sign_c = jnp.where(cn < 0, -1.0, 1.0).astype(sn.dtype)
-    direct = s * s <= 0.5
-    pc = jnp.where(p > 0, p, jnp.ones_like(p))
-    big_n = -n
-    # N' = m / N < 1 needs p > n1; 1 - N' = (p - n1) / N and 1 - N' sn^2 = (dn^2 - n1) / N are
-    # formed from p and n1, which are accurate on their own.
-    near_pole = (n1 < 0.5) & (2 * n1 < p)
-    big_n = jnp.where(near_pole, big_n, 1.0)
-    swapped = jnp.where(near_pole, m / big_n, 0.0)  # N'
-    r = _safe_sqrt(n1 * (p - n1) / big_n)
-    r = jnp.where(r > 0, r, 1.0)
-    pole = c * c + n1 * s * s  # 1 + n sn^2 as a sum of nonnegative terms
-    plain = direct | near_pole
-    args = (
-        jnp.where(plain, c * c, pc * s * s),
-        dn * dn,
-        jnp.where(plain, jnp.ones_like(s), pc),
-        jnp.where(near_pole, (dn * dn - n1) / big_n, jnp.where(direct, pole, pc * pole / n1)),
-    )
-    weight = n / n1 * pc / 3
-    if quarter is None:
-        last = jnp.where(near_pole, (p - n1) / big_n, pc / n1)
-        extra = (jnp.zeros_like(pc), jnp.ones_like(pc), pc, last)
-        rf, rj = _carlson_rf_rj(
-            *(jnp.stack(jnp.broadcast_arrays(x, y)) for x, y in zip(args, extra, strict=True))
-        )
-        quarter_g = jnp.where(
-            near_pole, -(swapped / 3) * rj[1] + (jnp.pi / 2) / r, (rf[1] + weight * rj[1]) / n1
-        )
-        quarter = rf[1], quarter_g
-        rf, rj = rf[0], rj[0]
-    else:
-        rf, rj = _carlson_rf_rj(*args)
-    quarter_f, quarter_g = quarter
-    f = sign_s * jnp.where(plain, s * rf, quarter_f - c * rf)
-    g_pole = -(swapped / 3) * s**3 * rj + jnp.arctan2(s * r, c * dn) / r
-    g_plain = jnp.where(direct, s * rf - (n / 3) * s**3 * rj, quarter_g - (c * rf + weight * c**3 * rj) / n1)
-    g = sign_s * jnp.where(near_pole, g_pole, g_plain)
-    return sign_c * f, sign_c * g, quarter
-
-
 def _body(A, C, weight_l, omega0, q0):
     """Everything that depends on the body only (not on time): roots, elliptic parameters, phases."""
     dtype = omega0.dtype
@@ -223,6 +169,7 @@ def _body(A, C, weight_l, omega0, q0):
     dn0 = jnp.where(g_s > 0, _safe_sqrt(_safe_div(g0, g_s)), 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
+    rho0 = _start_phase(sn0, cn0, dn0, p, _quarter_period(m, p))
     halves = []
     for k, z0, zdot0, dist0 in (
         (1.0, jax.lax.complex(w, z), jax.lax.complex(qdot0[..., 0], qdot0[..., 3]), 2 * up),
@@ -235,14 +182,38 @@ def _body(A, C, weight_l, omega0, q0):
         # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
         third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
         reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) < third)
+        phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
         halves.append(
-            dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0)
-        )
+            dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0,
+                 phase=phase)
+        )  # fmt: skip
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
         start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
         pole_gap=2 * jnp.minimum(up, down),
     )  # fmt: skip
+
+
+def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, rho0):
+    """Per body and half: ``int_0^t dt / (1 + k u) = slope t + wave (V(x0 + lambda t) - V(x0))``.
+
+    ``beyond``: the pole lies beyond the start circle (``P <= P'``); otherwise the integral is taken
+    half a period on (see :mod:`.heavy_phase`), with ``n' = amp |beta (1 + k u3)| / (G_s P')`` and
+    ``m / n' = |beta| P' / |beta (1 + k u3)|``. Where the half does not nutate or its pole lies on a
+    root (``valid`` false) the parts are those of a placeholder body.
+    """
+    valid = (amp > 0) & (g_s > 0) & jnp.where(beyond, near > 0, (far > 0) & (third > 0))
+    near_s, far_s, third_s = (jnp.where(valid, x, 1.0) for x in (near, far, third))
+    g_s = jnp.where(valid, g_s, 1.0)
+    n = jnp.where(valid, jnp.where(beyond, amp / near_s, amp * third_s / (g_s * far_s)), 1.0)
+    ratio = jnp.where(valid, jnp.where(beyond, weight * near_s / g_s, weight * far_s / third_s), 0.5)
+    parts = _theta_parts(m, p, n, ratio)
+    quarter = parts["quarter"]
+    quarter = jnp.where(jnp.isfinite(quarter), quarter, 0.0)
+    x0 = jnp.where(beyond, rho0, jnp.where(rho0 >= 0, rho0 - quarter, rho0 + quarter))
+    slope = jnp.where(beyond, parts["slope"] / near_s, (parts["slope"] - ratio * parts["deficit"]) / far_s)
+    wave = jnp.where(beyond, 1 / near_s, (1 + ratio) / far_s) * parts["c"]
+    return parts, x0, slope, wave, valid
 
 
 def _quat_times_omega(q, omega):
@@ -271,17 +242,12 @@ def _half(half, body, t, now, reduced):
     modulus = _safe_sqrt(dist / 2)
     modulus_rate = _safe_div(k * udot, 4 * modulus)
     # The phase: (1/2) [k (w3 - a) t + (b + k a) int_0^t dt / (1 + k u)].
-    p, m = body["p"], body["m"]
-    nn = _safe_div(k * sigma * amp, near)
-    n1 = jnp.where(near > 0, _safe_div(far, near), 1.0)
-    n1 = jnp.where(n1 > 0, n1, 1.0)
-    (sn0, cn0, dn0), v = body["start"], reduced
-    rho0, g0, quarter = _third_kind(sn0, cn0, dn0, m, p, nn, n1)
-    rho1, g1, _ = _third_kind(sn, cn, dn, m, p, nn, n1, quarter)
-    turns = jnp.round(_safe_div(v + rho0 - rho1, 2 * quarter[0]))
-    delta_g = g1 - g0 + 2 * turns * quarter[1]
-    moving = (amp > 0) & (rate > 0)
-    integral = jnp.where(moving, _safe_div(delta_g, near * jnp.where(moving, rate, 1.0)), _safe_div(t, near))
+    sn0, cn0, dn0 = body["start"]
+    parts, x0, slope, wave, valid = half["phase"]
+    turns, rho = _reduce(x0 + reduced, parts["quarter"])
+    delta_v = _precession_phase(rho, turns, parts) - _precession_phase(x0, jnp.zeros_like(x0), parts)
+    rate_safe = jnp.where(valid, rate, 1.0)
+    integral = jnp.where(valid, slope * t + wave / rate_safe * delta_v, _safe_div(t, near))
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
     # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
     # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
