@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from .carlson import _carlson_rf_rd, _steps
 from .elliptic import _nome_parts, _sin_cos
-from .precession import _THETA_FACTORS
+from .precession import _THETA_FACTORS, _reduce
 
 
 def _quarter(upper, agm, big_l):
@@ -103,6 +103,18 @@ def _theta_parts(m, p, n, ratio):
     near_pole = c_factor * agm * (1 + im_zeta(r_prime, nome * jnp.exp(-e), 1 - r_prime))
     slope_lower = jnp.where(from_zero, 1 - deficit_lower, near_pole)
 
+    # The factors of _theta_phase in pairs (k >= 1): A + B X + i C Y, the per-sample X, Y below.
+    pairs = []
+    r_k, s_k, power = r_lower, s_lower, jnp.ones_like(nome2)
+    for _ in range(factors - 1):
+        r_k, s_k, power = r_k * nome2, s_k * nome2, power * nome2
+        pairs.append(
+            (
+                jnp.where(upper, 1 + power * power * nome2, (1 - r_k) * (1 - s_k)),
+                jnp.where(upper, power * cos_2b, r_k + s_k),
+                jnp.where(upper, power * sin_2b, r_k - s_k),
+            )
+        )
     return dict(
         quarter=quarter,
         slope=jnp.where(upper, slope_upper, slope_lower),
@@ -110,12 +122,46 @@ def _theta_parts(m, p, n, ratio):
         c=c_factor,
         upper=upper,
         agm=agm,
-        nome2=nome2,
-        l_safe=jnp.where(upper & finite_l, jnp.where(finite_l, big_l, 1.0), jnp.inf),
-        b=b,
-        bend=(cos_b * cos_b, sin_2b, cos_2b),
-        lower=(r_lower, s_lower, gap_lower),
+        two_l=jnp.where(upper & finite_l, 2 * jnp.where(finite_l, big_l, 1.0), jnp.inf),
+        b=jnp.where(upper, b, 0.0),
+        bend=(2 * cos_b * cos_b, sin_2b, cos_2b),
+        lead=(gap_lower * (1 - s_lower), r_lower + s_lower, r_lower - s_lower),
+        pairs=pairs,
     )
+
+
+def _theta_phase(x, parts):
+    """``V(x)`` of :func:`_theta_parts` (odd in the reduced ``rho``, ``x = rho + 2 j K``, stepping by
+    ``2 b`` per period): the phase of :func:`.precession._precession_phase`'s theta product, whose
+    factors are taken in conjugate pairs ``(1 + sigma r w)(1 + sigma s conj(w))`` with coefficients per
+    body, so that a sample costs one ``sin``/``cos`` pair, one ``exp``/``expm1`` pair, a real-coefficient
+    complex product and one ``atan2``.
+
+    - ``m <= 1/2`` (``r``, ``s`` per body, ``w = e^(-2 i y)``): a pair is
+      ``(1 - r)(1 - s) + (r + s) X + i (r - s) Y`` with ``X = 2 sin^2 y``, ``Y = sin 2y``; the leading
+      pair with ``1 - r`` from its own expression (it vanishes at a pole).
+    - ``m > 1/2`` (``w = e^(-2 i b)`` per body, ``r = e^(-2y)``, ``s = e^(2y - 2L)``): a pair is
+      ``1 + q'^(4k+2) + q'^(2k) (cos 2b X + i sin 2b Y)`` with ``X = r + s``, ``Y = s - r``; the leading
+      one as the product of its two factors, whose real parts are formed without cancellation.
+    """
+    turns, rho = _reduce(x, parts["quarter"])
+    upper = parts["upper"]
+    sign = jnp.where(rho < 0, -1.0, 1.0).astype(rho.dtype)
+    y = parts["agm"] * (sign * rho)
+    sin_y, cos_y = _sin_cos(y)
+    e = jnp.expm1(-2 * y)
+    r, s = 1 + e, jnp.exp(2 * y - parts["two_l"])
+    big_x = jnp.where(upper, r + s, 2 * sin_y * sin_y)
+    big_y = jnp.where(upper, s - r, 2 * sin_y * cos_y)
+    a0, b0, c0 = parts["lead"]
+    bend, sin_2b, cos_2b = parts["bend"]
+    re = jnp.where(upper, (r * bend - e) * (1 + s * cos_2b) + r * s * sin_2b * sin_2b, a0 + b0 * big_x)
+    im = jnp.where(upper, (s - r) * sin_2b, c0 * big_y)
+    for a_k, b_k, c_k in parts["pairs"]:
+        f_re, f_im = a_k + b_k * big_x, c_k * big_y
+        re, im = re * f_re - im * f_im, re * f_im + im * f_re
+    b = parts["b"]
+    return sign * (b + jnp.arctan2(im, re)) + 2 * turns * b
 
 
 def _start_phase(sn0, cn0, dn0, p, quarter):

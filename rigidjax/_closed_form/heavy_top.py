@@ -45,8 +45,7 @@ import jax.numpy as jnp
 
 from .._numerics import safe_norm
 from .elliptic import _ellipj_checked, _sin_cos
-from .heavy_phase import _quarter_period, _start_phase, _theta_parts
-from .precession import _precession_phase, _reduce
+from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
 
 
 def _safe_div(num, den):
@@ -216,6 +215,16 @@ def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, rho0):
     return parts, x0, slope, wave, valid
 
 
+def _select_some(mask, branch, values):
+    """``where(mask, branch(), values)``, with ``branch`` evaluated only for a batch that has an
+    element in ``mask`` (a rare regime then costs nothing per sample in the common batch)."""
+
+    def chosen():
+        return tuple(jnp.where(mask, x, y) for x, y in zip(branch(), values, strict=True))
+
+    return jax.lax.cond(jnp.any(mask), chosen, lambda: tuple(values))
+
+
 def _quat_times_omega(q, omega):
     """``dq/dt = q (0, omega) / 2``."""
     w, x, y, z = (q[..., i] for i in range(4))
@@ -244,8 +253,7 @@ def _half(half, body, t, now, reduced):
     # The phase: (1/2) [k (w3 - a) t + (b + k a) int_0^t dt / (1 + k u)].
     sn0, cn0, dn0 = body["start"]
     parts, x0, slope, wave, valid = half["phase"]
-    turns, rho = _reduce(x0 + reduced, parts["quarter"])
-    delta_v = _precession_phase(rho, turns, parts) - _precession_phase(x0, jnp.zeros_like(x0), parts)
+    delta_v = _theta_phase(x0 + reduced, parts) - _theta_phase(x0, parts)
     rate_safe = jnp.where(valid, rate, 1.0)
     integral = jnp.where(valid, slope * t + wave / rate_safe * delta_v, _safe_div(t, near))
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
@@ -253,17 +261,21 @@ def _half(half, body, t, now, reduced):
     # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
     # (Also small against both poles' distances: 1 / (1 + k u) is expanded to first order.)
     linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3) * body["pole_gap"]) & (body["g0"] > 0)
-    nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
     k1, udot0, dist0 = body["k1"], body["udot0"], half["dist0"]
-    sin_t, cos_t = _sin_cos(nu * t)
-    x_lin = -(k1 / 2) * (1 - cos_t) + udot0 * sin_t / nu
-    xdot_lin = -(k1 / 2) * nu * sin_t + udot0 * cos_t
-    xint_lin = -(k1 / 2) * (t - sin_t / nu) + udot0 * (1 - cos_t) / nu**2
-    dist = jnp.where(linear, dist0 + k * x_lin, dist)
-    udot = jnp.where(linear, xdot_lin, udot)
-    modulus = jnp.where(linear, _safe_sqrt(dist / 2), modulus)
-    modulus_rate = jnp.where(linear, _safe_div(k * udot, 4 * modulus), modulus_rate)
-    integral = jnp.where(linear, _safe_div(t, dist0) - k * _safe_div(xint_lin, dist0 * dist0), integral)
+
+    def first_order():
+        nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
+        sin_t, cos_t = _sin_cos(nu * t)
+        x_lin = -(k1 / 2) * (1 - cos_t) + udot0 * sin_t / nu
+        xdot_lin = -(k1 / 2) * nu * sin_t + udot0 * cos_t
+        xint_lin = -(k1 / 2) * (t - sin_t / nu) + udot0 * (1 - cos_t) / nu**2
+        modulus = _safe_sqrt((dist0 + k * x_lin) / 2)
+        integral = _safe_div(t, dist0) - k * _safe_div(xint_lin, dist0 * dist0)
+        return xdot_lin, modulus, _safe_div(k * xdot_lin, 4 * modulus), integral
+
+    udot, modulus, modulus_rate, integral = _select_some(
+        linear, first_order, (udot, modulus, modulus_rate, integral)
+    )
     regular_coeff = jnp.where(half["reached"], 0.0, coeff)
     phase = 0.5 * (spin * t + regular_coeff * integral)
     sin_phase, cos_phase = _sin_cos(phase)
@@ -319,10 +331,7 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     (ph_p, mod_p, rate_p, udot), (ph_m, mod_m, rate_m, _) = (
         _half(half, body, t, now, v) for half in body["halves"]
     )
-    q = jnp.stack(
-        [mod_p * jnp.real(ph_p), mod_m * jnp.real(ph_m), mod_m * jnp.imag(ph_m), mod_p * jnp.imag(ph_p)],
-        axis=-1,
-    )
+    q = [mod_p * jnp.real(ph_p), mod_m * jnp.real(ph_m), mod_m * jnp.imag(ph_m), mod_p * jnp.imag(ph_p)]
     # omega_1 + i omega_2 = (i/2)(h + i du/dt) / (A_- A_+) * E_- conj(E_+); at a reached pole the
     # ratio (h + i du/dt) / A_pole is taken from its limit form.
     a = body["a"]
@@ -344,27 +353,54 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     # is a sum of circular modes exp(i lambda t), lambda^2 - s a lambda + s beta / 2 = 0, s = +1 upright
     # (T' = -i W^2 Omega), s = -1 hanging straight down (T' = i Z^2 conj(Omega)).
     tiny = body["amp"] <= jnp.finfo(body["amp"].dtype).eps ** (2 / 3)
-    halves = body["halves"]
-    tilt0 = -2 * _times_i(halves[1]["z0"] * halves[0]["z0"])
-    omega0_t = jax.lax.complex(body["w1"], body["w2"])
-    rate_up = -_times_i(halves[0]["z0"] ** 2 * omega0_t)
-    rate_down = _times_i(halves[1]["z0"] ** 2 * jnp.conj(omega0_t))
-    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, body["beta"], tilt0, rate_up, t)
-    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, body["beta"], tilt0, rate_down, t)
     sleep_up, sleep_down = down_pole & tiny, up_pole & tiny & ~down_pole
-    zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
-    big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
-    q = jnp.where(
-        sleep_up[..., None], jnp.stack([q[..., 0], jnp.real(zeta), jnp.imag(zeta), q[..., 3]], -1), q
+    halves = body["halves"]
+    tilt_args = (a, body["beta"], halves[0]["z0"], halves[1]["z0"], body["w1"], body["w2"], t, ph_p, ph_m)
+
+    def sleeping(q, transverse):
+        q = list(q)
+        zeta, big_w, tilt_rate_up, tilt_rate_down = _sleeping(*tilt_args)
+        q[1] = jnp.where(sleep_up, jnp.real(zeta), q[1])
+        q[2] = jnp.where(sleep_up, jnp.imag(zeta), q[2])
+        q[0] = jnp.where(sleep_down, jnp.real(big_w), q[0])
+        q[3] = jnp.where(sleep_down, jnp.imag(big_w), q[3])
+        transverse = jnp.where(sleep_up, tilt_rate_up, transverse)
+        transverse = jnp.where(sleep_down, tilt_rate_down, transverse)
+        return q, transverse
+
+    # Evaluated only where a batch holds a sleeping top (the common batch holds none). This also
+    # makes XLA materialise the components before they are stacked.
+    q, transverse = jax.lax.cond(
+        jnp.any(sleep_up | sleep_down), sleeping, lambda q, transverse: (list(q), transverse), q, transverse
     )
-    q = jnp.where(
-        sleep_down[..., None], jnp.stack([jnp.real(big_w), q[..., 1], q[..., 2], jnp.imag(big_w)], -1), q
-    )
-    transverse = jnp.where(sleep_up, _times_i(tilt_rate_up * jnp.conj(ph_p) ** 2), transverse)
-    transverse = jnp.where(sleep_down, _times_i(jnp.conj(tilt_rate_down) * ph_m**2), transverse)
     w3 = jnp.broadcast_to(body["w3"], transverse.shape)
     omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
-    return omega, q
+    return omega, jnp.stack(q, axis=-1)
+
+
+def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):
+    """A top sleeping at a pole up to a wobble below eps^(2/3): the linearised motion, zero in value
+    at the equilibrium and carrying the derivatives that start a wobble (the pole form's direction
+    of the wobble is undefined there). The tilt T = X + iY of the symmetry axis (T = -2i (x+iy)(w+iz))
+    is a sum of circular modes exp(i lambda t), lambda^2 - s a lambda + s beta / 2 = 0, s = +1 upright
+    (T' = -i W^2 Omega), s = -1 hanging straight down (T' = i Z^2 conj(Omega)).
+
+    Returns the half ``x + iy`` of a top upright, ``w + iz`` of one hanging, and the transverse
+    ``omega_1 + i omega_2`` of either."""
+    tilt0 = -2 * _times_i(z_down * z_up)
+    omega0_t = jax.lax.complex(w1, w2)
+    rate_up = -_times_i(z_up**2 * omega0_t)
+    rate_down = _times_i(z_down**2 * jnp.conj(omega0_t))
+    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, beta, tilt0, rate_up, t)
+    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, beta, tilt0, rate_down, t)
+    zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
+    big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
+    return (
+        zeta,
+        big_w,
+        _times_i(tilt_rate_up * jnp.conj(ph_p) ** 2),
+        _times_i(jnp.conj(tilt_rate_down) * ph_m**2),
+    )
 
 
 def _times_i(z):
