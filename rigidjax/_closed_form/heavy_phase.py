@@ -17,11 +17,49 @@ and its deficit ``1 - g`` are taken from positive sums where either is small: ne
 and is taken from the theta series at ``K' - beta`` rather than as ``1 - c Im Z(i beta)``.
 """
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .carlson import _carlson_rf_rd, _steps
 from .elliptic import _nome_parts, _sin_cos
 from .precession import _THETA_FACTORS, _reduce
+
+# Cephes' atan: z + z^3 P(z^2) / Q(z^2) on |z| <= 0.66, within 1 ulp.
+_ATAN_P = (-8.750608600031904122785e-1, -1.615753718733365076637e1, -7.500855792314704667340e1,
+           -1.228866684490136173410e2, -6.485021904942025371773e1)  # fmt: skip
+_ATAN_Q = (2.485846490142306297962e1, 1.650270098316988542046e2, 4.328810604912902668951e2,
+           4.853903996359136964868e2, 1.945506571482613964425e2)  # fmt: skip
+
+
+@jax.custom_jvp
+def _atan2(y, x):
+    """``atan2(y, x)`` within 1 ulp (0 at the origin, ``+pi`` on the negative real axis) from a
+    rational approximation that vectorises: XLA's ``atan2`` is a call per element on CPU (measured
+    10x the cost). ``min(|x|, |y|) / max(|x|, |y|)`` is reduced by ``atan z = pi/4 + atan((z - 1) /
+    (z + 1))`` above 0.66."""
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    big, small = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
+    z = small / jnp.where(big > 0, big, 1.0)
+    far = z > 0.66
+    w = jnp.where(far, (z - 1) / (z + 1), z)
+    w2 = w * w
+    p, q = _ATAN_P[0], w2 + _ATAN_Q[0]
+    for a, b in zip(_ATAN_P[1:], _ATAN_Q[1:], strict=True):
+        p, q = p * w2 + a, q * w2 + b
+    angle = w + w * (w2 * p / q)
+    angle = jnp.where(far, np.pi / 4 + angle, angle)
+    angle = jnp.where(ay > ax, np.pi / 2 - angle, angle)
+    angle = jnp.where(x < 0, np.pi - angle, angle)
+    return jnp.where(y < 0, -angle, angle)
+
+
+@_atan2.defjvp
+def _atan2_jvp(primals, tangents):
+    (y, x), (y_dot, x_dot) = primals, tangents
+    r2 = x * x + y * y
+    r2 = jnp.where(r2 > 0, r2, 1.0)
+    return _atan2(y, x), (x * y_dot - y * x_dot) / r2
 
 
 def _quarter(upper, agm, big_l):
@@ -161,7 +199,7 @@ def _theta_phase(x, parts):
         f_re, f_im = a_k + b_k * big_x, c_k * big_y
         re, im = re * f_re - im * f_im, re * f_im + im * f_re
     b = parts["b"]
-    return sign * (b + jnp.arctan2(im, re)) + 2 * turns * b
+    return sign * (b + _atan2(im, re)) + 2 * turns * b
 
 
 def _start_phase(sn0, cn0, dn0, p, quarter):

@@ -18,7 +18,9 @@ the lower turning circle for a standing top and the upper one for a hanging top,
 The orientation is built from its Cayley-Klein halves ``w + i z = cos(theta/2) e^{i(phi + psi)/2}``
 and ``x + i y = sin(theta/2) e^{i(phi - psi)/2}``: their moduli are ``sqrt((1 +- u)/2)`` and their phases
 obey ``d(phi + k psi)/dt = k (w3 - a) + (b + k a) / (1 + k u)`` (``k = +-1``), whose integrals are
-Carlson ``R_F``/``R_J`` forms of the third kind, each singular only at its own pole (``u = -k``). A
+elliptic integrals of the third kind, each singular only at its own pole (``u = -k``), evaluated in
+Jacobi's theta form (:mod:`.heavy_phase`): a rate and a theta product's phase, whose coefficients are
+computed once per body, so that a sample costs one Jacobi triple and two such phases. A
 half whose pole is a turning point (a top started exactly upright, or swinging through the
 vertical) has ``b + k a = 0``: there the half is a signed Jacobi function times a uniformly
 rotating phase, smooth through the pole, where the 3-1-3 angles lock and jump by pi. The
