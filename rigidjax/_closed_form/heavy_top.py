@@ -393,8 +393,9 @@ def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):
     omega0_t = jax.lax.complex(w1, w2)
     rate_up = -_times_i(z_up**2 * omega0_t)
     rate_down = _times_i(z_down**2 * jnp.conj(omega0_t))
-    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, beta, tilt0, rate_up, t)
-    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, beta, tilt0, rate_down, t)
+    turn = _sin_cos(a * t / 2)[::-1]
+    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, beta, tilt0, rate_up, t, turn)
+    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, beta, tilt0, rate_down, t, turn)
     zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
     big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
     return (
@@ -409,16 +410,29 @@ def _times_i(z):
     return jax.lax.complex(-jnp.imag(z), jnp.real(z))
 
 
-def _tilt_modes(s, a, beta, tilt0, rate0, t):
+def _tilt_modes(s, a, beta, tilt0, rate0, t, turn):
     """``T(t)`` and ``T'(t)`` for ``T = c1 exp(i l1 t) + c2 exp(i l2 t)`` with ``T(0)``, ``T'(0)`` given and
-    ``l`` the roots of ``l^2 - s a l + s beta / 2 = 0`` (complex below the sleeping threshold)."""
-    disc = a * a - 2 * s * beta
-    disc = jnp.where(disc != 0, disc, 1.0)  # at the threshold itself the modes merge: not resolved
-    root = jnp.sqrt(jax.lax.complex(disc, jnp.zeros_like(disc)))
-    sa = jax.lax.complex(s * a, jnp.zeros_like(a))
-    l1, l2 = (sa + root) / 2, (sa - root) / 2
-    c1 = (rate0 - _times_i(l2 * tilt0)) / _times_i(root)
-    c2 = tilt0 - c1
-    tc = jax.lax.complex(t, jnp.zeros_like(t))
-    e1, e2 = jnp.exp(_times_i(l1 * tc)), jnp.exp(_times_i(l2 * tc))
-    return c1 * e1 + c2 * e2, _times_i(l1 * c1 * e1 + l2 * c2 * e2)
+    ``l`` the roots of ``l^2 - s a l + s beta / 2 = 0`` (complex below the sleeping threshold).
+
+    With ``l = sigma +- w`` (``sigma = s a / 2``, ``w^2 = a^2 / 4 - s beta / 2``), in real functions:
+    ``T = e^(i sigma t) (T(0) C + (T'(0) - i sigma T(0)) S)`` with ``C = cos(w t)`` and ``S = sin(w t) / w``
+    (``cosh``, ``sinh`` of ``|w| t`` below the threshold, ``S = t`` at it) and
+    ``T' = i sigma T + e^(i sigma t) (-w^2 T(0) S + (T'(0) - i sigma T(0)) C)``. ``turn`` is
+    ``(cos, sin)`` of ``a t / 2``: ``e^(i sigma t)`` for ``s = 1``, its conjugate for ``s = -1``.
+    """
+    sigma = s * a / 2
+    w2 = a * a / 4 - s * beta / 2
+    w = _safe_sqrt(jnp.abs(w2))
+    w_safe = jnp.where(w > 0, w, 1.0)
+    sin_wt, cos_wt = _sin_cos(w * t)
+    grow = jnp.expm1(jnp.where(w2 < 0, w * t, 0.0))
+    cosh_wt = 1 + grow * grow / (2 * (1 + grow))  # (e + 1/e) / 2 with e = 1 + grow
+    sinh_wt = grow * (2 + grow) / (2 * (1 + grow))  # (e - 1/e) / 2
+    c = jnp.where(w2 < 0, cosh_wt, cos_wt)
+    sw = jnp.where(w > 0, jnp.where(w2 < 0, sinh_wt, sin_wt) / w_safe, t)
+    drift = rate0 - _times_i(_times(sigma, tilt0))  # T'(0) - i sigma T(0)
+    cos_h, sin_h = turn
+    rotor = jax.lax.complex(cos_h, s * sin_h)
+    tilt = rotor * (_times(c, tilt0) + _times(sw, drift))
+    tilt_rate = _times_i(_times(sigma, tilt)) + rotor * (_times(-w2 * sw, tilt0) + _times(c, drift))
+    return tilt, tilt_rate
