@@ -308,6 +308,30 @@ def test_random_tops_against_dop853():
         assert np.max(np.abs(q[i] - q_ref)) <= 2e-9
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "theta, w0, com_z, tol",
+    [
+        # Swung up to 1.3e-5 (relative speed) short of the unstable vertical: m = 1 - O(1e-5).
+        (1.635, [np.sqrt(2 * G * 0.3 * (1 + np.cos(1.635))) * (1 + 1.3e-5), 0.0, 1e-3], -0.3, 1e-7),
+        # The same speed, standing.
+        (1.635, [np.sqrt(2 * G * 0.3 * (1 + np.cos(1.635))) * (1 + 1.3e-5), 0.0, 1e-3], 0.3, 1e-7),
+        # Hanging 6.8e-9 rad off the vertical with a fast spin (a pole 1e-17 from a turning circle).
+        (6.8e-9, [1.16e-3, -1.59e-3, 17.97], -0.3, 2e-9),
+    ],
+)
+def test_near_separatrix_and_near_the_poles(theta, w0, com_z, tol):
+    """Tops next to the separatrix (the nutation period's K ~ 7 and more) and a top hanging within 1e-8
+    rad of the vertical: against DOP853 over 10 s (the separatrix cases to its conditioning)."""
+    q0 = np.array([np.cos(theta / 2), np.sin(theta / 2), 0.0, 0.0])
+    w0, com = np.asarray(w0), [0.0, 0.0, com_z]
+    ts = np.linspace(0.0, 10.0, 101)
+    w, q = exact(TOP, 1.0, com, w0, q0, ts, direct=True)
+    w_ref, q_ref = reference(TOP, 1.0, com, G, w0, q0, ts)
+    assert np.max(np.abs(w - w_ref)) <= tol * np.max(np.abs(w_ref))
+    assert np.max(np.abs(q - q_ref)) <= tol
+
+
 # --------------------------------------------------------------------------------------------------
 # Gradients
 

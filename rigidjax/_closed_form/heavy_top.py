@@ -18,7 +18,9 @@ the lower turning circle for a standing top and the upper one for a hanging top,
 The orientation is built from its Cayley-Klein halves ``w + i z = cos(theta/2) e^{i(phi + psi)/2}``
 and ``x + i y = sin(theta/2) e^{i(phi - psi)/2}``: their moduli are ``sqrt((1 +- u)/2)`` and their phases
 obey ``d(phi + k psi)/dt = k (w3 - a) + (b + k a) / (1 + k u)`` (``k = +-1``), whose integrals are
-Carlson ``R_F``/``R_J`` forms of the third kind, each singular only at its own pole (``u = -k``). A
+elliptic integrals of the third kind, each singular only at its own pole (``u = -k``), evaluated in
+Jacobi's theta form (:mod:`.heavy_phase`): a rate and a theta product's phase, whose coefficients are
+computed once per body, so that a sample costs one Jacobi triple and two such phases. A
 half whose pole is a turning point (a top started exactly upright, or swinging through the
 vertical) has ``b + k a = 0``: there the half is a signed Jacobi function times a uniformly
 rotating phase, smooth through the pole, where the 3-1-3 angles lock and jump by pi. The
@@ -44,8 +46,8 @@ import jax
 import jax.numpy as jnp
 
 from .._numerics import safe_norm
-from .carlson import _carlson_rf_rj
 from .elliptic import _ellipj_checked, _sin_cos
+from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
 
 
 def _safe_div(num, den):
@@ -116,61 +118,6 @@ def _largest_root(c2, c1, c0):
     return newton(g, (c2, c1, c0)).astype(dtype)
 
 
-def _third_kind(sn, cn, dn, m, p, n, n1, quarter=None):
-    """Reduced phase ``rho`` and ``G(rho) = int_0^rho dtau / (1 + n sn^2)`` of the point ``(sn, cn, dn)``.
-
-    The point fixes ``tau = rho + 2 j K`` (``|rho| <= K``); ``G(tau) = G(rho) + 2 j G(K)``. ``n1 = 1 + n``
-    is passed on its own (``n > -1``). Carlson forms (DLMF 19.25.5, 19.25.14) for ``sn^2 <= 1/2``, else
-    measured back from ``K`` so that the arguments stay accurate as ``p = 1 - m -> 0`` (the same
-    construction as in :mod:`.torque_free`). Near the pole (``n1 < 1/2``, a turning circle close to
-    the vertical) ``R_J``'s last argument would grow like ``1 / n1``; there the characteristic
-    ``N = -n`` is exchanged for ``N' = m / N`` (DLMF 19.7.9), which leaves the near-singular part as
-    an arctangent: ``G = -(N'/3) s^3 R_J(c^2, dn^2, 1, 1 - N' s^2) + atan2(s r, c dn) / r`` with
-    ``r = sqrt(n1 (1 - N'))``. Returns ``rho``, ``G(rho)`` and ``quarter = (K, G(K))``.
-    """
-    c, s = jnp.abs(cn), jnp.abs(sn)
-    sign_s = jnp.where(sn < 0, -1.0, 1.0).astype(sn.dtype)
-    sign_c = jnp.where(cn < 0, -1.0, 1.0).astype(sn.dtype)
-    direct = s * s <= 0.5
-    pc = jnp.where(p > 0, p, jnp.ones_like(p))
-    big_n = -n
-    # N' = m / N < 1 needs p > n1; 1 - N' = (p - n1) / N and 1 - N' sn^2 = (dn^2 - n1) / N are
-    # formed from p and n1, which are accurate on their own.
-    near_pole = (n1 < 0.5) & (2 * n1 < p)
-    big_n = jnp.where(near_pole, big_n, 1.0)
-    swapped = jnp.where(near_pole, m / big_n, 0.0)  # N'
-    r = _safe_sqrt(n1 * (p - n1) / big_n)
-    r = jnp.where(r > 0, r, 1.0)
-    pole = c * c + n1 * s * s  # 1 + n sn^2 as a sum of nonnegative terms
-    plain = direct | near_pole
-    args = (
-        jnp.where(plain, c * c, pc * s * s),
-        dn * dn,
-        jnp.where(plain, jnp.ones_like(s), pc),
-        jnp.where(near_pole, (dn * dn - n1) / big_n, jnp.where(direct, pole, pc * pole / n1)),
-    )
-    weight = n / n1 * pc / 3
-    if quarter is None:
-        last = jnp.where(near_pole, (p - n1) / big_n, pc / n1)
-        extra = (jnp.zeros_like(pc), jnp.ones_like(pc), pc, last)
-        rf, rj = _carlson_rf_rj(
-            *(jnp.stack(jnp.broadcast_arrays(x, y)) for x, y in zip(args, extra, strict=True))
-        )
-        quarter_g = jnp.where(
-            near_pole, -(swapped / 3) * rj[1] + (jnp.pi / 2) / r, (rf[1] + weight * rj[1]) / n1
-        )
-        quarter = rf[1], quarter_g
-        rf, rj = rf[0], rj[0]
-    else:
-        rf, rj = _carlson_rf_rj(*args)
-    quarter_f, quarter_g = quarter
-    f = sign_s * jnp.where(plain, s * rf, quarter_f - c * rf)
-    g_pole = -(swapped / 3) * s**3 * rj + jnp.arctan2(s * r, c * dn) / r
-    g_plain = jnp.where(direct, s * rf - (n / 3) * s**3 * rj, quarter_g - (c * rf + weight * c**3 * rj) / n1)
-    g = sign_s * jnp.where(near_pole, g_pole, g_plain)
-    return sign_c * f, sign_c * g, quarter
-
-
 def _body(A, C, weight_l, omega0, q0):
     """Everything that depends on the body only (not on time): roots, elliptic parameters, phases."""
     dtype = omega0.dtype
@@ -223,6 +170,7 @@ def _body(A, C, weight_l, omega0, q0):
     dn0 = jnp.where(g_s > 0, _safe_sqrt(_safe_div(g0, g_s)), 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
+    rho0 = _start_phase(sn0, cn0, dn0, p, _quarter_period(m, p))
     halves = []
     for k, z0, zdot0, dist0 in (
         (1.0, jax.lax.complex(w, z), jax.lax.complex(qdot0[..., 0], qdot0[..., 3]), 2 * up),
@@ -235,14 +183,48 @@ def _body(A, C, weight_l, omega0, q0):
         # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
         third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
         reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) < third)
+        phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
         halves.append(
-            dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0)
-        )
+            dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0,
+                 phase=phase)
+        )  # fmt: skip
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
         start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
         pole_gap=2 * jnp.minimum(up, down),
     )  # fmt: skip
+
+
+def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, rho0):
+    """Per body and half: ``int_0^t dt / (1 + k u) = slope t + wave (V(x0 + lambda t) - V(x0))``.
+
+    ``beyond``: the pole lies beyond the start circle (``P <= P'``); otherwise the integral is taken
+    half a period on (see :mod:`.heavy_phase`), with ``n' = amp |beta (1 + k u3)| / (G_s P')`` and
+    ``m / n' = |beta| P' / |beta (1 + k u3)|``. Where the half does not nutate or its pole lies on a
+    root (``valid`` false) the parts are those of a placeholder body.
+    """
+    valid = (amp > 0) & (g_s > 0) & jnp.where(beyond, near > 0, (far > 0) & (third > 0))
+    near_s, far_s, third_s = (jnp.where(valid, x, 1.0) for x in (near, far, third))
+    g_s = jnp.where(valid, g_s, 1.0)
+    n = jnp.where(valid, jnp.where(beyond, amp / near_s, amp * third_s / (g_s * far_s)), 1.0)
+    ratio = jnp.where(valid, jnp.where(beyond, weight * near_s / g_s, weight * far_s / third_s), 0.5)
+    parts = _theta_parts(m, p, n, ratio)
+    quarter = parts["quarter"]
+    quarter = jnp.where(jnp.isfinite(quarter), quarter, 0.0)
+    x0 = jnp.where(beyond, rho0, jnp.where(rho0 >= 0, rho0 - quarter, rho0 + quarter))
+    slope = jnp.where(beyond, parts["slope"] / near_s, (parts["slope"] - ratio * parts["deficit"]) / far_s)
+    wave = jnp.where(beyond, 1 / near_s, (1 + ratio) / far_s) * parts["c"]
+    return parts, x0, slope, wave, valid
+
+
+def _select_some(mask, branch, values):
+    """``where(mask, branch(), values)``, with ``branch`` evaluated only for a batch that has an
+    element in ``mask`` (a rare regime then costs nothing per sample in the common batch)."""
+
+    def chosen():
+        return tuple(jnp.where(mask, x, y) for x, y in zip(branch(), values, strict=True))
+
+    return jax.lax.cond(jnp.any(mask), chosen, lambda: tuple(values))
 
 
 def _quat_times_omega(q, omega):
@@ -271,33 +253,31 @@ def _half(half, body, t, now, reduced):
     modulus = _safe_sqrt(dist / 2)
     modulus_rate = _safe_div(k * udot, 4 * modulus)
     # The phase: (1/2) [k (w3 - a) t + (b + k a) int_0^t dt / (1 + k u)].
-    p, m = body["p"], body["m"]
-    nn = _safe_div(k * sigma * amp, near)
-    n1 = jnp.where(near > 0, _safe_div(far, near), 1.0)
-    n1 = jnp.where(n1 > 0, n1, 1.0)
-    (sn0, cn0, dn0), v = body["start"], reduced
-    rho0, g0, quarter = _third_kind(sn0, cn0, dn0, m, p, nn, n1)
-    rho1, g1, _ = _third_kind(sn, cn, dn, m, p, nn, n1, quarter)
-    turns = jnp.round(_safe_div(v + rho0 - rho1, 2 * quarter[0]))
-    delta_g = g1 - g0 + 2 * turns * quarter[1]
-    moving = (amp > 0) & (rate > 0)
-    integral = jnp.where(moving, _safe_div(delta_g, near * jnp.where(moving, rate, 1.0)), _safe_div(t, near))
+    sn0, cn0, dn0 = body["start"]
+    parts, x0, slope, wave, valid = half["phase"]
+    delta_v = _theta_phase(x0 + reduced, parts) - _theta_phase(x0, parts)
+    rate_safe = jnp.where(valid, rate, 1.0)
+    integral = jnp.where(valid, slope * t + wave / rate_safe * delta_v, _safe_div(t, near))
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
     # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
     # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
     # (Also small against both poles' distances: 1 / (1 + k u) is expanded to first order.)
     linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3) * body["pole_gap"]) & (body["g0"] > 0)
-    nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
     k1, udot0, dist0 = body["k1"], body["udot0"], half["dist0"]
-    sin_t, cos_t = _sin_cos(nu * t)
-    x_lin = -(k1 / 2) * (1 - cos_t) + udot0 * sin_t / nu
-    xdot_lin = -(k1 / 2) * nu * sin_t + udot0 * cos_t
-    xint_lin = -(k1 / 2) * (t - sin_t / nu) + udot0 * (1 - cos_t) / nu**2
-    dist = jnp.where(linear, dist0 + k * x_lin, dist)
-    udot = jnp.where(linear, xdot_lin, udot)
-    modulus = jnp.where(linear, _safe_sqrt(dist / 2), modulus)
-    modulus_rate = jnp.where(linear, _safe_div(k * udot, 4 * modulus), modulus_rate)
-    integral = jnp.where(linear, _safe_div(t, dist0) - k * _safe_div(xint_lin, dist0 * dist0), integral)
+
+    def first_order():
+        nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
+        sin_t, cos_t = _sin_cos(nu * t)
+        x_lin = -(k1 / 2) * (1 - cos_t) + udot0 * sin_t / nu
+        xdot_lin = -(k1 / 2) * nu * sin_t + udot0 * cos_t
+        xint_lin = -(k1 / 2) * (t - sin_t / nu) + udot0 * (1 - cos_t) / nu**2
+        modulus = _safe_sqrt((dist0 + k * x_lin) / 2)
+        integral = _safe_div(t, dist0) - k * _safe_div(xint_lin, dist0 * dist0)
+        return xdot_lin, modulus, _safe_div(k * xdot_lin, 4 * modulus), integral
+
+    udot, modulus, modulus_rate, integral = _select_some(
+        linear, first_order, (udot, modulus, modulus_rate, integral)
+    )
     regular_coeff = jnp.where(half["reached"], 0.0, coeff)
     phase = 0.5 * (spin * t + regular_coeff * integral)
     sin_phase, cos_phase = _sin_cos(phase)
@@ -353,10 +333,7 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     (ph_p, mod_p, rate_p, udot), (ph_m, mod_m, rate_m, _) = (
         _half(half, body, t, now, v) for half in body["halves"]
     )
-    q = jnp.stack(
-        [mod_p * jnp.real(ph_p), mod_m * jnp.real(ph_m), mod_m * jnp.imag(ph_m), mod_p * jnp.imag(ph_p)],
-        axis=-1,
-    )
+    q = [mod_p * jnp.real(ph_p), mod_m * jnp.real(ph_m), mod_m * jnp.imag(ph_m), mod_p * jnp.imag(ph_p)]
     # omega_1 + i omega_2 = (i/2)(h + i du/dt) / (A_- A_+) * E_- conj(E_+); at a reached pole the
     # ratio (h + i du/dt) / A_pole is taken from its limit form.
     a = body["a"]
@@ -378,43 +355,84 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     # is a sum of circular modes exp(i lambda t), lambda^2 - s a lambda + s beta / 2 = 0, s = +1 upright
     # (T' = -i W^2 Omega), s = -1 hanging straight down (T' = i Z^2 conj(Omega)).
     tiny = body["amp"] <= jnp.finfo(body["amp"].dtype).eps ** (2 / 3)
-    halves = body["halves"]
-    tilt0 = -2 * _times_i(halves[1]["z0"] * halves[0]["z0"])
-    omega0_t = jax.lax.complex(body["w1"], body["w2"])
-    rate_up = -_times_i(halves[0]["z0"] ** 2 * omega0_t)
-    rate_down = _times_i(halves[1]["z0"] ** 2 * jnp.conj(omega0_t))
-    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, body["beta"], tilt0, rate_up, t)
-    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, body["beta"], tilt0, rate_down, t)
     sleep_up, sleep_down = down_pole & tiny, up_pole & tiny & ~down_pole
-    zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
-    big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
-    q = jnp.where(
-        sleep_up[..., None], jnp.stack([q[..., 0], jnp.real(zeta), jnp.imag(zeta), q[..., 3]], -1), q
+    halves = body["halves"]
+    tilt_args = (a, body["beta"], halves[0]["z0"], halves[1]["z0"], body["w1"], body["w2"], t, ph_p, ph_m)
+
+    def sleeping(q, transverse):
+        q = list(q)
+        zeta, big_w, tilt_rate_up, tilt_rate_down = _sleeping(*tilt_args)
+        q[1] = jnp.where(sleep_up, jnp.real(zeta), q[1])
+        q[2] = jnp.where(sleep_up, jnp.imag(zeta), q[2])
+        q[0] = jnp.where(sleep_down, jnp.real(big_w), q[0])
+        q[3] = jnp.where(sleep_down, jnp.imag(big_w), q[3])
+        transverse = jnp.where(sleep_up, tilt_rate_up, transverse)
+        transverse = jnp.where(sleep_down, tilt_rate_down, transverse)
+        return q, transverse
+
+    # Evaluated only where a batch holds a sleeping top (the common batch holds none). This also
+    # makes XLA materialise the components before they are stacked.
+    q, transverse = jax.lax.cond(
+        jnp.any(sleep_up | sleep_down), sleeping, lambda q, transverse: (list(q), transverse), q, transverse
     )
-    q = jnp.where(
-        sleep_down[..., None], jnp.stack([jnp.real(big_w), q[..., 1], q[..., 2], jnp.imag(big_w)], -1), q
-    )
-    transverse = jnp.where(sleep_up, _times_i(tilt_rate_up * jnp.conj(ph_p) ** 2), transverse)
-    transverse = jnp.where(sleep_down, _times_i(jnp.conj(tilt_rate_down) * ph_m**2), transverse)
     w3 = jnp.broadcast_to(body["w3"], transverse.shape)
     omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
-    return omega, q
+    return omega, jnp.stack(q, axis=-1)
+
+
+def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):
+    """A top sleeping at a pole up to a wobble below eps^(2/3): the linearised motion, zero in value
+    at the equilibrium and carrying the derivatives that start a wobble (the pole form's direction
+    of the wobble is undefined there). The tilt T = X + iY of the symmetry axis (T = -2i (x+iy)(w+iz))
+    is a sum of circular modes exp(i lambda t), lambda^2 - s a lambda + s beta / 2 = 0, s = +1 upright
+    (T' = -i W^2 Omega), s = -1 hanging straight down (T' = i Z^2 conj(Omega)).
+
+    Returns the half ``x + iy`` of a top upright, ``w + iz`` of one hanging, and the transverse
+    ``omega_1 + i omega_2`` of either."""
+    tilt0 = -2 * _times_i(z_down * z_up)
+    omega0_t = jax.lax.complex(w1, w2)
+    rate_up = -_times_i(z_up**2 * omega0_t)
+    rate_down = _times_i(z_down**2 * jnp.conj(omega0_t))
+    turn = _sin_cos(a * t / 2)[::-1]
+    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, beta, tilt0, rate_up, t, turn)
+    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, beta, tilt0, rate_down, t, turn)
+    zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
+    big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
+    return (
+        zeta,
+        big_w,
+        _times_i(tilt_rate_up * jnp.conj(ph_p) ** 2),
+        _times_i(jnp.conj(tilt_rate_down) * ph_m**2),
+    )
 
 
 def _times_i(z):
     return jax.lax.complex(-jnp.imag(z), jnp.real(z))
 
 
-def _tilt_modes(s, a, beta, tilt0, rate0, t):
+def _tilt_modes(s, a, beta, tilt0, rate0, t, turn):
     """``T(t)`` and ``T'(t)`` for ``T = c1 exp(i l1 t) + c2 exp(i l2 t)`` with ``T(0)``, ``T'(0)`` given and
-    ``l`` the roots of ``l^2 - s a l + s beta / 2 = 0`` (complex below the sleeping threshold)."""
-    disc = a * a - 2 * s * beta
-    disc = jnp.where(disc != 0, disc, 1.0)  # at the threshold itself the modes merge: not resolved
-    root = jnp.sqrt(jax.lax.complex(disc, jnp.zeros_like(disc)))
-    sa = jax.lax.complex(s * a, jnp.zeros_like(a))
-    l1, l2 = (sa + root) / 2, (sa - root) / 2
-    c1 = (rate0 - _times_i(l2 * tilt0)) / _times_i(root)
-    c2 = tilt0 - c1
-    tc = jax.lax.complex(t, jnp.zeros_like(t))
-    e1, e2 = jnp.exp(_times_i(l1 * tc)), jnp.exp(_times_i(l2 * tc))
-    return c1 * e1 + c2 * e2, _times_i(l1 * c1 * e1 + l2 * c2 * e2)
+    ``l`` the roots of ``l^2 - s a l + s beta / 2 = 0`` (complex below the sleeping threshold).
+
+    With ``l = sigma +- w`` (``sigma = s a / 2``, ``w^2 = a^2 / 4 - s beta / 2``), in real functions:
+    ``T = e^(i sigma t) (T(0) C + (T'(0) - i sigma T(0)) S)`` with ``C = cos(w t)`` and ``S = sin(w t) / w``
+    (``cosh``, ``sinh`` of ``|w| t`` below the threshold, ``S = t`` at it) and
+    ``T' = i sigma T + e^(i sigma t) (-w^2 T(0) S + (T'(0) - i sigma T(0)) C)``. ``turn`` is
+    ``(cos, sin)`` of ``a t / 2``: ``e^(i sigma t)`` for ``s = 1``, its conjugate for ``s = -1``.
+    """
+    sigma = s * a / 2
+    w2 = a * a / 4 - s * beta / 2
+    w = _safe_sqrt(jnp.abs(w2))
+    w_safe = jnp.where(w > 0, w, 1.0)
+    sin_wt, cos_wt = _sin_cos(w * t)
+    grow = jnp.expm1(jnp.where(w2 < 0, w * t, 0.0))
+    cosh_wt = 1 + grow * grow / (2 * (1 + grow))  # (e + 1/e) / 2 with e = 1 + grow
+    sinh_wt = grow * (2 + grow) / (2 * (1 + grow))  # (e - 1/e) / 2
+    c = jnp.where(w2 < 0, cosh_wt, cos_wt)
+    sw = jnp.where(w > 0, jnp.where(w2 < 0, sinh_wt, sin_wt) / w_safe, t)
+    drift = rate0 - _times_i(_times(sigma, tilt0))  # T'(0) - i sigma T(0)
+    cos_h, sin_h = turn
+    rotor = jax.lax.complex(cos_h, s * sin_h)
+    tilt = rotor * (_times(c, tilt0) + _times(sw, drift))
+    tilt_rate = _times_i(_times(sigma, tilt)) + rotor * (_times(-w2 * sw, tilt0) + _times(c, drift))
+    return tilt, tilt_rate
