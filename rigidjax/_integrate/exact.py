@@ -2,8 +2,10 @@
 simulate's checks, evaluated at every sample time in one program, no integration."""
 
 import contextlib
+import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -32,21 +34,21 @@ __all__ = ["simulate_exact"]
 
 
 @eqx.filter_jit
-def _exact(model, omega0, q0, ts, values_checked: bool):
+def _exact(model, omega0, q0, ts, chunk_size: int | None, values_checked: bool):
     """The closed forms' program; ``values_checked``: the inputs' values were checked before it (no
     run-time checks, and so no host callback, in the program)."""
     with checks_done() if values_checked else contextlib.nullcontext():
         inputs = _exact_inputs(model, omega0, q0, ts)
-    return _exact_motion(*inputs)
+    return _exact_motion(*inputs, chunk_size)
 
 
 @eqx.filter_jit
-def _exact_collected(model, omega0, q0, ts):
+def _exact_collected(model, omega0, q0, ts, chunk_size: int | None):
     """The closed forms' program for concrete inputs: the conditions of the input checks are returned
     beside the motion (for :func:`.raise_collected`), one program and no host callback."""
     with collected_failures() as failures:
         inputs = _exact_inputs(model, omega0, q0, ts)
-    return _exact_motion(*inputs), list(failures)
+    return _exact_motion(*inputs, chunk_size), list(failures)
 
 
 def _exact_inputs(model, omega0, q0, ts):
@@ -60,28 +62,62 @@ def _exact_inputs(model, omega0, q0, ts):
     return model, omega0, q0, ts
 
 
-def _exact_motion(model, omega0, q0, ts):
+def block_elements() -> int:
+    """Body-samples per block of a closed form's evaluation. On CPU a block's few dozen
+    ``(bodies, samples)`` intermediates then stay in the core's cache (XLA materialises them); on
+    accelerators one block."""
+    return 2**16 if jax.default_backend() == "cpu" else 2**62
+
+
+def _exact_motion(model, omega0, q0, ts, chunk_size):
     batch = batching.batch_shape(model, omega0, q0)
-    inertia = jnp.broadcast_to(model.inertia, batch + (3,))
-    omega0 = jnp.broadcast_to(omega0, batch + (3,))
-    if isinstance(model, HeavyTop):
-        com = jnp.broadcast_to(model.com, batch + (3,))
-        mass = jnp.broadcast_to(model.mass, batch)[..., None]
-        gravity = jnp.broadcast_to(model.gravity, batch)[..., None]
-        q0 = jnp.broadcast_to(q0, batch + (4,))
-        omega, orientation = lagrange_top_motion(
-            inertia[..., None, :], mass, com[..., None, :], gravity, omega0[..., None, :],
-            q0[..., None, :], ts - ts[0],
-        )  # fmt: skip
-        q_norm_error = jnp.max(jnp.abs(jnp.linalg.norm(orientation, axis=-1) - 1.0), axis=-1)
-    elif q0 is None:
-        omega = torque_free_omega(inertia[..., None, :], omega0[..., None, :], ts - ts[0])
-        orientation = q_norm_error = None
+    n_bodies, n_times = math.prod(batch), ts.shape[0]
+    heavy = isinstance(model, HeavyTop)
+    per_body = {"inertia": (model.inertia, 3), "omega0": (omega0, 3)}
+    if q0 is not None:
+        per_body["q0"] = (q0, 4)
+    if heavy:
+        per_body.update(com=(model.com, 3), mass=(model.mass, 0), gravity=(model.gravity, 0))
+    flat = {
+        name: jnp.broadcast_to(x, batch + (k,) * bool(k)).reshape((n_bodies,) + (k,) * bool(k))
+        for name, (x, k) in per_body.items()
+    }
+    t = ts - ts[0]
+
+    def motion(bodies):
+        """omega ``(bodies, samples, 3)`` and the orientation ``(bodies, samples, 4)`` (or None)."""
+        inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
+        if heavy:
+            return lagrange_top_motion(
+                inertia, bodies["mass"][:, None], bodies["com"][:, None], bodies["gravity"][:, None],
+                omega0, bodies["q0"][:, None], t,
+            )  # fmt: skip
+        if q0 is None:
+            return torque_free_omega(inertia, omega0, t), None
+        return torque_free_motion(inertia, omega0, bodies["q0"][:, None], t)
+
+    per_block = max(1, block_elements() // max(n_times, 1)) if chunk_size is None else chunk_size
+    if n_bodies <= per_block:
+        omega, orientation = motion(flat)
     else:
-        q0 = jnp.broadcast_to(q0, batch + (4,))
-        omega, orientation = torque_free_motion(
-            inertia[..., None, :], omega0[..., None, :], q0[..., None, :], ts - ts[0]
+        # Blocks of bodies in a loop; the last one is filled up with copies of the last body.
+        n_blocks = -(-n_bodies // per_block)
+        fill = n_blocks * per_block - n_bodies
+        blocks = {
+            name: jnp.pad(x, [(0, fill)] + [(0, 0)] * (x.ndim - 1), mode="edge").reshape(
+                (n_blocks, per_block) + x.shape[1:]
+            )
+            for name, x in flat.items()
+        }
+        omega, orientation = jax.lax.map(motion, blocks)
+        omega, orientation = (
+            None if x is None else x.reshape((n_blocks * per_block,) + x.shape[2:])[:n_bodies]
+            for x in (omega, orientation)
         )
+    omega = omega.reshape(batch + omega.shape[1:])
+    q_norm_error = None
+    if orientation is not None:
+        orientation = orientation.reshape(batch + orientation.shape[1:])
         q_norm_error = jnp.max(jnp.abs(jnp.linalg.norm(orientation, axis=-1) - 1.0), axis=-1)
     return Trajectory(
         ts=ts,
@@ -89,7 +125,11 @@ def _exact_motion(model, omega0, q0, ts):
         orientation=orientation,
         model=model,
         success=jnp.ones(batch, bool),
-        stats={"num_steps": jnp.zeros((), jnp.int32), "chunk_size": 0, "quaternion_norm_error": q_norm_error},
+        stats={
+            "num_steps": jnp.zeros((), jnp.int32),
+            "chunk_size": min(per_block, n_bodies),
+            "quaternion_norm_error": q_norm_error,
+        },
     )
 
 
@@ -162,8 +202,10 @@ def _check_lagrange_top(model, state0):
         raise ValueError(_OFF_AXIS.format(f"; got com = ({bad[0]:g}, {bad[1]:g}, {bad[2]:g})"))
 
 
-def simulate_exact(model, state0, ts):
-    """``accuracy="exact"``: a closed form, no integration (torque-free bodies, Lagrange's top)."""
+def simulate_exact(model, state0, ts, chunk_size: int | None = None):
+    """``accuracy="exact"``: a closed form, no integration (torque-free bodies, Lagrange's top).
+    ``chunk_size``: bodies evaluated together (blocks of them one after another); None: as many as
+    :func:`block_elements` allows at this number of samples."""
     if isinstance(model, HeavyTop):
         _check_lagrange_top(model, state0)
         ts = check_times_shape(ts)
@@ -171,7 +213,7 @@ def simulate_exact(model, state0, ts):
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
         top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
         omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
-        return _run_exact(top, omega0, q0, ts)
+        return _run_exact(top, omega0, q0, ts, chunk_size)
     if not model.torque_free:
         raise ValueError(
             "accuracy='exact' is a closed form: for torque-free bodies (a FreeBody, or a RigidBody "
@@ -191,15 +233,17 @@ def simulate_exact(model, state0, ts):
         state0.omega.astype(dtype),
         ts.astype(dtype),
     )
-    return _run_exact(body, omega0, q0, ts)
+    return _run_exact(body, omega0, q0, ts, chunk_size)
 
 
-def _run_exact(model, omega0, q0, ts):
+def _run_exact(model, omega0, q0, ts, chunk_size):
+    if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
+        raise ValueError(f"chunk_size must be a positive integer or None, got {chunk_size!r}.")
     if not is_traced(model, omega0, q0, ts):
-        traj, failures = _exact_collected(model, omega0, q0, ts)
+        traj, failures = _exact_collected(model, omega0, q0, ts, chunk_size)
         raise_collected(failures)
         return traj
-    return _exact(model, omega0, q0, ts, _raise_on_bad_values(model, omega0, q0, ts))
+    return _exact(model, omega0, q0, ts, chunk_size, _raise_on_bad_values(model, omega0, q0, ts))
 
 
 def _raise_on_bad_values(model, omega0, q0, ts) -> bool:

@@ -219,7 +219,7 @@ def simulate(
         )  # fmt: skip
     report = _progress.check_progress(progress)
     if accuracy == "exact":
-        traj = simulate_exact(model, state0, ts)
+        traj = simulate_exact(model, state0, ts, chunk_size)
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
         return traj
