@@ -8,6 +8,7 @@ import numpy as np
 
 from .._kinematics.quaternion import _quat_multiply
 from .._numerics import safe_norm
+from .barrier import _materialised
 from .carlson import _carlson_rf_rd, _steps
 from .elliptic import _nome_parts, _sin_cos
 from .frame import _clip, _cycle, _safe_div
@@ -259,7 +260,7 @@ def _general_orientation(frame, parts, t):
     x0, y0 = jnp.where(eps < 0, l_a0, l_b0), jnp.where(eps < 0, l_b0, l_a0)
     x1, y1 = jnp.where(eps < 0, l_a1, l_b1), jnp.where(eps < 0, l_b1, l_a1)
     b0 = _nutation_spin_quat(jnp.stack([x0, y0, l_c0], axis=-1))
-    b1 = _nutation_spin_quat(jnp.stack(jnp.broadcast_arrays(x1, y1, l_c1), axis=-1))
+    half_angles1 = _half_angles(jnp.stack(jnp.broadcast_arrays(x1, y1, l_c1), axis=-1))
 
     # psi = atan2(l_x, l_y) is continuous in t; the quaternions hold its principal value, and each wrap
     # flips the sign of the half-angle quaternion. psi = eps beta + const with beta the angle of
@@ -274,8 +275,12 @@ def _general_orientation(frame, parts, t):
     wraps = jnp.round((turned - (_rough_angle(x1, y1) - _rough_angle(x0, y0))) / (2 * jnp.pi))
     flip = jnp.where(jnp.mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
 
+    sin_p, cos_p = _sin_cos(phi / 2)
+    # Every component of q reads all of these: in memory, the products below are cheap.
+    sin_p, cos_p, flip, ct, st, cp, sp = _materialised((sin_p, cos_p, flip, *half_angles1))
+    b1 = jnp.stack([ct * cp, st * cp, -st * sp, ct * sp], axis=-1)
     zero = jnp.zeros_like(phi)
-    precession = jnp.stack([jnp.cos(phi / 2), zero, zero, jnp.sin(phi / 2)], axis=-1)
+    precession = jnp.stack([cos_p, zero, zero, sin_p], axis=-1)
     b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], u.dtype)
     q = _quat_multiply(b0_conj, _quat_multiply(precession, b1)) * flip[..., None]
     vector = _cycle([q[..., 1], q[..., 2], q[..., 3]], (2 - c_index) % 3)

@@ -33,6 +33,7 @@ from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
 from .._numerics import safe_norm
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
+from .barrier import _materialised
 from .elliptic import _ellipj_checked, _sin_cos, ellipkm1
 from .frame import _safe_div, _solution_parameters, _sorted_frame, _unsort
 from .precession import _general_orientation
@@ -104,6 +105,7 @@ def _motion_parts(frame, t):
     speed = parity * sign_c * rate
     u = speed * t
     sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
+    sn, cn, dn = _materialised((sn, cn, dn))  # read by every component of omega and q
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
     # separatrix, where m = 1).
     denominator = cn0 * cn0 + sn0 * sn0 * dn * dn
