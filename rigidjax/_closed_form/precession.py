@@ -10,8 +10,8 @@ from .._kinematics.quaternion import _quat_multiply
 from .._numerics import safe_norm
 from .barrier import _materialised
 from .carlson import _carlson_rf_rd, _steps
-from .elliptic import _nome_parts, _sin_cos
 from .frame import _clip, _cycle, _safe_div
+from .jacobi import _mod, _nome_parts, _sin_cos
 
 # Factors of the theta products in _precession_phase: with q <= exp(-pi) the last omitted one differs
 # from 1 by at most q^(2 J) (float64: 4e-17; float32: 7e-9).
@@ -268,12 +268,12 @@ def _general_orientation(frame, parts, t):
     # [-pi/2, pi/2], so its continuous change is beta(rho1) - beta(rho0) + pi j exactly, and rough
     # angles (errors of 0.005 rad) count the wraps.
     sign0 = jnp.where(parts["start"][1] < 0, -1.0, 1.0).astype(u.dtype)
-    sign1 = sign0 * (1 - 2 * jnp.mod(turns, 2))
+    sign1 = sign0 * (1 - 2 * _mod(turns, 2))
     beta0 = _rough_angle(sign0 * l_b0, sign0 * l_a0)
     beta1 = _rough_angle(sign1 * l_b1, sign1 * l_a1)
     turned = eps * (beta1 - beta0 + jnp.pi * turns)
     wraps = jnp.round((turned - (_rough_angle(x1, y1) - _rough_angle(x0, y0))) / (2 * jnp.pi))
-    flip = jnp.where(jnp.mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
+    flip = jnp.where(_mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
 
     sin_p, cos_p = _sin_cos(phi / 2)
     # Every component of q reads all of these: in memory, the products below are cheap.
