@@ -241,25 +241,45 @@ def _general_orientation(frame, parts, t):
     # (an identity of the elliptic parameters), so V enters as it is. What depends on the body only
     # (K, g, the initial phase) keeps the body's shape: computed once per body, not per sample time.
     body = _precession_parts(m, p, n, nu, parts["start"])
-    rho0 = body["rho0"]
-    turns, rho1 = _reduce(rho0 + u, body["quarter"])
-    speed = parts["speed"]
     size = safe_norm(jnp.stack([i * w for i, w in zip(moments, frame["omega"], strict=True)], axis=-1))
-    kappa = jnp.where((I_c > I_a) == (speed > 0), 1.0, -1.0).astype(u.dtype)
-    delta_v = _precession_phase(rho1, turns, body) - _precession_phase(rho0, jnp.zeros_like(rho0), body)
-    phi = (size / I_c) * (1 + (I_c - I_a) / I_a * body["slope"]) * t + kappa * delta_v
+    kappa = jnp.where((I_c > I_a) == (parts["speed"] > 0), 1.0, -1.0).astype(u.dtype)
+    rate = (size / I_c) * (1 + (I_c - I_a) / I_a * body["slope"])
+    phase0 = _precession_phase(body["rho0"], jnp.zeros_like(body["rho0"]), body)
 
     # Cyclic relabelling of the body axes: (x, y, c) = (c + 1, c + 2, c) mod 3, a proper rotation; (x, y)
     # is (a, b) (eps = -1) or (b, a) (eps = +1).
     c_index = jnp.where(around_largest, index[2], index[0])
     a_index = jnp.where(around_largest, index[0], index[2])
     eps = jnp.where((c_index + 1) % 3 == a_index, -1.0, 1.0).astype(u.dtype)
-    (w_a0, w_b0, w_c0), (w_a1, w_b1, w_c1) = parts["omega_start"], parts["omega_now"]
+    w_a0, w_b0, w_c0 = parts["omega_start"]
     l_a0, l_b0, l_c0 = I_a * w_a0, I_b * w_b0, I_c * w_c0
-    l_a1, l_b1, l_c1 = I_a * w_a1, I_b * w_b1, I_c * w_c1
     x0, y0 = jnp.where(eps < 0, l_a0, l_b0), jnp.where(eps < 0, l_b0, l_a0)
-    x1, y1 = jnp.where(eps < 0, l_a1, l_b1), jnp.where(eps < 0, l_b1, l_a1)
     b0 = _nutation_spin_quat(jnp.stack([x0, y0, l_c0], axis=-1))
+    sign0 = jnp.where(parts["start"][1] < 0, -1.0, 1.0).astype(u.dtype)
+    beta0 = _rough_angle(sign0 * l_b0, sign0 * l_a0)
+    angle0 = _rough_angle(x0, y0)
+    # What the samples read of the body, in memory: fused into the per-sample code, which reads it
+    # broadcast against t, it would be recomputed for every sample.
+    phase_keys = ("upper", "agm", "nome2", "l_safe", "b", "quarter", "rho0")
+    per_body = (
+        *(body[k] for k in phase_keys), *body["bend"], *body["lower"], rate, phase0, kappa, I_a, I_b, I_c,
+        eps, sign0, beta0, angle0, *(b0[..., k] for k in range(4)), c_index,
+    )  # fmt: skip
+    per_body = list(_materialised(per_body))
+    body = dict(zip(phase_keys, per_body[:7], strict=True))
+    body["bend"], body["lower"] = tuple(per_body[7:10]), tuple(per_body[10:13])
+    rate, phase0, kappa, I_a, I_b, I_c, eps, sign0, beta0, angle0 = per_body[13:23]
+    b0, c_index = jnp.stack(per_body[23:27], axis=-1), per_body[27]
+
+    # The precession angle phi = (|L| / I_c) (t + (I_c - I_a) / I_a (G(tau) - G(tau0)) / (dtau/dt)) with
+    # G = g tau + c V: the linear part is a rate, and (|L| / I_c) ((I_c - I_a) / I_a) c / (dtau/dt) = +-1
+    # (an identity of the elliptic parameters), so V enters as it is. What depends on the body only
+    # (K, g, the initial phase) keeps the body's shape: computed once per body, not per sample time.
+    turns, rho1 = _reduce(body["rho0"] + u, body["quarter"])
+    phi = rate * t + kappa * (_precession_phase(rho1, turns, body) - phase0)
+    w_a1, w_b1, w_c1 = parts["omega_now"]
+    l_a1, l_b1, l_c1 = I_a * w_a1, I_b * w_b1, I_c * w_c1
+    x1, y1 = jnp.where(eps < 0, l_a1, l_b1), jnp.where(eps < 0, l_b1, l_a1)
     half_angles1 = _half_angles(jnp.stack(jnp.broadcast_arrays(x1, y1, l_c1), axis=-1))
 
     # psi = atan2(l_x, l_y) is continuous in t; the quaternions hold its principal value, and each wrap
@@ -267,12 +287,10 @@ def _general_orientation(frame, parts, t):
     # (l_a, l_b) ~ (cn, sn), which turns by pi per half period: at the reduced phases (cn >= 0) beta is in
     # [-pi/2, pi/2], so its continuous change is beta(rho1) - beta(rho0) + pi j exactly, and rough
     # angles (errors of 0.005 rad) count the wraps.
-    sign0 = jnp.where(parts["start"][1] < 0, -1.0, 1.0).astype(u.dtype)
     sign1 = sign0 * (1 - 2 * _mod(turns, 2))
-    beta0 = _rough_angle(sign0 * l_b0, sign0 * l_a0)
     beta1 = _rough_angle(sign1 * l_b1, sign1 * l_a1)
     turned = eps * (beta1 - beta0 + jnp.pi * turns)
-    wraps = jnp.round((turned - (_rough_angle(x1, y1) - _rough_angle(x0, y0))) / (2 * jnp.pi))
+    wraps = jnp.round((turned - (_rough_angle(x1, y1) - angle0)) / (2 * jnp.pi))
     flip = jnp.where(_mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
 
     sin_p, cos_p = _sin_cos(phi / 2)
