@@ -7,9 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kinematics.quaternion import _quat_multiply
-from .._numerics import safe_norm
 from .barrier import _materialised
-from .carlson import _carlson_rf_rd, _steps
+from .carlson import _CARLSON_STEPS, _carlson_rf_rd, _rf_series, _safe_sqrt, _steps
 from .frame import _clip, _cycle, _safe_div
 from .jacobi import _mod, _nome_parts, _sin_cos
 
@@ -80,7 +79,7 @@ def _precession_parts(m, p, n, nu, start):
         (jnp.where(from_zero, 1 + n, n + m), dn0 * dn0),
         (jnp.where(from_zero, 1 + nu_safe, 1 + n), jnp.where(direct, 1.0, pc)),
     )
-    rf, _ = _carlson_rf_rd(*(jnp.stack(jnp.broadcast_arrays(*a)) for a in args), with_rd=False)
+    rf = _carlson_rf(*(jnp.stack(jnp.broadcast_arrays(*a)) for a in args))
     shift = jnp.where(from_zero, jnp.sqrt(nu_safe), 1.0) * rf[0]  # beta or K' - beta
     # p = 0: F = atanh(s) = log((1 + s) / c), from c (not 1 - s) where s -> 1; c = 0 is steady.
     c_safe = jnp.where(c > 0, c, 1.0)
@@ -133,6 +132,34 @@ def _precession_parts(m, p, n, nu, start):
         bend=(cos_b * cos_b, sin_2b, cos_2b),
         lower=(r_lower, s_lower, gap_lower),
     )
+
+
+@jax.custom_jvp
+def _carlson_rf(x, y, z):
+    """Carlson's ``R_F(x, y, z)``: the duplication of :func:`.carlson._carlson_rf_rd` with its steps
+    unrolled, and the result held in memory; the derivatives are those of the loop there.
+
+    On CPU each step of the loop costs about ten dispatches of small kernels, most of the cost of
+    the precession's parameters; unrolled, the steps fuse, and held in memory, the result is not
+    recomputed (steps included) by each of its readers. Differentiated, the unrolled steps would
+    lengthen the compile (the loop's derivative is one loop).
+    """
+    a_f = (x + y + z) / 3
+    dev_x, dev_y = a_f - x, a_f - y
+    scale = 1.0
+    for _ in range(_steps(_CARLSON_STEPS, x.dtype)):
+        sx, sy, sz = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z)
+        lam = sx * (sy + sz) + sy * sz
+        x, y, z, a_f = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (a_f + lam) / 4
+        scale = scale / 4
+    (rf,) = _materialised((_rf_series(dev_x, dev_y, a_f, scale),))
+    return rf
+
+
+@_carlson_rf.defjvp
+def _carlson_rf_jvp(primals, tangents):
+    _, tangent = jax.jvp(lambda *a: _carlson_rf_rd(*a, with_rd=False)[0], primals, tangents)
+    return _carlson_rf(*primals), tangent
 
 
 def _reduce(tau, quarter):
@@ -197,6 +224,14 @@ def _rough_angle(y, x):
     return jnp.where(y < 0, -a, a)
 
 
+def _norm(*components):
+    """``safe_norm`` of the stacked components, summed elementwise: XLA on CPU hands a reduction
+    over a short last axis to a library call of its own, which costs more than the arithmetic."""
+    sq = sum(c * c for c in components)
+    positive = sq > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, jnp.ones_like(sq))), 0.0)
+
+
 def _half_angles(momentum):
     """Half-angle cosines and sines of the 3-1-3 angles ``theta`` (nutation, in [0, pi]) and ``psi``
     (spin, in (-pi, pi]) with ``momentum / |momentum| = (sin theta sin psi, sin theta cos psi, cos theta)``.
@@ -204,18 +239,18 @@ def _half_angles(momentum):
     Formed from the components without dividing by ``sin theta`` and without cancellation.
     """
     lx, ly, lc = momentum[..., 0], momentum[..., 1], momentum[..., 2]
-    size = safe_norm(momentum)
-    st = safe_norm(momentum[..., :2])
+    size = _norm(lx, ly, lc)
+    st = _norm(lx, ly)
     up = lc >= 0
     t_cos = jnp.where(up, size + lc, st)
     t_sin = jnp.where(up, st, size - lc)
-    t_norm = safe_norm(jnp.stack([t_cos, t_sin], axis=-1))
+    t_norm = _norm(t_cos, t_sin)
     t_norm = jnp.where(t_norm > 0, t_norm, 1.0)
     right = ly >= 0
     sign_x = jnp.where(lx < 0, -1.0, 1.0).astype(momentum.dtype)
     p_cos = jnp.where(right, st + ly, jnp.abs(lx))
     p_sin = jnp.where(right, lx, sign_x * (st - ly))
-    p_norm = safe_norm(jnp.stack([p_cos, p_sin], axis=-1))
+    p_norm = _norm(p_cos, p_sin)
     p_cos = jnp.where(p_norm > 0, p_cos, 1.0)
     p_norm = jnp.where(p_norm > 0, p_norm, 1.0)
     return t_cos / t_norm, t_sin / t_norm, p_cos / p_norm, p_sin / p_norm
@@ -241,7 +276,7 @@ def _general_orientation(frame, parts, t):
     # (an identity of the elliptic parameters), so V enters as it is. What depends on the body only
     # (K, g, the initial phase) keeps the body's shape: computed once per body, not per sample time.
     body = _precession_parts(m, p, n, nu, parts["start"])
-    size = safe_norm(jnp.stack([i * w for i, w in zip(moments, frame["omega"], strict=True)], axis=-1))
+    size = _norm(*(i * w for i, w in zip(moments, frame["omega"], strict=True)))
     kappa = jnp.where((I_c > I_a) == (parts["speed"] > 0), 1.0, -1.0).astype(u.dtype)
     rate = (size / I_c) * (1 + (I_c - I_a) / I_a * body["slope"])
     phase0 = _precession_phase(body["rho0"], jnp.zeros_like(body["rho0"]), body)
