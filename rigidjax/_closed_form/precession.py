@@ -7,10 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kinematics.quaternion import _quat_multiply
-from .._numerics import safe_norm
-from .carlson import _carlson_rf_rd, _steps
-from .elliptic import _nome_parts, _sin_cos
+from .barrier import _materialised
+from .carlson import _CARLSON_STEPS, _carlson_rf_rd, _rf_series, _safe_sqrt, _steps
 from .frame import _clip, _cycle, _safe_div
+from .jacobi import _mod, _nome_parts, _sin_cos
 
 # Factors of the theta products in _precession_phase: with q <= exp(-pi) the last omitted one differs
 # from 1 by at most q^(2 J) (float64: 4e-17; float32: 7e-9).
@@ -79,7 +79,7 @@ def _precession_parts(m, p, n, nu, start):
         (jnp.where(from_zero, 1 + n, n + m), dn0 * dn0),
         (jnp.where(from_zero, 1 + nu_safe, 1 + n), jnp.where(direct, 1.0, pc)),
     )
-    rf, _ = _carlson_rf_rd(*(jnp.stack(jnp.broadcast_arrays(*a)) for a in args), with_rd=False)
+    rf = _carlson_rf(*(jnp.stack(jnp.broadcast_arrays(*a)) for a in args))
     shift = jnp.where(from_zero, jnp.sqrt(nu_safe), 1.0) * rf[0]  # beta or K' - beta
     # p = 0: F = atanh(s) = log((1 + s) / c), from c (not 1 - s) where s -> 1; c = 0 is steady.
     c_safe = jnp.where(c > 0, c, 1.0)
@@ -132,6 +132,34 @@ def _precession_parts(m, p, n, nu, start):
         bend=(cos_b * cos_b, sin_2b, cos_2b),
         lower=(r_lower, s_lower, gap_lower),
     )
+
+
+@jax.custom_jvp
+def _carlson_rf(x, y, z):
+    """Carlson's ``R_F(x, y, z)``: the duplication of :func:`.carlson._carlson_rf_rd` with its steps
+    unrolled, and the result held in memory; the derivatives are those of the loop there.
+
+    On CPU each step of the loop costs about ten dispatches of small kernels, most of the cost of
+    the precession's parameters; unrolled, the steps fuse, and held in memory, the result is not
+    recomputed (steps included) by each of its readers. Differentiated, the unrolled steps would
+    lengthen the compile (the loop's derivative is one loop).
+    """
+    a_f = (x + y + z) / 3
+    dev_x, dev_y = a_f - x, a_f - y
+    scale = 1.0
+    for _ in range(_steps(_CARLSON_STEPS, x.dtype)):
+        sx, sy, sz = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z)
+        lam = sx * (sy + sz) + sy * sz
+        x, y, z, a_f = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (a_f + lam) / 4
+        scale = scale / 4
+    (rf,) = _materialised((_rf_series(dev_x, dev_y, a_f, scale),))
+    return rf
+
+
+@_carlson_rf.defjvp
+def _carlson_rf_jvp(primals, tangents):
+    _, tangent = jax.jvp(lambda *a: _carlson_rf_rd(*a, with_rd=False)[0], primals, tangents)
+    return _carlson_rf(*primals), tangent
 
 
 def _reduce(tau, quarter):
@@ -196,6 +224,14 @@ def _rough_angle(y, x):
     return jnp.where(y < 0, -a, a)
 
 
+def _norm(*components):
+    """``safe_norm`` of the stacked components, summed elementwise: XLA on CPU hands a reduction
+    over a short last axis to a library call of its own, which costs more than the arithmetic."""
+    sq = sum(c * c for c in components)
+    positive = sq > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, jnp.ones_like(sq))), 0.0)
+
+
 def _half_angles(momentum):
     """Half-angle cosines and sines of the 3-1-3 angles ``theta`` (nutation, in [0, pi]) and ``psi``
     (spin, in (-pi, pi]) with ``momentum / |momentum| = (sin theta sin psi, sin theta cos psi, cos theta)``.
@@ -203,18 +239,18 @@ def _half_angles(momentum):
     Formed from the components without dividing by ``sin theta`` and without cancellation.
     """
     lx, ly, lc = momentum[..., 0], momentum[..., 1], momentum[..., 2]
-    size = safe_norm(momentum)
-    st = safe_norm(momentum[..., :2])
+    size = _norm(lx, ly, lc)
+    st = _norm(lx, ly)
     up = lc >= 0
     t_cos = jnp.where(up, size + lc, st)
     t_sin = jnp.where(up, st, size - lc)
-    t_norm = safe_norm(jnp.stack([t_cos, t_sin], axis=-1))
+    t_norm = _norm(t_cos, t_sin)
     t_norm = jnp.where(t_norm > 0, t_norm, 1.0)
     right = ly >= 0
     sign_x = jnp.where(lx < 0, -1.0, 1.0).astype(momentum.dtype)
     p_cos = jnp.where(right, st + ly, jnp.abs(lx))
     p_sin = jnp.where(right, lx, sign_x * (st - ly))
-    p_norm = safe_norm(jnp.stack([p_cos, p_sin], axis=-1))
+    p_norm = _norm(p_cos, p_sin)
     p_cos = jnp.where(p_norm > 0, p_cos, 1.0)
     p_norm = jnp.where(p_norm > 0, p_norm, 1.0)
     return t_cos / t_norm, t_sin / t_norm, p_cos / p_norm, p_sin / p_norm
@@ -240,42 +276,64 @@ def _general_orientation(frame, parts, t):
     # (an identity of the elliptic parameters), so V enters as it is. What depends on the body only
     # (K, g, the initial phase) keeps the body's shape: computed once per body, not per sample time.
     body = _precession_parts(m, p, n, nu, parts["start"])
-    rho0 = body["rho0"]
-    turns, rho1 = _reduce(rho0 + u, body["quarter"])
-    speed = parts["speed"]
-    size = safe_norm(jnp.stack([i * w for i, w in zip(moments, frame["omega"], strict=True)], axis=-1))
-    kappa = jnp.where((I_c > I_a) == (speed > 0), 1.0, -1.0).astype(u.dtype)
-    delta_v = _precession_phase(rho1, turns, body) - _precession_phase(rho0, jnp.zeros_like(rho0), body)
-    phi = (size / I_c) * (1 + (I_c - I_a) / I_a * body["slope"]) * t + kappa * delta_v
+    size = _norm(*(i * w for i, w in zip(moments, frame["omega"], strict=True)))
+    kappa = jnp.where((I_c > I_a) == (parts["speed"] > 0), 1.0, -1.0).astype(u.dtype)
+    rate = (size / I_c) * (1 + (I_c - I_a) / I_a * body["slope"])
+    phase0 = _precession_phase(body["rho0"], jnp.zeros_like(body["rho0"]), body)
 
     # Cyclic relabelling of the body axes: (x, y, c) = (c + 1, c + 2, c) mod 3, a proper rotation; (x, y)
     # is (a, b) (eps = -1) or (b, a) (eps = +1).
     c_index = jnp.where(around_largest, index[2], index[0])
     a_index = jnp.where(around_largest, index[0], index[2])
     eps = jnp.where((c_index + 1) % 3 == a_index, -1.0, 1.0).astype(u.dtype)
-    (w_a0, w_b0, w_c0), (w_a1, w_b1, w_c1) = parts["omega_start"], parts["omega_now"]
+    w_a0, w_b0, w_c0 = parts["omega_start"]
     l_a0, l_b0, l_c0 = I_a * w_a0, I_b * w_b0, I_c * w_c0
-    l_a1, l_b1, l_c1 = I_a * w_a1, I_b * w_b1, I_c * w_c1
     x0, y0 = jnp.where(eps < 0, l_a0, l_b0), jnp.where(eps < 0, l_b0, l_a0)
-    x1, y1 = jnp.where(eps < 0, l_a1, l_b1), jnp.where(eps < 0, l_b1, l_a1)
     b0 = _nutation_spin_quat(jnp.stack([x0, y0, l_c0], axis=-1))
-    b1 = _nutation_spin_quat(jnp.stack(jnp.broadcast_arrays(x1, y1, l_c1), axis=-1))
+    sign0 = jnp.where(parts["start"][1] < 0, -1.0, 1.0).astype(u.dtype)
+    beta0 = _rough_angle(sign0 * l_b0, sign0 * l_a0)
+    angle0 = _rough_angle(x0, y0)
+    # What the samples read of the body, in memory: fused into the per-sample code, which reads it
+    # broadcast against t, it would be recomputed for every sample.
+    phase_keys = ("upper", "agm", "nome2", "l_safe", "b", "quarter", "rho0")
+    per_body = (
+        *(body[k] for k in phase_keys), *body["bend"], *body["lower"], rate, phase0, kappa, I_a, I_b, I_c,
+        eps, sign0, beta0, angle0, *(b0[..., k] for k in range(4)), c_index,
+    )  # fmt: skip
+    per_body = list(_materialised(per_body))
+    body = dict(zip(phase_keys, per_body[:7], strict=True))
+    body["bend"], body["lower"] = tuple(per_body[7:10]), tuple(per_body[10:13])
+    rate, phase0, kappa, I_a, I_b, I_c, eps, sign0, beta0, angle0 = per_body[13:23]
+    b0, c_index = jnp.stack(per_body[23:27], axis=-1), per_body[27]
+
+    # The precession angle phi = (|L| / I_c) (t + (I_c - I_a) / I_a (G(tau) - G(tau0)) / (dtau/dt)) with
+    # G = g tau + c V: the linear part is a rate, and (|L| / I_c) ((I_c - I_a) / I_a) c / (dtau/dt) = +-1
+    # (an identity of the elliptic parameters), so V enters as it is. What depends on the body only
+    # (K, g, the initial phase) keeps the body's shape: computed once per body, not per sample time.
+    turns, rho1 = _reduce(body["rho0"] + u, body["quarter"])
+    phi = rate * t + kappa * (_precession_phase(rho1, turns, body) - phase0)
+    w_a1, w_b1, w_c1 = parts["omega_now"]
+    l_a1, l_b1, l_c1 = I_a * w_a1, I_b * w_b1, I_c * w_c1
+    x1, y1 = jnp.where(eps < 0, l_a1, l_b1), jnp.where(eps < 0, l_b1, l_a1)
+    half_angles1 = _half_angles(jnp.stack(jnp.broadcast_arrays(x1, y1, l_c1), axis=-1))
 
     # psi = atan2(l_x, l_y) is continuous in t; the quaternions hold its principal value, and each wrap
     # flips the sign of the half-angle quaternion. psi = eps beta + const with beta the angle of
     # (l_a, l_b) ~ (cn, sn), which turns by pi per half period: at the reduced phases (cn >= 0) beta is in
     # [-pi/2, pi/2], so its continuous change is beta(rho1) - beta(rho0) + pi j exactly, and rough
     # angles (errors of 0.005 rad) count the wraps.
-    sign0 = jnp.where(parts["start"][1] < 0, -1.0, 1.0).astype(u.dtype)
-    sign1 = sign0 * (1 - 2 * jnp.mod(turns, 2))
-    beta0 = _rough_angle(sign0 * l_b0, sign0 * l_a0)
+    sign1 = sign0 * (1 - 2 * _mod(turns, 2))
     beta1 = _rough_angle(sign1 * l_b1, sign1 * l_a1)
     turned = eps * (beta1 - beta0 + jnp.pi * turns)
-    wraps = jnp.round((turned - (_rough_angle(x1, y1) - _rough_angle(x0, y0))) / (2 * jnp.pi))
-    flip = jnp.where(jnp.mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
+    wraps = jnp.round((turned - (_rough_angle(x1, y1) - angle0)) / (2 * jnp.pi))
+    flip = jnp.where(_mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
 
+    sin_p, cos_p = _sin_cos(phi / 2)
+    # Every component of q reads all of these: in memory, the products below are cheap.
+    sin_p, cos_p, flip, ct, st, cp, sp = _materialised((sin_p, cos_p, flip, *half_angles1))
+    b1 = jnp.stack([ct * cp, st * cp, -st * sp, ct * sp], axis=-1)
     zero = jnp.zeros_like(phi)
-    precession = jnp.stack([jnp.cos(phi / 2), zero, zero, jnp.sin(phi / 2)], axis=-1)
+    precession = jnp.stack([cos_p, zero, zero, sin_p], axis=-1)
     b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], u.dtype)
     q = _quat_multiply(b0_conj, _quat_multiply(precession, b1)) * flip[..., None]
     vector = _cycle([q[..., 1], q[..., 2], q[..., 3]], (2 - c_index) % 3)

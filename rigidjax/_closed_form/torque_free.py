@@ -31,11 +31,11 @@ from .._checks import (
 )
 from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
-from .._numerics import safe_norm
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
+from .barrier import _materialised
 from .elliptic import _ellipj_checked, _sin_cos, ellipkm1
 from .frame import _safe_div, _solution_parameters, _sorted_frame, _unsort
-from .precession import _general_orientation
+from .precession import _general_orientation, _norm
 
 
 def _checked(inertia, omega0, t, where):
@@ -104,6 +104,7 @@ def _motion_parts(frame, t):
     speed = parity * sign_c * rate
     u = speed * t
     sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
+    sn, cn, dn = _materialised((sn, cn, dn))  # read by every component of omega and q
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
     # separatrix, where m = 1).
     denominator = cn0 * cn0 + sn0 * sn0 * dn * dn
@@ -424,7 +425,7 @@ def _torque_free_motion(inertia, omega0, q0, t, *, checked):
     omega_g, parts = _motion_parts(frame, t)
     q_g = _quat_multiply(q0, _general_orientation(frame, parts, t))
 
-    half = safe_norm(omega0) * t / 2
+    half = _norm(omega0[..., 0], omega0[..., 1], omega0[..., 2]) * t / 2
     # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
     # d q/d w0 = q0 (0, t/2 I) (a body at rest turned by a small w0 turns by w0 t). sinc by its series
     # below 1e-3 (the next term is 2e-22).
