@@ -23,7 +23,7 @@ import numpy as np
 
 from .carlson import _carlson_rf_rd, _steps
 from .elliptic import _nome_parts, _sin_cos
-from .precession import _THETA_FACTORS, _reduce
+from .precession import _THETA_FACTORS, _im_zeta, _lower_terms, _reduce, _upper_zeta
 
 # Cephes' atan: z + z^3 P(z^2) / Q(z^2) on |z| <= 0.66, within 1 ulp.
 _ATAN_P = (-8.750608600031904122785e-1, -1.615753718733365076637e1, -7.500855792314704667340e1,
@@ -108,33 +108,15 @@ def _theta_parts(m, p, n, ratio):
     factors = _steps(_THETA_FACTORS, m.dtype)
     nome2 = nome * nome
 
-    # m > 1/2: b = pi beta / (2 K') = agm beta, from 0 or from pi/2.
-    angle = agm * shift
-    sin_a, cos_a = _sin_cos(angle)
-    sin_b, cos_b = jnp.where(from_zero, sin_a, cos_a), jnp.where(from_zero, cos_a, sin_a)
-    b = jnp.where(from_zero, angle, jnp.pi / 2 - angle)
-    sin_2b, cos_2b = 2 * sin_b * cos_b, (cos_b - sin_b) * (cos_b + sin_b)
-    zeta = jnp.zeros_like(b)  # Z(beta | 1 - m) / agm
-    power = nome
-    for _ in range(factors):
-        zeta = zeta + 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power)
-        power = power * nome2
+    b, (_, cos_b, sin_2b, cos_2b), zeta = _upper_zeta(agm, shift, from_zero, nome, factors)
     slope_upper = ratio / (1 + ratio) + c_factor * agm * zeta
     deficit_upper = 1 / (1 + ratio) - c_factor * agm * zeta
 
-    # m <= 1/2: r = q e^(2y), s = q e^(-2y) with y = agm beta; from K': y' = agm beta'.
-    e = 2 * agm * shift
-    r_lower = jnp.where(from_zero, nome * jnp.exp(e), jnp.exp(-e))
-    s_lower = jnp.where(from_zero, nome * jnp.exp(-e), nome2 * jnp.exp(e))
-    gap_lower = jnp.where(from_zero, 1 - r_lower, -jnp.expm1(-e))  # 1 - r
+    # m <= 1/2 (from K': y' = agm beta').
+    e, r_lower, s_lower, gap_lower = _lower_terms(agm, shift, from_zero, nome)
 
-    def im_zeta(r, s, gap):  # Im Z(i beta | m) / agm, a sum of positive terms
-        total = jnp.zeros_like(r)
-        for _ in range(factors):
-            total = total + 2 * (r - s) / (gap * (1 - s))
-            r, s = r * nome2, s * nome2
-            gap = 1 - r
-        return total
+    def im_zeta(r, s, gap):
+        return _im_zeta(r, s, gap, nome2, factors)
 
     deficit_lower = c_factor * agm * im_zeta(r_lower, s_lower, gap_lower)
     r_prime = jnp.where(from_zero, 0.0, nome * jnp.exp(e))

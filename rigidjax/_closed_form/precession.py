@@ -93,31 +93,10 @@ def _precession_parts(m, p, n, nu, start):
     factors = _steps(_THETA_FACTORS, m.dtype)
     nome2 = nome * nome
 
-    # m > 1/2: b = pi beta / (2 K') = agm beta, from 0 or from pi/2.
-    angle = agm * shift
-    sin_a, cos_a = _sin_cos(angle)
-    sin_b, cos_b = jnp.where(from_zero, sin_a, cos_a), jnp.where(from_zero, cos_a, sin_a)
-    b = jnp.where(from_zero, angle, jnp.pi / 2 - angle)
-    sin_2b, cos_2b = 2 * sin_b * cos_b, (cos_b - sin_b) * (cos_b + sin_b)
-    zeta = jnp.zeros_like(b)  # Z(beta | 1 - m) / agm: the logarithmic derivative of theta_4(b | q')
-    power = nome
-    for _ in range(factors):
-        zeta = zeta + 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power)
-        power = power * nome2
+    b, (_, cos_b, sin_2b, cos_2b), zeta = _upper_zeta(agm, shift, from_zero, nome, factors)
     slope_upper = 1 / (1 + nu) + c_factor * agm * zeta
-
-    # m <= 1/2: r = q e^(2y), s = q e^(-2y) with y = pi beta / (2 K) = agm beta.
-    e = 2 * agm * shift
-    r_lower = jnp.where(from_zero, nome * jnp.exp(e), jnp.exp(-e))
-    s_lower = jnp.where(from_zero, nome * jnp.exp(-e), nome2 * jnp.exp(e))
-    gap_lower = jnp.where(from_zero, 1 - r_lower, -jnp.expm1(-e))  # 1 - r
-    im_zeta = jnp.zeros_like(b)  # Im Z(i beta | m) / agm
-    r_j, s_j, gap_j = r_lower, s_lower, gap_lower
-    for _ in range(factors):
-        im_zeta = im_zeta + 2 * (r_j - s_j) / (gap_j * (1 - s_j))
-        r_j, s_j = r_j * nome2, s_j * nome2
-        gap_j = 1 - r_j
-    slope_lower = 1 - c_factor * agm * im_zeta
+    _, r_lower, s_lower, gap_lower = _lower_terms(agm, shift, from_zero, nome)
+    slope_lower = 1 - c_factor * agm * _im_zeta(r_lower, s_lower, gap_lower, nome2, factors)
 
     return dict(
         quarter=quarter,
@@ -160,6 +139,43 @@ def _carlson_rf(x, y, z):
 def _carlson_rf_jvp(primals, tangents):
     _, tangent = jax.jvp(lambda *a: _carlson_rf_rd(*a, with_rd=False)[0], primals, tangents)
     return _carlson_rf(*primals), tangent
+
+
+def _upper_zeta(agm, shift, from_zero, nome, factors):
+    """``m > 1/2``: ``b = pi beta / (2 K') = agm beta`` (``shift`` is ``beta`` from 0, or from ``pi/2``
+    where not ``from_zero``), ``(sin b, cos b, sin 2b, cos 2b)`` and ``Z(beta | 1 - m) / agm``, the
+    logarithmic derivative of ``theta_4(b | q')`` (``nome = q'``), by ``factors`` terms."""
+    angle = agm * shift
+    sin_a, cos_a = _sin_cos(angle)
+    sin_b, cos_b = jnp.where(from_zero, sin_a, cos_a), jnp.where(from_zero, cos_a, sin_a)
+    b = jnp.where(from_zero, angle, jnp.pi / 2 - angle)
+    sin_2b, cos_2b = 2 * sin_b * cos_b, (cos_b - sin_b) * (cos_b + sin_b)
+    zeta = jnp.zeros_like(b)
+    power, nome2 = nome, nome * nome
+    for _ in range(factors):
+        zeta = zeta + 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power)
+        power = power * nome2
+    return b, (sin_b, cos_b, sin_2b, cos_2b), zeta
+
+
+def _lower_terms(agm, shift, from_zero, nome):
+    """``m <= 1/2``: ``e = 2 y`` with ``y = pi beta / (2 K) = agm beta`` and the first terms ``r = q e^(2y)``,
+    ``s = q e^(-2y)`` and ``1 - r`` of the theta products (measured from ``K'`` where not ``from_zero``)."""
+    e = 2 * agm * shift
+    r = jnp.where(from_zero, nome * jnp.exp(e), jnp.exp(-e))
+    s = jnp.where(from_zero, nome * jnp.exp(-e), nome * nome * jnp.exp(e))
+    gap = jnp.where(from_zero, 1 - r, -jnp.expm1(-e))
+    return e, r, s, gap
+
+
+def _im_zeta(r, s, gap, nome2, factors):
+    """``Im Z(i beta | m) / agm`` from the terms of :func:`_lower_terms`: a sum of positive terms."""
+    total = jnp.zeros_like(r)
+    for _ in range(factors):
+        total = total + 2 * (r - s) / (gap * (1 - s))
+        r, s = r * nome2, s * nome2
+        gap = 1 - r
+    return total
 
 
 def _reduce(tau, quarter):
