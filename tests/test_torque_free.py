@@ -533,6 +533,45 @@ def test_simulate_exact_returns_the_closed_form_orientation():
         rj.simulate(model, bad, jnp.asarray(ts), accuracy="exact").orientation.block_until_ready()
 
 
+@pytest.mark.parametrize("n_times", [2, 7])
+def test_simulate_exact_in_blocks_of_bodies_and_at_two_times(n_times):
+    """Blocks of bodies (chunk_size) give the one-block values; with two sample times the first is
+    the initial state itself and the second the closed form (torque_free_motion, called directly);
+    gradients through blocks equal those without."""
+    rng = np.random.default_rng(5)
+    inertia = perturbed_inertia(rng, 15, 0.05).reshape(3, 5, 3)
+    omega0 = perturbed_omega(rng, 15, 0.3).reshape(3, 5, 3)
+    q0 = 1.01 * random_quaternions(rng, 15).reshape(3, 5, 4)  # normalised by simulate's closed form
+    ts = jnp.linspace(0.5, 9.5, n_times)
+    model, state = rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega0), jnp.asarray(q0) / 1.01)
+    whole = rj.simulate(model, state, ts, accuracy="exact")
+    blocks = rj.simulate(model, state, ts, accuracy="exact", chunk_size=4)
+    assert int(blocks.stats["chunk_size"]) == 4
+    np.testing.assert_allclose(np.asarray(blocks.omega), np.asarray(whole.omega), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(blocks.orientation), np.asarray(whole.orientation), rtol=0, atol=1e-14
+    )
+    omega_only = rj.simulate(model, rj.State(state.omega), ts, accuracy="exact", chunk_size=4)
+    np.testing.assert_allclose(np.asarray(omega_only.omega), np.asarray(whole.omega), rtol=0, atol=1e-14)
+    omega, q = torque_free_motion(model.inertia[..., None, :], state.omega[..., None, :],
+                                  state.orientation[..., None, :], ts - ts[0])  # fmt: skip
+    np.testing.assert_allclose(np.asarray(whole.omega), np.asarray(omega), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(whole.orientation), np.asarray(q), rtol=0, atol=1e-14)
+    if n_times == 2:
+        np.testing.assert_array_equal(np.asarray(whole.omega[..., 0, :]), omega0)
+        unit = q0 / np.linalg.norm(q0, axis=-1, keepdims=True)
+        np.testing.assert_allclose(np.asarray(whole.orientation[..., 0, :]), unit, rtol=0, atol=4e-16)
+
+    def loss(w, chunk_size):
+        traj = rj.simulate(model, rj.State(w, state.orientation), ts, accuracy="exact", chunk_size=chunk_size)
+        return jnp.sum(traj.orientation[..., -1, :] * jnp.arange(4.0)) + jnp.sum(traj.omega[..., -1, :] ** 2)
+
+    grad_whole = jax.grad(loss)(state.omega, None)
+    grad_blocks = jax.grad(loss)(state.omega, 4)
+    assert np.all(np.isfinite(np.asarray(grad_whole))) and np.max(np.abs(np.asarray(grad_whole))) > 1e-3
+    np.testing.assert_allclose(np.asarray(grad_blocks), np.asarray(grad_whole), rtol=0, atol=1e-12)
+
+
 @pytest.mark.slow
 def test_orientation_near_separatrix_against_taylor_integration():
     """s = (L^2 - 2 E I2) / L^2 = -4e-10, axes relabelled (odd), in the middle of the first flip:

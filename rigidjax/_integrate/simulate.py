@@ -158,7 +158,9 @@ def simulate(
       ``log(max_steps)`` checkpoints).
     - `chunk_size`: bodies per shared-step chunk. Default: 256 on CPU (cache-sized chunks run one
       after another), 65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk
-      than as ten; ``benchmarks/README.md``).
+      than as ten; ``benchmarks/README.md``). With ``accuracy="exact"``: bodies evaluated together
+      (default on CPU: 2^17 body-samples per block, which keeps the closed form's intermediates in
+      the cache; one block on accelerators).
     - `sort_by_speed`: group bodies of similar angular-velocity scale into the same chunk.
     - `throw`: raise on invalid input or failed integration (default); the error names the first
       failed body (its index in the batch), the sample times around the failure and the cause
