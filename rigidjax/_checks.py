@@ -148,7 +148,9 @@ def checks_done():
 
 def raise_collected(failures) -> None:
     """Raises ``ValueError`` with the message of the first recorded condition that holds."""
-    for condition, index, messages in failures:
+    # One transfer for all conditions (each bool() of a device array is a transfer of its own).
+    values = jax.device_get([(condition, index) for condition, index, _ in failures])
+    for (condition, index), (_, _, messages) in zip(values, failures, strict=True):
         if bool(condition):
             raise ValueError(messages[0] if index is None else messages[int(index)])
 
