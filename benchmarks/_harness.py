@@ -504,13 +504,9 @@ def run_meta(script: str, argv: Sequence[str] | None, **extra) -> dict:
 
 def timed_calls(fn: Callable[[], object], repeats: int) -> tuple[object, dict]:
     """``fn()``'s result and its timing: a first call (compile + run), then ``repeats`` calls, each
-    with ``block_until_ready``; ``run_s`` is their median, ``compile_s`` = first call - median.
-    Calls of a few milliseconds are repeated until they add up to about 0.5 s (at most 51 calls): a
-    median of three such calls moved by 1.5x between runs on a shared machine."""
+    with ``block_until_ready``; ``run_s`` is their median, ``compile_s`` = first call - median."""
     out, first = _call(fn)
     runs = [_call(fn)[1] for _ in range(repeats)]
-    if runs and max(runs) < 0.05:
-        runs += [_call(fn)[1] for _ in range(min(51, int(0.5 / max(min(runs), 1e-4))) - len(runs))]
     run = statistics.median(runs) if runs else first
     return out, {"run_s": run, "runs_s": runs, "compile_s": max(first - run, 0.0), "first_call_s": first}
 

@@ -128,11 +128,14 @@ def test_small_run_closed_form_and_hand_rk4():
     table = H.format_table(rows)
     line = next(x for x in table.splitlines() if x.startswith("| hand RK4 (7,N) | dt=0.01 |"))
     assert float(line.split("|")[6]) == pytest.approx(rk4[1]["max_rel_omega"], rel=0.06)
-    # The closed-form target is evaluated (met or not) against the fastest integrator.
+    # The closed-form target is evaluated (met or not) against the fastest integrator reaching 1e-9 in
+    # omega and orientation, or where none does the most accurate one.
     targets = H.evaluate_targets(rows)
     target = next(t for t in targets if t["target"].startswith("exact"))
-    fastest = min(r["run_s"] for r in rk4)
-    assert target["value"] == pytest.approx(fastest / exact["run_s"])
+    error = {id(r): max(r["max_rel_omega"], r["max_angle"]) for r in rk4}
+    reaching = [r for r in rk4 if error[id(r)] <= 1e-9]
+    basis = min(reaching, key=lambda r: r["run_s"]) if reaching else min(rk4, key=lambda r: error[id(r)])
+    assert target["value"] == pytest.approx(basis["run_s"] / exact["run_s"])
     assert target["target"] in H.format_targets(targets)
 
 
