@@ -25,7 +25,7 @@ from .._checks import (
     raise_collected,
 )
 from .._closed_form.barrier import _materialised
-from .._closed_form.heavy_top import lagrange_top_motion
+from .._closed_form.heavy_top import lagrange_top_at, lagrange_top_parts
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import FreeBody, HeavyTop
 from .._numerics import safe_norm
@@ -97,18 +97,22 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
     # 4.4 ms). With more samples, writing the first one over cost up to 1.5x: all are evaluated.
     t = ts[1:] - ts[0] if n_times == 2 else ts - ts[0]
 
-    def motion(bodies):
-        """omega ``(bodies, samples, 3)`` and the orientation ``(bodies, samples, 4)`` (or None)."""
+    def motion(bodies, side=None):
+        """omega ``(bodies, samples, 3)``, the orientation ``(bodies, samples, 4)`` and its largest
+        departure from unit norm per body (or None, None); ``side``: see :func:`.lagrange_top_at`
+        (Lagrange's top with its ``parts`` among ``bodies``)."""
+        omega, q = samples(bodies, side)
+        return omega, q, None if q is None else _norm_error(q)
+
+    def samples(bodies, side):
         first_omega = bodies["omega0"]
         first_q = None if q0 is None else bodies["q0"] / safe_norm(bodies["q0"], keepdims=True)
         if n_times == 1:
             return first_omega[:, None], None if q0 is None else first_q[:, None]
         inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
         if heavy:
-            omega, q = lagrange_top_motion(
-                inertia, bodies["mass"][:, None], bodies["com"][:, None], bodies["gravity"][:, None],
-                omega0, bodies["q0"][:, None], t,
-            )  # fmt: skip
+            parts = bodies["parts"] if "parts" in bodies else _lagrange_parts(bodies)
+            omega, q = lagrange_top_at(parts, t, side)
         elif q0 is None:
             omega, q = torque_free_omega(inertia, omega0, t), None
         else:
@@ -123,7 +127,9 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
 
     per_block = max(1, block_elements() // max(n_times, 1)) if chunk_size is None else chunk_size
     if n_bodies <= per_block:
-        omega, orientation = motion(flat)
+        omega, orientation, q_norm_error = motion(flat)
+    elif heavy and n_times > 1:
+        omega, orientation, q_norm_error = _one_side_blocks(motion, flat, per_block)
     else:
         # Blocks of bodies in a loop; the last one is filled up with copies of the last body.
         n_blocks = -(-n_bodies // per_block)
@@ -134,19 +140,15 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
             )
             for name, x in flat.items()
         }
-        omega, orientation = jax.lax.map(motion, blocks)
-        omega, orientation = (
+        outputs = jax.lax.map(motion, blocks)
+        omega, orientation, q_norm_error = (
             None if x is None else x.reshape((n_blocks * per_block,) + x.shape[2:])[:n_bodies]
-            for x in (omega, orientation)
+            for x in outputs
         )
     omega = omega.reshape(batch + omega.shape[1:])
-    q_norm_error = None
     if orientation is not None:
         orientation = orientation.reshape(batch + orientation.shape[1:])
-        # The squares summed term by term: XLA on CPU sends a reduction over an axis of four to a
-        # library call that costs more than the arithmetic.
-        norm = jnp.sqrt(sum(orientation[..., i] * orientation[..., i] for i in range(4)))
-        q_norm_error = jnp.max(jnp.abs(norm - 1.0), axis=-1)
+        q_norm_error = q_norm_error.reshape(batch)
     return Trajectory(
         ts=ts,
         omega=omega,
@@ -159,6 +161,60 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
             "quaternion_norm_error": q_norm_error,
         },
     )
+
+
+def _norm_error(q):
+    """``max |(|q| - 1)|`` over the samples, per body: taken in each block, while ``q`` is in the cache
+    (afterwards it would be read once more from memory: 10^4 tops at 200 samples, +40 ms). The
+    squares are summed term by term: XLA on CPU sends a reduction over an axis of four to a library
+    call that costs more than the arithmetic."""
+    norm = jnp.sqrt(sum(q[..., i] * q[..., i] for i in range(4)))
+    return jnp.max(jnp.abs(norm - 1.0), axis=-1)
+
+
+def _lagrange_parts(bodies):
+    """:func:`.lagrange_top_parts` of flat per-body inputs, with a samples axis to broadcast against."""
+    names = ("inertia", "mass", "com", "gravity", "omega0", "q0")
+    return lagrange_top_parts(*(bodies[name][:, None] for name in names))
+
+
+def _one_side_blocks(motion, flat, per_block):
+    """Lagrange's tops in blocks whose elliptic parameters ``m`` all lie on one side of 1/2, so that
+    each block evaluates one side's theta series (:func:`.lagrange_top_at`'s ``side``) instead of both.
+
+    The tops with ``m <= 1/2`` fill the first blocks, those above the rest; each side's last block is
+    filled up with copies of its last top, so there is one block more than plain blocks would need.
+    10^4 tops of ``rigidjax simulate``'s heavy-top scene with I1 = I2 (a fifth of them above 1/2),
+    200 samples: see ``benchmarks/heavy_top_exact.py``."""
+    n = flat["mass"].shape[0]
+    parts = _lagrange_parts(flat)
+    upper = parts["m"][:, 0] > 0.5  # the rule of jacobi._side_mask
+    order = jnp.argsort(upper.astype(jnp.int8), stable=True)  # the tops with m <= 1/2 first
+    n_lower = n - jnp.sum(upper, dtype=order.dtype)
+    lower_slots = (n_lower + per_block - 1) // per_block * per_block
+    n_blocks = -(-n // per_block) + 1
+    slot = jnp.arange(n_blocks * per_block, dtype=order.dtype)
+    rank = jnp.where(slot < lower_slots, jnp.minimum(slot, n_lower - 1), n_lower + slot - lower_slots)
+    source = order[jnp.clip(rank, 0, n - 1)]
+
+    # Per-top arrays go to the blocks; the rest (constants of the closed form) is shared by every top.
+    per_top, shared = eqx.partition(
+        {**flat, "parts": parts}, lambda x: hasattr(x, "shape") and x.ndim >= 1 and x.shape[0] == n
+    )
+    blocked = jax.tree.map(lambda x: x[source].reshape((n_blocks, per_block) + x.shape[1:]), per_top)
+    block_upper = jnp.arange(n_blocks, dtype=order.dtype) * per_block >= lower_slots
+
+    def one_block(inputs):
+        block, is_upper = inputs
+        block = eqx.combine(block, shared)
+        return jax.lax.cond(is_upper, lambda b: motion(b, "upper"), lambda b: motion(b, "lower"), block)
+
+    outputs = jax.lax.map(one_block, (blocked, block_upper))
+    # Back to the tops' order: the top of rank r (in ``order``) was evaluated in slot r (lower side)
+    # or lower_slots + r - n_lower (upper side).
+    rank_of_top = jnp.zeros(n, order.dtype).at[order].set(jnp.arange(n, dtype=order.dtype))
+    slot_of_top = jnp.where(rank_of_top < n_lower, rank_of_top, lower_slots + rank_of_top - n_lower)
+    return tuple(x.reshape((n_blocks * per_block,) + x.shape[2:])[slot_of_top] for x in outputs)
 
 
 def _lagrange_failures(inertia, com):
