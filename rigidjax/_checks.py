@@ -354,6 +354,16 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
 # --- the dtype rule, sample times, states and scenes ---------------------------------------------
 
 
+def check_positive_int(value, name: str, where: str):
+    """``value`` as a Python ``int`` if it is a positive integer (Python or NumPy, not ``bool``); a
+    ``ValueError`` naming ``name`` otherwise. ``None`` passes through (the caller's default)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{where}: {name} must be a positive integer or None, got {value!r}.")
+    return int(value)
+
+
 def float_dtype(*xs):
     """The one dtype rule of rigidjax's entry points: the widest floating dtype among the inputs'
     (NumPy promotion: float32 with float64 is float64, whatever ``jax_numpy_dtype_promotion`` says);

@@ -1176,3 +1176,15 @@ def test_any_record_is_named_or_fitted(T, seed, density, segments, full_tensor, 
                     rj.fit_inertia(_TS_LONG[:T], w, segments=segments, full_tensor=full_tensor)
     except (ValueError, TypeError, _FitReached):
         pass
+
+
+@pytest.mark.parametrize("accuracy", ["fast", "exact"])
+@pytest.mark.parametrize(
+    "name, value", [("chunk_size", 0), ("chunk_size", 2.5), ("chunk_size", True), ("max_steps", -3)]
+)
+def test_simulate_names_a_bad_chunk_size_or_step_limit(accuracy, name, value, without_runtime_typecheck):
+    """Checked before anything is compiled, for the integrators and the closed forms alike (with the
+    test run's annotation checks off: a user's call gets this error, not a type-check error)."""
+    message = rf"simulate: {name} must be a positive integer or None, got {value!r}"
+    with pytest.raises(ValueError, match=message):
+        rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy=accuracy, **{name: value})

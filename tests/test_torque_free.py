@@ -537,7 +537,9 @@ def test_simulate_exact_returns_the_closed_form_orientation():
 def test_simulate_exact_in_blocks_of_bodies_and_at_two_times(n_times):
     """Blocks of bodies (chunk_size) give the one-block values; with two sample times the first is
     the initial state itself and the second the closed form (torque_free_motion, called directly);
-    gradients through blocks equal those without."""
+    gradients through blocks equal those without (at several sample times: the two-time program
+    differs only in which samples it evaluates, and each reverse-mode program takes ~10 s to
+    compile)."""
     rng = np.random.default_rng(5)
     inertia = perturbed_inertia(rng, 15, 0.05).reshape(3, 5, 3)
     omega0 = perturbed_omega(rng, 15, 0.3).reshape(3, 5, 3)
@@ -561,6 +563,7 @@ def test_simulate_exact_in_blocks_of_bodies_and_at_two_times(n_times):
         np.testing.assert_array_equal(np.asarray(whole.omega[..., 0, :]), omega0)
         unit = q0 / np.linalg.norm(q0, axis=-1, keepdims=True)
         np.testing.assert_allclose(np.asarray(whole.orientation[..., 0, :]), unit, rtol=0, atol=4e-16)
+        return
 
     def loss(w, chunk_size):
         traj = rj.simulate(model, rj.State(w, state.orientation), ts, accuracy="exact", chunk_size=chunk_size)

@@ -288,8 +288,9 @@ def _check_lagrange_top(model, state0):
 
 def simulate_exact(model, state0, ts, chunk_size: int | None = None):
     """``accuracy="exact"``: a closed form, no integration (torque-free bodies, Lagrange's top).
-    ``chunk_size``: bodies evaluated together (blocks of them one after another); None: as many as
-    :func:`block_elements` allows at this number of samples."""
+    ``chunk_size``: bodies evaluated together (blocks of them one after another; a positive ``int``,
+    checked by ``simulate``); None: as many as :func:`block_elements` allows at this number of
+    samples."""
     if isinstance(model, HeavyTop):
         _check_lagrange_top(model, state0)
         ts = check_times_shape(ts)
@@ -321,8 +322,6 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
 
 
 def _run_exact(model, omega0, q0, ts, chunk_size):
-    if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
-        raise ValueError(f"chunk_size must be a positive integer or None, got {chunk_size!r}.")
     if not is_traced(model, omega0, q0, ts):
         traj, failures = _exact_collected(model, omega0, q0, ts, chunk_size)
         raise_collected(failures)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_times_shape, float_dtype
+from .._checks import check_positive_int, check_times_shape, float_dtype
 from .._dynamics.models import AbstractModel, HeavyTop, State
 from .._kinematics.euler import is_proper_sequence
 from . import batching, driver
@@ -220,6 +220,8 @@ def simulate(
             progress=progress,
         )  # fmt: skip
     report = _progress.check_progress(progress)
+    chunk_size = check_positive_int(chunk_size, "chunk_size", "simulate")
+    max_steps = check_positive_int(max_steps, "max_steps", "simulate")
     if accuracy == "exact":
         traj = simulate_exact(model, state0, ts, chunk_size)
         if report is not None:  # one closed-form program: all bodies at once
@@ -258,8 +260,6 @@ def simulate(
         # DirectAdjoint runs nested scans sized by max_steps: its cost grows with the limit.
         direct = isinstance(adjoint, diffrax.DirectAdjoint)
         max_steps = MIN_MAX_STEPS if direct else default_max_steps(omega0, ts)
-    if max_steps < 1 or chunk_size < 1:
-        raise ValueError("max_steps and chunk_size must be positive integers.")
     # The user's adjoint, or the one that works in the mode of differentiation (driver.default_adjoint).
     adjoint_chosen = adjoint is None
     adjoint = driver.default_adjoint(model, state0, ts, args) if adjoint_chosen else adjoint
