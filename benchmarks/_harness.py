@@ -519,6 +519,18 @@ def _call(fn):
     return out, time.perf_counter() - t0
 
 
+def _round_time(fn, quick: float = 0.05, total: float = 0.2, most: int = 51) -> float:
+    """One round's time of ``fn``: one call, or for a call under ``quick`` seconds the median of
+    calls repeated until they add up to ``total`` seconds (at most ``most``)."""
+    _, t = _call(fn)
+    if t >= quick:
+        return t
+    runs = [t]
+    while sum(runs) < total and len(runs) < most:
+        runs.append(_call(fn)[1])
+    return statistics.median(runs)
+
+
 def run_methods(
     methods: Sequence[Method],
     scene,
@@ -530,6 +542,9 @@ def run_methods(
 ) -> list[dict]:
     """Runs every method once (compile + accuracy), then ``repeats`` timed rounds, round-robin
     over the methods (on a shared machine the load drifts; interleaving spreads it evenly).
+    A round's time of a method that takes a few milliseconds is the median of back-to-back calls
+    adding up to ~0.2 s (at most 51; :func:`_round_time`): one such call alone, right after a
+    method that ran for seconds, measures a cold cache and the machine's noise as much as the method.
     Returns one result row (a JSON-ready dict) per method.
 
     ``checked``: the bodies whose reference is independent of the float64 closed form (see
@@ -588,8 +603,7 @@ def run_methods(
         for k, m in enumerate(methods):
             if progress:
                 progress(f"timing {m.family} {m.setting} {m.dtype}", done, total)
-            _, t = _call(m.fn)
-            times[k].append(t)
+            times[k].append(_round_time(m.fn))
             done += 1
     for row, ts in zip(rows, times, strict=True):
         med = statistics.median(ts) if ts else row["first_call_s"]

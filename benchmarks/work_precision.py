@@ -17,8 +17,9 @@ PIDController)``; scipy ``solve_ivp`` per body (on a subset; time scaled to N); 
 float32 presets, closed form and RK4.
 
 Errors at t = T (relative omega, orientation angle, relative energy drift; max and median over
-bodies), run time = median of ``--repeats`` calls after a first call (compile reported apart),
-``block_until_ready`` on each. Calls are interleaved round-robin over methods.
+bodies), run time = median of ``--repeats`` rounds after a first call (compile reported apart),
+``block_until_ready`` on each call. Rounds are interleaved round-robin over methods; a round of a
+method under 50 ms is the median of its back-to-back calls over ~0.2 s.
 
 Usage:
     python benchmarks/work_precision.py                 # N = 1e4, every method (~7-8 min, loaded 2 cores)
@@ -267,7 +268,8 @@ def readme_section(meta, rows, targets) -> str:
     load = f"load {meta['loadavg_start'][0]:.1f} -> {meta['loadavg_end'][0]:.1f}"
     lines = [
         f"Measured by `{meta['command']}` ({meta['devices'][0]}, {meta['cpu_count']} CPUs, {load}, "
-        f"jax {meta['jax']}); median of {meta['repeats']} calls, compile excluded. Every row and column: "
+        f"jax {meta['jax']}); median of {meta['repeats']} rounds (under 50 ms: each round the median of "
+        f"calls over ~0.2 s), compile excluded. Every row and column: "
         "`benchmarks/results/work_precision.md`.",
         "",
         "| method | run s | compile s | max rel ω err | median rel ω err | max angle err rad |",

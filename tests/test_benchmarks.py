@@ -181,3 +181,13 @@ def test_work_precision_readme_section_lists_the_key_rows_and_targets(tmp_path):
     wp.update_readme(meta, rows, targets, path=readme)
     new = readme.read_text()
     assert new.startswith(f"head\n{start}\n") and new.endswith(f"{end}\ntail\n") and "old" not in new
+
+
+def test_a_round_of_a_quick_method_is_the_median_of_calls_over_a_fifth_of_a_second(monkeypatch):
+    """The call times are given (no clock): a 10 ms call is repeated until 0.2 s (20 calls), a
+    1 ms call stops at 51 calls, a 60 ms call is timed once."""
+    for seconds, expected_calls in ((0.01, 20), (0.001, 51), (0.06, 1)):
+        calls = []
+        monkeypatch.setattr(H, "_call", lambda fn, s=seconds, log=calls: (log.append(1), s))
+        assert H._round_time(lambda: None) == seconds
+        assert len(calls) == expected_calls
