@@ -202,7 +202,10 @@ def _one_side_blocks(motion, flat, per_block):
         {**flat, "parts": parts}, lambda x: hasattr(x, "shape") and x.ndim >= 1 and x.shape[0] == n
     )
     blocked = jax.tree.map(lambda x: x[source].reshape((n_blocks, per_block) + x.shape[1:]), per_top)
-    block_upper = jnp.arange(n_blocks, dtype=order.dtype) * per_block >= lower_slots
+    # With no top above 1/2 the last block holds copies of a top below: it runs the lower side too.
+    # Its values are not used, but the upper side's formulas are not finite at such a top (measured),
+    # and no block should compute non-finite numbers that derivatives pass through.
+    block_upper = (jnp.arange(n_blocks, dtype=order.dtype) * per_block >= lower_slots) & (n_lower < n)
 
     def one_block(inputs):
         block, is_upper = inputs
