@@ -111,23 +111,10 @@ def pytest_sessionfinish(session, exitstatus):
             json.dump(_EXTREME_ROWS, f, indent=1)
 
 
-# The files that take longest, longest first (per-file sums of --durations=0 on 2 cores, cold
-# compilation cache): under ``--dist loadfile`` the workers take whole files in collection order,
-# and starting with the long ones keeps one of them from running alone at the end (test_torque_free,
-# 117 s and alphabetically near the end, had been the last file, on one worker).
-_LONGEST_FIRST = (
-    "test_heavy_top_exact",
-    "test_fit",
-    "test_notebooks",
-    "test_torque_free",
-    "test_simulate",
-    "test_long_horizons",
-    "test_gyrostat",
-    "test_forward_mode",
-    "test_bad_input_sweep",
-    "test_unrolled_dopri8",
-    "test_cli",
-)
+# The files that take longest, longest first (measured on 2 cores): under ``--dist loadfile`` the
+# workers take whole files in collection order, and starting with the long ones keeps one of them
+# from running alone at the end.
+_LONGEST_FIRST = ("test_heavy_top_exact", "test_fit", "test_notebooks", "test_simulate", "test_long_horizons")
 
 
 def pytest_collection_modifyitems(config, items):
