@@ -169,7 +169,7 @@ def _theta_phase(x, parts, side=None):
     other side's terms are then not evaluated).
     """
     turns, rho = _reduce(x, parts["quarter"])
-    upper = parts["upper"] if side is None else _side_mask(parts["upper"], side)
+    upper = _side_mask(parts["upper"], side)
     sign = jnp.where(rho < 0, -1.0, 1.0).astype(rho.dtype)
     y = parts["agm"] * (sign * rho)
     sin_y, cos_y = _sin_cos(y)

@@ -40,7 +40,7 @@ def _nome_parts(m, p):
     ``(1 - b) / ((1 + sqrt b)(1 + b^(1/4)))``, so the nome keeps its relative accuracy for a ``1 - b``
     down to the smallest normal number, where ``K`` grows like ``log(4 / sqrt(1 - b))``.
     """
-    upper = m > 0.5
+    upper = upper_side(m)
     big = jnp.where(upper, m, p)
     small = jnp.where(upper, p, m)
     root = jnp.sqrt(big)
@@ -55,11 +55,17 @@ def _nome_parts(m, p):
     return upper, agm, nome, -log_nome
 
 
-def _side_mask(m, side):
-    """``m > 1/2`` per element, or a constant where every ``m`` is known to lie on ``side``: selects
-    against a constant fold away, and with them the other side's arithmetic."""
+def upper_side(m):
+    """Which side of ``m = 1/2`` each ``m`` lies on (True: above): the rule every branch between the
+    two sides' series follows."""
+    return m > 0.5
+
+
+def _side_mask(upper, side):
+    """``upper`` (:func:`upper_side` per element), or a constant where every ``m`` is known to lie
+    on ``side``: selects against a constant fold away, and with them the other side's arithmetic."""
     if side is None:
-        return m > 0.5
+        return upper
     if side not in ("upper", "lower"):
         raise ValueError(f"side must be None, 'upper' or 'lower', got {side!r}")
     return jnp.asarray(side == "upper")
@@ -97,7 +103,7 @@ def _jacobi_values(u, m, p, side=None):
     ``side``: ``None`` (each ``m`` on its own side), or ``"upper"`` / ``"lower"`` when every ``m`` is
     known to be above / at most ``1/2``: the other side's series are then not evaluated at all.
     """
-    upper = _side_mask(m, side)
+    upper = _side_mask(upper_side(m), side)
     body = _jacobi_parameters(m, p)
     agm, q, half, period, k_prime = body["agm"], body["q"], body["half"], body["period"], body["k_prime"]
     # m > 1/2: the reduction to a quarter period (K = L K' / pi)

@@ -126,9 +126,13 @@ def from_chunks(plan: ChunkPlan, x):
     x = x.reshape((plan.n_chunks * plan.chunk,) + x.shape[2:])[: plan.n]
     if not plan.sorted:
         return x
-    # The inverse permutation by a scatter, not a second sort.
-    inverse = jnp.zeros_like(plan.order).at[plan.order].set(jnp.arange(plan.n, dtype=plan.order.dtype))
-    return x[inverse]
+    return x[inverse_permutation(plan.order)]
+
+
+def inverse_permutation(order):
+    """The permutation that undoes ``order`` (``order[inverse[i]] == i``), by a scatter rather than a
+    second sort."""
+    return jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=order.dtype))
 
 
 def map_chunks(fn: Callable, chunks, shared, plan: ChunkPlan):

@@ -26,6 +26,7 @@ from .._checks import (
 )
 from .._closed_form.barrier import _materialised
 from .._closed_form.heavy_top import lagrange_top_at, lagrange_top_parts
+from .._closed_form.jacobi import upper_side
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import FreeBody, HeavyTop
 from .._numerics import safe_norm
@@ -132,19 +133,10 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
         omega, orientation, q_norm_error = _one_side_blocks(motion, flat, per_block)
     else:
         # Blocks of bodies in a loop; the last one is filled up with copies of the last body.
-        n_blocks = -(-n_bodies // per_block)
-        fill = n_blocks * per_block - n_bodies
-        blocks = {
-            name: jnp.pad(x, [(0, fill)] + [(0, 0)] * (x.ndim - 1), mode="edge").reshape(
-                (n_blocks, per_block) + x.shape[1:]
-            )
-            for name, x in flat.items()
-        }
+        plan = batching.plan_chunks(n_bodies, per_block, shardable=False)
+        blocks = {name: batching.to_chunks(plan, x) for name, x in flat.items()}
         outputs = jax.lax.map(motion, blocks)
-        omega, orientation, q_norm_error = (
-            None if x is None else x.reshape((n_blocks * per_block,) + x.shape[2:])[:n_bodies]
-            for x in outputs
-        )
+        omega, orientation, q_norm_error = (batching.from_chunks(plan, x) for x in outputs)
     omega = omega.reshape(batch + omega.shape[1:])
     if orientation is not None:
         orientation = orientation.reshape(batch + orientation.shape[1:])
@@ -188,7 +180,7 @@ def _one_side_blocks(motion, flat, per_block):
     200 samples: see ``benchmarks/heavy_top_exact.py``."""
     n = flat["mass"].shape[0]
     parts = _lagrange_parts(flat)
-    upper = parts["m"][:, 0] > 0.5  # the rule of jacobi._side_mask
+    upper = upper_side(parts["m"][:, 0])
     order = jnp.argsort(upper.astype(jnp.int8), stable=True)  # the tops with m <= 1/2 first
     n_lower = n - jnp.sum(upper, dtype=order.dtype)
     lower_slots = (n_lower + per_block - 1) // per_block * per_block
@@ -215,7 +207,7 @@ def _one_side_blocks(motion, flat, per_block):
     outputs = jax.lax.map(one_block, (blocked, block_upper))
     # Back to the tops' order: the top of rank r (in ``order``) was evaluated in slot r (lower side)
     # or lower_slots + r - n_lower (upper side).
-    rank_of_top = jnp.zeros(n, order.dtype).at[order].set(jnp.arange(n, dtype=order.dtype))
+    rank_of_top = batching.inverse_permutation(order)
     slot_of_top = jnp.where(rank_of_top < n_lower, rank_of_top, lower_slots + rank_of_top - n_lower)
     return tuple(x.reshape((n_blocks * per_block,) + x.shape[2:])[slot_of_top] for x in outputs)
 
