@@ -46,16 +46,35 @@ if os.environ.get("RIGIDJAX_TEST_XLA_DEFAULTS", "0") != "1" and TEST_XLA_FLAGS n
     os.environ["XLA_FLAGS"] = f"{_flags} {TEST_XLA_FLAGS}".strip()
 
 
+# A worker that holds more than this drops its compiled programs after a test file.
+RELEASE_ABOVE_BYTES = 3 * 2**30
+
+
+def _resident_bytes() -> int | None:
+    """This process's resident memory, where the system tells it (Linux); None elsewhere."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
-    """Drops every compiled program and open figure after each test file. A worker runs many files,
-    and keeping every program it ever compiled grew one past 8 GiB (two such workers, the notebooks'
-    kernels and a large compile exhausted the 24 GiB of a CI machine: XLA aborted). A program a later
-    file needs again is loaded from the persistent cache instead of compiled."""
+    """Drops every compiled program and open figure after a test file once the worker holds more
+    than ``RELEASE_ABOVE_BYTES``. A worker runs many files, and keeping every program it ever
+    compiled grew one past 8 GiB (two such workers, the notebooks' kernels and a large compile
+    exhausted the 24 GiB of a CI machine: XLA aborted). Below the limit the programs stay: files
+    that call the same functions with the same shapes (the presets on a free body, the checks, the
+    many small programs of eager operations) then neither trace nor load them again, which had cost
+    a cold run about a fifth of its time. A program a later file needs after a release is loaded
+    from the persistent cache instead of compiled."""
     yield
-    jax.clear_caches()
     if "matplotlib.pyplot" in sys.modules:
         sys.modules["matplotlib.pyplot"].close("all")
+    resident = _resident_bytes()
+    if resident is None or resident > RELEASE_ABOVE_BYTES:
+        jax.clear_caches()
 
 
 @pytest.fixture
