@@ -130,32 +130,18 @@ def pytest_sessionfinish(session, exitstatus):
             json.dump(_EXTREME_ROWS, f, indent=1)
 
 
-# The test files that take longest, longest first (measured on 2 cores, cold cache): the workers
-# take the groups in this order, and starting with the long ones keeps one of them from running
-# alone at the end.
-_LONGEST_FIRST = (
-    "test_heavy_top_exact",
-    "test_fit",
-    "test_torque_free",
-    "test_simulate",
-    "test_notebooks",
-    "test_long_horizons",
-)
+# The test files that take longest, longest first (measured on 2 cores, cold cache): under
+# ``--dist loadfile`` the workers take whole files in this order, and starting with the long ones
+# keeps one of them from running alone at the end.
+_LONGEST_FIRST = ("test_heavy_top_exact", "test_fit", "test_notebooks", "test_simulate", "test_long_horizons")
 
 
 def pytest_collection_modifyitems(config, items):
-    """Groups the tests for ``--dist loadgroup`` (pyproject's addopts): each test file is one group,
-    run by one worker, so module-level compiled functions and fixtures are compiled once; each
-    notebook is a group of its own (a notebook runs in its own kernel and shares nothing with the
-    file's other tests), so the notebooks spread over the workers. The longest files go first."""
+    """Under ``--dist loadfile`` (pyproject's addopts) each test file runs on one worker, so module-
+    level compiled functions and fixtures are compiled once; the longest files go first."""
 
     def rank(item):
         stem = item.path.stem
         return _LONGEST_FIRST.index(stem) if stem in _LONGEST_FIRST else len(_LONGEST_FIRST)
 
-    for item in items:
-        group = item.path.stem
-        if item.originalname == "test_notebook_runs":
-            group = f"{group}[{item.callspec.id}]"
-        item.add_marker(pytest.mark.xdist_group(group))
     items.sort(key=rank)  # stable: the order within each file and among the others is kept
