@@ -66,9 +66,8 @@ def _release_compiled_programs():
     compiled grew one past 8 GiB (two such workers, the notebooks' kernels and a large compile
     exhausted the 24 GiB of a CI machine: XLA aborted). Below the limit the programs stay: files
     that call the same functions with the same shapes (the presets on a free body, the checks, the
-    many small programs of eager operations) then neither trace nor load them again (a cold run
-    of the suite on 2 cores: 758 s dropping them after every file, 693 s keeping them). A program
-    a later file needs after a release is loaded from the persistent cache instead of compiled."""
+    many small programs of eager operations) then neither trace nor load them again. A program a
+    later file needs after a release is loaded from the persistent cache instead of compiled."""
     yield
     if "matplotlib.pyplot" in sys.modules:
         sys.modules["matplotlib.pyplot"].close("all")
