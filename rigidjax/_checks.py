@@ -354,12 +354,17 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
 # --- the dtype rule, sample times, states and scenes ---------------------------------------------
 
 
+def is_positive_int(value) -> bool:
+    """Whether ``value`` is a positive integer: a Python or NumPy integer, not a ``bool``."""
+    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_) and value >= 1
+
+
 def check_positive_int(value, name: str, where: str):
-    """``value`` as a Python ``int`` if it is a positive integer (Python or NumPy, not ``bool``); a
+    """``value`` as a Python ``int`` if it is a positive integer (:func:`is_positive_int`); a
     ``ValueError`` naming ``name`` otherwise. ``None`` passes through (the caller's default)."""
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+    if not is_positive_int(value):
         raise ValueError(f"{where}: {name} must be a positive integer or None, got {value!r}.")
     return int(value)
 

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .._checks import is_positive_int
 from .._dynamics.models import GravityTorque, _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _default_optimizer, _run
@@ -177,7 +178,7 @@ def _check_options(
         known_moment = _check_known_moment(known_moment)
     if steps is None:
         steps = 200 if method == "levenberg-marquardt" else 2000
-    elif not _is_integer(steps) or steps < 1:
+    elif not is_positive_int(steps):
         raise ValueError(f"steps must be a positive integer (the iteration limit), got {steps!r}.")
     _positive_number(tol, "tol", "the relative tolerance on the loss", allow_zero=True)
     if f_scale is not None:

@@ -8,7 +8,15 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import _NOT_FINITE, _NOT_POSITIVE, _NOT_SYMMETRIC, _OK, _TRIANGLE, _inertia_failure
+from .._checks import (
+    _NOT_FINITE,
+    _NOT_POSITIVE,
+    _NOT_SYMMETRIC,
+    _OK,
+    _TRIANGLE,
+    _inertia_failure,
+    is_positive_int,
+)
 from .data import _align_signs, _real_array, omega_from_orientations
 from .estimate import _NO_EQUATIONS, _dominant_period, _estimate, _torque_estimate
 from .problem import _inertia_params, _Problem
@@ -204,7 +212,7 @@ def _resolve_segments(segments, ts, omega):
         # error cannot slip by a whole cycle within a window, long enough to see the cycle.
         period = _dominant_period(ts, omega)
         segments = int(np.clip(round((ts[-1] - ts[0]) / period), 1, max(1, ts.shape[0] // 8)))
-    if not (isinstance(segments, int | np.integer) and not isinstance(segments, bool) and segments >= 1):
+    if not is_positive_int(segments):
         raise ValueError(f"segments must be a positive integer or 'auto', got {segments!r}.")
     if segments > max(ts.shape[0] // 2, 1):
         raise ValueError(

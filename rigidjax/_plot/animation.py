@@ -12,6 +12,7 @@ import numpy as np
 from matplotlib import animation as mpl_animation
 from matplotlib.figure import Figure
 
+from .._checks import is_positive_int
 from .._dynamics.models import HeavyTop
 from .._integrate.storage import check_writable
 from . import data
@@ -116,7 +117,7 @@ def animate(trajectory, path, bodies=(0,), *, fps=20, frames=60, dpi=80) -> str:
     chosen = [data.body_index(trajectory, b, "bodies") for b in bodies]
     if not 1 <= len(chosen) <= MAX_BODIES:
         raise ValueError(f"bodies: give 1 to {MAX_BODIES} body indices, got {len(chosen)}.")
-    if isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1:
+    if not is_positive_int(frames):
         raise ValueError(f"frames must be a positive integer, got {frames!r}.")
     if not (isinstance(fps, int | float | np.number) and math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps!r}.")
