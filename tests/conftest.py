@@ -14,6 +14,7 @@ and other subprocesses started by the tests share the cache.
 
 import os
 import pathlib
+import re
 import sys
 
 import jax
@@ -129,18 +130,62 @@ def pytest_sessionfinish(session, exitstatus):
             json.dump(_EXTREME_ROWS, f, indent=1)
 
 
-# The test files that take longest, longest first (measured on 2 cores, cold cache): under
-# ``--dist loadfile`` the workers take whole files in this order, and starting with the long ones
-# keeps one of them from running alone at the end.
-_LONGEST_FIRST = ("test_heavy_top_exact", "test_fit", "test_notebooks", "test_simulate", "test_long_horizons")
+# Seconds each of the longest units of work took (one cold run on 2 cores): a unit is a test file,
+# except that each notebook's run is a unit of its own (see the scheduler below). The workers take
+# the units longest first, which keeps one of them from running alone at the end; the rest follow
+# in collection order.
+_UNIT_SECONDS = {
+    "test_fit": 157,
+    "test_heavy_top_exact": 133,
+    "test_simulate": 105,
+    "test_torque_free": 103,
+    "test_long_horizons": 71,
+    "05_fit_inertia.ipynb": 55,
+    "test_gyrostat": 54,
+    "test_forward_mode": 47,
+    "test_bad_input_sweep": 43,
+    "test_cli": 42,
+    "test_unrolled_dopri8": 41,
+    "test_lie_group": 37,
+    "06_speed_vs_accuracy.ipynb": 37,
+    "test_splitting": 30,
+    "test_kinematics": 29,
+    "test_plot": 27,
+    "test_extreme_bodies": 27,
+    "04_heavy_top.ipynb": 26,
+}
+
+
+def _notebook_run(nodeid: str) -> str | None:
+    """The notebook a ``test_notebook_runs`` item executes, or None for any other test."""
+    match = re.fullmatch(r"[^:]*test_notebooks\.py::test_notebook_runs\[(.+)\]", nodeid)
+    return match.group(1) if match else None
 
 
 def pytest_collection_modifyitems(config, items):
-    """Under ``--dist loadfile`` (pyproject's addopts) each test file runs on one worker, so module-
-    level compiled functions and fixtures are compiled once; the longest files go first."""
+    """Under the scheduler below each test file runs on one worker, so module-level compiled
+    functions and fixtures are compiled once; the longest units go first."""
 
     def rank(item):
-        stem = item.path.stem
-        return _LONGEST_FIRST.index(stem) if stem in _LONGEST_FIRST else len(_LONGEST_FIRST)
+        return -_UNIT_SECONDS.get(_notebook_run(item.nodeid) or item.path.stem, 0)
 
     items.sort(key=rank)  # stable: the order within each file and among the others is kept
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """Whole test files to each worker (pytest-xdist's ``loadfile``), except that each notebook's
+    run is a unit of its own: a notebook runs in its own kernel and shares no compiled program with
+    its file, and the notebooks together take longer than any test file, so running them one after
+    another on one worker left the other idle at the end. Units are handed out in collection order
+    (``--no-loadscope-reorder``)."""
+    if config.getvalue("dist") != "loadfile":
+        return None  # an explicit other --dist keeps pytest-xdist's own scheduler
+    from xdist.scheduler import LoadFileScheduling
+
+    class FilesAndNotebooks(LoadFileScheduling):
+        def _split_scope(self, nodeid):
+            notebook = _notebook_run(nodeid)
+            return nodeid if notebook else super()._split_scope(nodeid)
+
+    return FilesAndNotebooks(config, log)

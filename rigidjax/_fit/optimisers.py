@@ -190,7 +190,14 @@ sample and fit more to run (1800 samples: 0.43 -> 1.4 s), so the two break even 
 def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callback):
     """Minimises the mean loss with an optax optimiser until it stops changing (over the last ten
     iterations) or ``steps`` run out. Returns ``(p, history, iterations, converged, J, r, raw)`` with
-    the Jacobian, the residuals and the raw residuals at the final ``p``."""
+    the Jacobian, the residuals and the raw residuals at the final ``p``.
+
+    Each pass of the loop starts at a point ``p`` with its loss: it records the loss, decides
+    whether to stop, and only if not takes the optimiser's step. The Jacobian at ``p`` comes from one
+    place in the loop, whether the pass needs it for the loss and gradient (the start of an L-BFGS
+    run, whose later values the line search keeps; every step of an optimiser without a line search)
+    or for the covariance at the end, so that the compiled fit holds one copy of the model fewer than
+    an evaluation before and another after the loop (a quarter less to compile with L-BFGS)."""
     optimizer = optax.with_extra_args_support(optimizer)
     state0 = optimizer.init(p0)
     try:  # line-search optimisers (L-BFGS) keep the last value and gradient in their state
@@ -202,43 +209,89 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     # A long record makes the run dominate: there the gradient is taken in reverse mode.
     forward = not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
     loss = _forward_mode_loss(problem, jacobian) if forward else problem.loss
-    if reuses_value:
-        value_and_grad = optax.value_and_grad_from_state(loss)
-    else:
+    n = problem.count()
+    # Without a line search and with forward-mode gradients, every pass needs the Jacobian.
+    jacobian_every_pass = forward and not reuses_value
+    # Converged when the loss has stopped changing over the last ten iterations. An integrated
+    # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump), so
+    # changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move by
+    # ~1e-4 of their standard errors).
+    loss_tol = tol if problem.torque is None else max(tol, 1e-8)
 
-        def value_and_grad(p, state):
-            del state
-            return jax.value_and_grad(loss)(p)
+    def stops(i, value, previous):
+        """(stop here, converged) for the pass ``i`` whose loss is ``value``."""
+        recent = previous.at[i % 10].set(value)
+        converged = (i >= 10) & (jnp.max(recent) - jnp.min(recent) <= loss_tol * jnp.abs(value))
+        return converged | (i >= steps), converged, recent
 
     def cond(carry):
-        _, _, i, _, done, _ = carry
-        return (i < steps) & ~done
+        return ~carry["exit"]
 
     def body(carry):
-        p, state, i, history, _, previous = carry
-        value, grad = value_and_grad(p, state=state)
-        updates, state = optimizer.update(grad, state, p, value=value, grad=grad, value_fn=loss)
-        p = optax.apply_updates(p, updates)
-        history = history.at[i].set(value)
-        if callback is not None:
-            step_norm = jnp.sqrt(sum(jnp.sum(u * u) for u in jax.tree_util.tree_leaves(updates)))
-            jax.debug.callback(callback, i + 1, value, step_norm, ordered=True)
-        # Converged when the loss has stopped changing over the last ten iterations. An integrated
-        # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump),
-        # so changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move
-        # by ~1e-4 of their standard errors).
-        loss_tol = tol if problem.torque is None else max(tol, 1e-8)
-        previous = previous.at[i % 10].set(value)
-        spread = jnp.max(previous) - jnp.min(previous)
-        done = (i >= 10) & (spread <= loss_tol * jnp.abs(value))
-        return p, state, i + 1, history, done, previous
+        p, state, i = carry["p"], carry["state"], carry["i"]
+        if reuses_value:
+            stored = (optax.tree_utils.tree_get(state, "value"), optax.tree_utils.tree_get(state, "grad"))
+            known = jnp.isfinite(stored[0])
+            need_jacobian = ~known | stops(i, stored[0], carry["previous"])[0]
+        elif jacobian_every_pass:
+            need_jacobian = jnp.asarray(True)
+        else:
+            stored = jax.value_and_grad(loss)(p)
+            known = jnp.asarray(True)
+            need_jacobian = stops(i, stored[0], carry["previous"])[0]
+        if jacobian_every_pass:
+            J, (r, raw) = jacobian(p)
+        else:
+            J, (r, raw) = jax.lax.cond(
+                need_jacobian, jacobian, lambda _: (carry["J"], (carry["r"], carry["raw"])), p
+            )
+        value_here, grad_here = jnp.sum(r * r) / n, 2.0 * (J.T @ r) / n
+        if jacobian_every_pass:
+            value, grad = value_here, grad_here
+        else:
+            value = jnp.where(known, stored[0], value_here)
+            grad = jnp.where(known, stored[1], grad_here)
+        stop, converged, recent = stops(i, value, carry["previous"])
 
-    history = jnp.full((steps,), jnp.nan, p0.dtype)
-    recent = jnp.full((10,), jnp.inf, p0.dtype)
-    init = (p0, state0, jnp.asarray(0), history, jnp.asarray(False), recent)
-    p, _, i, history, done, _ = jax.lax.while_loop(cond, body, init)
-    J, (r, raw) = jacobian(p)
-    return p, history, i, done, J, r, raw
+        def step(_):
+            updates, new_state = optimizer.update(grad, state, p, value=value, grad=grad, value_fn=loss)
+            if callback is not None:
+                step_norm = jnp.sqrt(sum(jnp.sum(u * u) for u in jax.tree_util.tree_leaves(updates)))
+                jax.debug.callback(callback, i + 1, value, step_norm, ordered=True)
+            return optax.apply_updates(p, updates), new_state
+
+        p_next, state_next = jax.lax.cond(stop, lambda _: (p, state), step, None)
+        # A pass that stops takes no step: its loss is the fit's final loss, not a step's.
+        history = carry["history"].at[jnp.minimum(i, steps - 1)].set(value)
+        history = jnp.where(stop, carry["history"], history)
+        return {
+            "p": p_next,
+            "state": state_next,
+            "i": jnp.where(stop, i, i + 1),
+            "history": history,
+            "previous": recent,
+            "exit": stop,
+            "converged": converged,
+            "J": J,
+            "r": r,
+            "raw": raw,
+        }
+
+    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
+    init = {
+        "p": p0,
+        "state": state0,
+        "i": jnp.asarray(0),
+        "history": jnp.full((steps,), jnp.nan, p0.dtype),
+        "previous": jnp.full((10,), jnp.inf, p0.dtype),
+        "exit": jnp.asarray(False),
+        "converged": jnp.asarray(False),
+        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
+        "r": jnp.zeros(r0.shape, r0.dtype),
+        "raw": jnp.zeros(raw0.shape, raw0.dtype),
+    }
+    out = jax.lax.while_loop(cond, body, init)
+    return out["p"], out["history"], out["i"], out["converged"], out["J"], out["r"], out["raw"]
 
 
 def _forward_mode_loss(problem: _Problem, jacobian):
