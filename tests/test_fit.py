@@ -1,19 +1,22 @@
 """fit_inertia: synthetic truth -> noisy observations -> fit -> truth within the stated uncertainty.
 
 The synthetic records come from the closed-form torque-free motion, checked independently against
-scipy in test_torque_free.py. Records of one length share one compiled fit (the shapes, the loss and
-the method are what compile), so the file compiles only a handful of times.
+scipy in test_torque_free.py. Records of one length share one compiled fit (the shapes and the method
+are what compile, not the loss), so the file compiles only a handful of times.
 """
 
 import functools
+import types
 
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+import scipy.optimize
 
 import rigidjax as rj
 from rigidjax import estimate_inertia, fit_inertia, fit_inertia_to_orientation
+from rigidjax._fit.problem import LOSSES, _Problem
 
 I_TRUE = np.array([1.0, 2.0, 2.5])
 W0_TRUE = np.array([0.3, 0.05, 1.0])  # wobble about the largest axis
@@ -146,7 +149,7 @@ def test_multiple_shooting_succeeds_where_single_shooting_fails():
 
 
 @pytest.mark.slow
-def test_missing_samples_and_outliers_need_a_robust_loss():
+def test_missing_samples_and_outliers_need_a_robust_loss(monkeypatch):
     rng = np.random.default_rng(4)
     ts = long_times()
     obs = record(I_TRUE, W0_TRUE, ts, 0.02, rng)
@@ -156,13 +159,39 @@ def test_missing_samples_and_outliers_need_a_robust_loss():
     obs.flat[flat] = np.where(np.isnan(obs.flat[flat]), np.nan, obs.flat[flat] + 3.0)  # gross outliers
     segments = 45
     squared = fit_inertia(ts, obs, segments=segments)
+    traces = []
+    evaluate = _Problem.residuals_and_raw
+    monkeypatch.setattr(_Problem, "residuals_and_raw", lambda self, p: traces.append(1) or evaluate(self, p))
     robust = fit_inertia(ts, obs, segments=segments, loss="soft_l1")
+    assert not traces  # the loss is a traced value: the squared fit's compiled program serves it
     assert np.all(np.isfinite(robust.inertia)) and bool(robust.converged)
     z = (np.asarray(robust.inertia) - TRUTH) / np.asarray(robust.inertia_stderr)
     assert np.all(np.abs(z) < 4.0), z
     err_squared = np.max(np.abs(np.asarray(squared.inertia) - TRUTH))
     err_robust = np.max(np.abs(np.asarray(robust.inertia) - TRUTH))
     assert err_robust < 0.2 * err_squared
+
+
+SCIPY_LOSSES = {"squared": "linear", "huber": "huber", "soft_l1": "soft_l1", "cauchy": "cauchy"}
+
+
+@pytest.mark.parametrize("loss, scipy_loss", SCIPY_LOSSES.items())
+def test_losses_are_scipys(loss, scipy_loss):
+    """The fit's sum of squared weighted residuals is ``f^2 sum rho((r / f)^2)`` with scipy's rho:
+    against the cost scipy.optimize.least_squares reports for the same residuals (twice it: scipy's
+    cost has a factor 1/2), residuals that do not depend on the parameter so that scipy stops where
+    it starts; with weights, and with residuals of zero."""
+    rng = np.random.default_rng(11)
+    raw = np.concatenate([rng.normal(scale=2.0, size=(20, 3)), np.zeros((2, 3))])
+    weights, f_scale = np.array([0.5, 1.0, 2.0]), 0.7
+    stand_in = types.SimpleNamespace(
+        weights=jnp.asarray(weights), f_scale=jnp.asarray(f_scale), loss_index=jnp.asarray(LOSSES.index(loss))
+    )
+    ours = float(jnp.sum(_Problem._weighted(stand_in, jnp.asarray(raw)) ** 2))
+    scaled = (raw * weights).ravel()
+    theirs = scipy.optimize.least_squares(lambda x: scaled, [0.0], loss=scipy_loss, f_scale=f_scale)
+    assert theirs.nfev == 1 and np.array_equal(theirs.x, [0.0])
+    np.testing.assert_allclose(ours, 2.0 * theirs.cost, rtol=1e-14)
 
 
 @pytest.mark.slow

@@ -28,10 +28,8 @@ from .._dynamics.models import GravityTorque, _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _default_optimizer, _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
-from .problem import WINDOW_MAX_STEPS
+from .problem import LOSSES, WINDOW_MAX_STEPS
 from .result import InertiaFit
-
-_LOSSES = ("squared", "huber", "soft_l1", "cauchy")
 
 
 def _printed(iteration: int) -> bool:
@@ -154,8 +152,8 @@ def _check_options(
 ):
     """Every option of a fit checked before any work: returns ``(method, steps, inertia_trace,
     known_moment, dtype)`` with the defaults filled in (``"optax"``; 200 or 2000 steps)."""
-    if not isinstance(loss, str) or loss not in _LOSSES:
-        raise ValueError(f"loss must be one of {_LOSSES}, got {loss!r}.")
+    if not isinstance(loss, str) or loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}.")
     if method is None:
         method = "optax"
     if not isinstance(method, str) or method not in _METHODS:

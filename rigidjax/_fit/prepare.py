@@ -19,7 +19,7 @@ from .._checks import (
 )
 from .data import _align_signs, _real_array, omega_from_orientations
 from .estimate import _NO_EQUATIONS, _dominant_period, _estimate, _torque_estimate
-from .problem import _inertia_params, _Problem
+from .problem import LOSSES, _inertia_params, _Problem
 
 
 class _Data(NamedTuple):
@@ -363,7 +363,7 @@ def _assemble(
         q_reference=None if q_reference is None else jnp.asarray(q_reference, dtype),
         weights=jnp.asarray(weights, dtype),
         full_tensor=full_tensor,
-        loss_kind=loss,
+        loss_index=jnp.asarray(LOSSES.index(loss)),
         torque=torques,
         omega_scale=jnp.asarray(omega_scale, dtype),
         reverse_mode=reverse_mode,

@@ -25,7 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.equations import _euler_equations
@@ -76,6 +76,9 @@ def _rotvec_from_matrix(R):
     return angle * axis
 
 
+LOSSES = ("squared", "huber", "soft_l1", "cauchy")
+"""The fit's losses, in the order of :attr:`_Problem.loss_index`."""
+
 WINDOW_MAX_STEPS = 200_000
 """Step limit of one window's integration under a known torque."""
 
@@ -90,8 +93,9 @@ class _Problem(eqx.Module):
     f_scale: Float[Array, ""]
     q_reference: Float[Array, "segments 4"] | None  # orientation fits: observed q at window starts
     weights: Float[Array, "3"]  # per-component residual weights (inverse noise, mean square 1)
+    # The loss, an index into LOSSES: traced, so that one compiled fit serves every loss.
+    loss_index: Int[Array, ""]
     full_tensor: bool = eqx.field(static=True)
-    loss_kind: str = eqx.field(static=True)
     # A known torque (tuple of AbstractTorque) fixes the scale: the motion is integrated (Dopri8,
     # forward-mode adjoint unless reverse_mode) and a log-scale parameter is fitted. omega_scale
     # converts the scaled units (omega / s, t * s) back for the torque.
@@ -230,17 +234,15 @@ class _Problem(eqx.Module):
 
     def _weighted(self, raw):
         r = raw * self.weights
-        if self.loss_kind == "squared":
-            return r.reshape(-1)
         z = (r / self.f_scale) ** 2
         safe_z = jnp.where(z > 0, z, 1.0)
-        if self.loss_kind == "huber":
-            rho = jnp.where(z <= 1.0, z, 2.0 * jnp.sqrt(safe_z) - 1.0)
-        elif self.loss_kind == "soft_l1":
-            rho = 2.0 * (jnp.sqrt(1.0 + z) - 1.0)
-        else:  # cauchy
-            rho = jnp.log1p(z)
-        ratio = jnp.where(z > 0, rho / safe_z, 1.0)  # -> 1 at r = 0, so the residual stays smooth
+        index = self.loss_index
+        huber = jnp.where(z <= 1.0, z, 2.0 * jnp.sqrt(safe_z) - 1.0)
+        soft_l1 = 2.0 * (jnp.sqrt(1.0 + z) - 1.0)
+        cauchy = jnp.log1p(z)
+        rho = jnp.select([index == 1, index == 2], [huber, soft_l1], cauchy)
+        # -> 1 at r = 0, so the residual stays smooth; exactly 1 (no derivative) for "squared".
+        ratio = jnp.where((z > 0) & (index != 0), rho / safe_z, 1.0)
         return (r * jnp.sqrt(ratio)).reshape(-1)
 
     def count(self):
