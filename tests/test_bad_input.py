@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import dop853_free_body
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -518,8 +519,8 @@ def test_scene_structural_errors(without_runtime_typecheck, extreme):
 
 
 _TS_FIT = np.linspace(0.0, 10.0, 41)
-_W_FIT = np.asarray(rj.torque_free_omega(I3, W, _TS_FIT))
-_Q_FIT = np.asarray(rj.torque_free_motion(I3, W, Q, _TS_FIT)[1])
+# Records of a torque-free body by scipy (no program to compile while the tests are collected).
+_W_FIT, _Q_FIT = dop853_free_body(I3, W, _TS_FIT, Q)
 FIT_CASES = {
     "fit_inertia-inf": (
         lambda: rj.fit_inertia(_TS_FIT, with_value(_W_FIT, inf)),
@@ -1142,8 +1143,7 @@ def test_fit_rejects_a_non_finite_known_torque(case, monkeypatch, without_runtim
 
 
 _TS_LONG = np.linspace(0.0, 20.0, 81)
-_W_LONG = np.asarray(rj.torque_free_omega(I3, W, _TS_LONG))
-_Q_LONG = np.asarray(rj.torque_free_motion(I3, W, np.array([1.0, 0.0, 0.0, 0.0]), _TS_LONG)[1])
+_W_LONG, _Q_LONG = dop853_free_body(I3, W, _TS_LONG, np.array([1.0, 0.0, 0.0, 0.0]))
 
 
 @settings(max_examples=30, deadline=None)
