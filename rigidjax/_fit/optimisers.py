@@ -2,10 +2,12 @@
 Levenberg–Marquardt on its residuals (the Jacobian by forward mode), or any optax
 ``GradientTransformation`` on its mean loss. :func:`_run` adds the covariance at the optimum.
 
-Compile time, not run time, dominates a fit, and XLA compiles each distinct fused kernel once: the
-closed-form model is differentiated in forward mode only (the covariance's Jacobian, Levenberg–
-Marquardt's, and the optax gradients all run the same code), and the final residuals come from the
-Jacobian's pass rather than from further evaluations of the model.
+Compile time, not run time, dominates a fit, and it grows with every place in the program that
+evaluates the model: XLA compiles each of them, identical or not (measured: a second, identical call
+of a jitted Jacobian still compiled in full). So the closed-form model is differentiated in forward
+mode only (the covariance's Jacobian, Levenberg–Marquardt's and the optax gradients), each loop
+evaluates it from as few places as it can, and the final residuals come from the Jacobian's pass
+rather than from further evaluations of the model.
 
 ``callback``, when given, is called on the host after every iteration as
 ``callback(iteration, loss, step_norm)`` (the loss and the step in the optimiser's scaled units)."""
@@ -229,28 +231,22 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
 
     def body(carry):
         p, state, i = carry["p"], carry["state"], carry["i"]
-        if reuses_value:
-            stored = (optax.tree_utils.tree_get(state, "value"), optax.tree_utils.tree_get(state, "grad"))
-            known = jnp.isfinite(stored[0])
-            need_jacobian = ~known | stops(i, stored[0], carry["previous"])[0]
-        elif jacobian_every_pass:
-            need_jacobian = jnp.asarray(True)
-        else:
-            stored = jax.value_and_grad(loss)(p)
-            known = jnp.asarray(True)
-            need_jacobian = stops(i, stored[0], carry["previous"])[0]
         if jacobian_every_pass:
             J, (r, raw) = jacobian(p)
+            value, grad = jnp.sum(r * r) / n, 2.0 * (J.T @ r) / n
         else:
+            if reuses_value:
+                stored = (optax.tree_utils.tree_get(state, "value"), optax.tree_utils.tree_get(state, "grad"))
+                known = jnp.isfinite(stored[0])
+            else:
+                stored, known = jax.value_and_grad(loss)(p), jnp.asarray(True)
+            # The model is evaluated here only where the loss is not known yet or the fit stops.
+            need_jacobian = ~known | stops(i, stored[0], carry["previous"])[0]
             J, (r, raw) = jax.lax.cond(
                 need_jacobian, jacobian, lambda _: (carry["J"], (carry["r"], carry["raw"])), p
             )
-        value_here, grad_here = jnp.sum(r * r) / n, 2.0 * (J.T @ r) / n
-        if jacobian_every_pass:
-            value, grad = value_here, grad_here
-        else:
-            value = jnp.where(known, stored[0], value_here)
-            grad = jnp.where(known, stored[1], grad_here)
+            value = jnp.where(known, stored[0], jnp.sum(r * r) / n)
+            grad = jnp.where(known, stored[1], 2.0 * (J.T @ r) / n)
         stop, converged, recent = stops(i, value, carry["previous"])
 
         def step(_):
@@ -298,12 +294,12 @@ def _forward_mode_loss(problem: _Problem, jacobian):
     """The mean loss, differentiated through the forward-mode Jacobian of the residuals
     (``grad = 2 J^T r / n``) instead of in reverse mode.
 
-    The compiled program then holds one kind of derivative code, the same as the covariance's
-    Jacobian: XLA compiles each distinct fused kernel once, so the line search's gradients cost no
-    compile time of their own, while reverse mode would add a second, different set of kernels
-    (about a third of the program's). The price is run time: the forward pass carries a few tangents
-    (:func:`_jacobian_with_residuals`) where reverse mode costs about two evaluations, about 1 s
-    more on an 1800-sample record, several times less than the compile time it saves.
+    The compiled program then holds one kind of derivative code, the forward-mode pass of the
+    covariance's Jacobian, wherever the line search evaluates the loss; a reverse-mode gradient
+    compiles to larger code (measured: ~5 s more compile for the default fit). The price is run time:
+    the forward pass carries a few tangents (:func:`_jacobian_with_residuals`) where reverse mode
+    costs about two evaluations, about 1 s more on an 1800-sample record, several times less than
+    the compile time it saves.
     """
     n = problem.count()
 
