@@ -91,6 +91,7 @@ class ScaledODE(eqx.Module):
             return body.angular_acceleration(t, State(w, q), args), dattitude
 
         scale = sigma.T
+        inverse_scale = 1.0 / scale  # once per chunk: a division per stage was a hot spot
 
         def vector_field(t, y, args):
             # Bodies on the last (contiguous) axis of the state: measured 1.5-2x faster than
@@ -102,7 +103,7 @@ class ScaledODE(eqx.Module):
             domega, dattitude = jax.vmap(body_rhs, in_axes=in_axes, out_axes=1)(
                 values, t, y[:3] * scale, attitude, args
             )
-            du = (domega / scale).astype(y.dtype)
+            du = (domega * inverse_scale).astype(y.dtype)
             return du if attitude is None else jnp.concatenate([du, dattitude.astype(y.dtype)])
 
         return vector_field
