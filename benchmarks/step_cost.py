@@ -41,6 +41,7 @@ import rigidjax as rj  # noqa: E402
 from rigidjax._integrate import batching  # noqa: E402
 from rigidjax._integrate.formulations import ScaledODE  # noqa: E402
 from rigidjax._integrate.solvers import unrolled  # noqa: E402
+from rigidjax._kinematics.quaternion import NORM_PULL  # noqa: E402
 from rigidjax.solvers import UnrolledDopri8  # noqa: E402
 
 T_END = 20.0
@@ -55,7 +56,8 @@ def row_vector_field(inertia_rows):
 
     def field(t, y, args):
         w1, w2, w3, qw, qx, qy, qz = (y[i] for i in range(7))
-        pull = jnp.sqrt(w1 * w1 + w2 * w2 + w3 * w3) * (1.0 - (qw * qw + qx * qx + qy * qy + qz * qz))
+        speed = jnp.sqrt(w1 * w1 + w2 * w2 + w3 * w3)
+        pull = NORM_PULL * speed * (1.0 - (qw * qw + qx * qx + qy * qy + qz * qz))
         return jnp.stack(
             [
                 (i2 - i3) / i1 * w2 * w3,

@@ -1,8 +1,8 @@
 """The ``accuracy`` presets of :func:`rigidjax.simulate`: a diffrax solver and a relative tolerance.
 
 Chosen by measurement (``benchmarks/batch_strategies.py``, 10^4 tennis-racket bodies, shared step,
-max norm): Dopri8 needs 185 shared steps at rtol 1e-8 where Tsit5 needs 1048, and is faster at every
-error below ~1e-5. Large batches run it with its stages written out
+max norm): Dopri8 is faster at every error below ~1e-5; at rtol 1e-8 it needs 128 shared steps where
+Tsit5 needs 527. Large batches run it with its stages written out
 (:class:`.solvers.unrolled.UnrolledDopri8`, the same values at about 0.6 of the cost per step; see
 :func:`preset_solver`).
 """
@@ -50,7 +50,7 @@ def preset_solver(accuracy: str, differentiated: bool, n_bodies: int) -> diffrax
 def default_chunk_size() -> int:
     """Bodies per shared-step chunk when the caller names none: 256 on CPU, where a chunk's stages
     stay in the core's cache (``benchmarks/step_cost.py``, 10^4 tennis-racket bodies, "balanced":
-    190 ns per body and step in chunks of 256 against 249 and 315 in chunks of 1024, two runs), and
+    145 ns per body and step in chunks of 256 against 238 in chunks of 1024), and
     65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk than as ten)."""
     return 256 if jax.default_backend() == "cpu" else 65536
 
@@ -59,8 +59,8 @@ MIN_MAX_STEPS = 100_000
 """The smallest default step limit per chunk, and the limit when the inputs' values are unknown."""
 
 STEPS_PER_TURN = 100
-"""Default step budget per turn of the fastest body: ``"precise"`` (Dopri8, rtol 1e-11) took 34 steps
-per turn of a body spinning at 2000 rad/s, so this leaves about 3x headroom (also for the error
+"""Default step budget per turn of the fastest body: ``"precise"`` (Dopri8, rtol 1e-11) took 22 steps
+per turn of a body spinning at 2000 rad/s, so this leaves about 4x headroom (also for the error
 estimate's tighter second solve)."""
 
 

@@ -282,9 +282,23 @@ def _quat_kinematics(q, omega):
     return 0.5 * _quat_multiply(q, pure)
 
 
+NORM_PULL = 0.1
+"""The rate, in units of ``|omega|``, at which :func:`_quat_derivative` pulls ``|q|`` back to 1.
+
+A tenth of the turning rate: strong enough to hold the norm over thousands of turns (``| |q| - 1 |``
+1.8e-7 after 1000 wobble periods at "balanced"), weak enough that the pull does not set the step.
+An adaptive step's stages leave the unit sphere by about ``(h |omega|)^2``; at a pull of
+``|omega|`` the error estimate of the pull acting on those departures, not the motion, limited the
+step (measured at rtol 1e-8: 10^4 tennis-racket bodies took 202 steps with the orientation and 122
+without it, now 126, as with no pull at all; 2048 heavy tops spun at 30 rad/s for 5 s 358 steps,
+148 at a quarter, 125 at a tenth). The rotation does not depend on the norm (the equation is
+linear in ``q``), and the output is normalised."""
+
+
 def _quat_derivative(q, omega):
-    """``dq/dt = q ⊗ (0, omega) / 2`` plus ``|omega| (1 - |q|^2) q``, which leaves the rotation
-    unchanged but makes unit norm attracting, so the norm does not drift under an integrator.
+    """``dq/dt = q ⊗ (0, omega) / 2`` plus ``NORM_PULL |omega| (1 - |q|^2) q``, which leaves the
+    rotation unchanged but makes unit norm attracting, so the norm does not drift under an
+    integrator.
 
     Written component by component, without a concatenated zero or a reduction over the last axis:
     inside an integrator's step XLA fuses it into plain elementwise code (the ``"balanced"`` preset
@@ -294,7 +308,7 @@ def _quat_derivative(q, omega):
     square = p * p + r * r + s * s
     moving = square > 0  # the gradient of |omega| at rest is 0, not NaN
     speed = jnp.where(moving, jnp.sqrt(jnp.where(moving, square, jnp.ones_like(square))), 0.0)
-    pull = speed * (1.0 - (w * w + x * x + y * y + z * z))
+    pull = NORM_PULL * speed * (1.0 - (w * w + x * x + y * y + z * z))
     return jnp.stack(
         [
             0.5 * (-x * p - y * r - z * s) + pull * w,
