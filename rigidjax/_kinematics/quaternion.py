@@ -290,8 +290,8 @@ A tenth of the turning rate: strong enough to hold the norm over thousands of tu
 An adaptive step's stages leave the unit sphere by about ``(h |omega|)^2``; at a pull of
 ``|omega|`` the error estimate of the pull acting on those departures, not the motion, limited the
 step (measured at rtol 1e-8: 10^4 tennis-racket bodies took 202 steps with the orientation and 122
-without it, now 126, as with no pull at all; 2048 heavy tops spun at 30 rad/s for 5 s 358 steps,
-148 at a quarter, 125 at a tenth). The rotation does not depend on the norm (the equation is
+without it; at a tenth, 126, as with no pull at all; 2048 heavy tops spun at 30 rad/s for 5 s took
+358 steps, 148 at a quarter, 125 at a tenth). The rotation does not depend on the norm (the equation is
 linear in ``q``), and the output is normalised."""
 
 
