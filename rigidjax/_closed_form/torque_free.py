@@ -223,7 +223,12 @@ def _period_failures(inertia, omega0):
 
 @eqx.filter_jit
 def _period_program(inertia, omega0, *, checked):
-    inertia, omega0 = _period_inputs(inertia, omega0, checked)
+    return motion_period(*_period_inputs(inertia, omega0, checked))
+
+
+def motion_period(inertia, omega0):
+    """:func:`torque_free_period` of principal moments and omega of the same shape ``(..., 3)``,
+    without checks."""
     _, _, moments, omega, _ = _sorted_frame(inertia, omega0)
     rate = _solution_parameters(moments, omega)[2]
     # rate = 0 (a sphere, a symmetric body in steady rotation): the period is infinite; a generic

@@ -6,10 +6,10 @@ trailing ``core`` axes belong to one body, the leading axes are batch axes that 
 the state's. The integrator, the closed forms and :class:`rigidjax.Trajectory` all batch through
 this module.
 
-Chunks: bodies sorted by a speed key are cut into ``n_chunks`` chunks of ``chunk`` bodies (the last
-one padded with copies of a real body, dropped again by :func:`from_chunks`); chunks run one after
-another with ``lax.map`` (bounded memory for 10^6 bodies) and, with several devices, are sharded
-across them.
+Chunks: bodies sorted by speed (torque-free bodies also by period) are cut into ``n_chunks`` chunks
+of ``chunk`` bodies (the last one padded with copies of a real body, dropped again by
+:func:`from_chunks`); chunks run one after another with ``lax.map`` (bounded memory for 10^6
+bodies) and, with several devices, are sharded across them.
 """
 
 import math
@@ -92,9 +92,10 @@ class ChunkPlan(NamedTuple):
     sorted: bool = False  # False: ``order`` is the identity and no gather is needed
 
 
-def plan_chunks(n: int, chunk_size: int, sort_key=None, *, shardable: bool = True) -> ChunkPlan:
-    """Plans chunks of at most ``chunk_size`` bodies; with ``sort_key`` (n,) the bodies are ordered
-    by decreasing key so that bodies of similar speed share a chunk and its step size. With several
+def plan_chunks(n: int, chunk_size: int, sort_keys=None, *, shardable: bool = True) -> ChunkPlan:
+    """Plans chunks of at most ``chunk_size`` bodies; with ``sort_keys``, a tuple of ``(n,)`` keys
+    (the last one primary, as in ``jnp.lexsort``), the bodies are ordered by increasing keys so that
+    bodies that need similar steps at the same times share a chunk and its step size. With several
     devices the chunk count is a multiple of the device count (whole chunks per device)."""
     chunk = min(chunk_size, n)
     n_chunks = -(-n // chunk)
@@ -102,8 +103,8 @@ def plan_chunks(n: int, chunk_size: int, sort_key=None, *, shardable: bool = Tru
     shard = shardable and n_devices > 1 and n_chunks > 1
     if shard:
         n_chunks = -(-n_chunks // n_devices) * n_devices
-    if sort_key is not None and n_chunks > 1:
-        return ChunkPlan(n, chunk, n_chunks, jnp.argsort(-sort_key), shard, sorted=True)
+    if sort_keys is not None and n_chunks > 1:
+        return ChunkPlan(n, chunk, n_chunks, jnp.lexsort(sort_keys), shard, sorted=True)
     return ChunkPlan(n, chunk, n_chunks, jnp.arange(n), shard)
 
 

@@ -18,6 +18,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._closed_form.torque_free import motion_period
+from .._dynamics.inertia import principal_axes
 from .._dynamics.models import State
 from . import batching, driver
 from .trajectory import Trajectory
@@ -50,6 +52,25 @@ def _omega_scales(model, leaves, flat, omega0, q0, duration, args):
     return jnp.where(peak > 0, jnp.maximum(sigma, floor), jnp.ones_like(sigma))
 
 
+def _chunk_order_keys(model, leaves, flat, omega0, sigma):
+    """The bodies' order into chunks (keys of :func:`.batching.plan_chunks`): decreasing speed, and
+    for torque-free bodies, in speed classes a factor ``2^(1/4)`` wide, increasing period of the
+    motion. A chunk's step must satisfy its most demanding body at every moment; bodies of one
+    period flip and wobble at the same times, so between those times the whole chunk takes long
+    steps. Measured with "balanced": 10^4 tennis-racket bodies (speeds within 2 %, periods 10 - 25 s)
+    126 -> 104 steps per chunk; 10^4 tumbling bodies of speeds 1 - 100 rad/s over 2 s, 2093 -> 2038
+    steps in all."""
+    speed = jnp.max(sigma, axis=-1)
+    if not model.torque_free:
+        return (-speed,)
+    inertia = jax.lax.stop_gradient(flat[[leaf.label for leaf in leaves].index("inertia")])
+    omega = jax.lax.stop_gradient(omega0)
+    if inertia.ndim == 3:  # tensors: the period from the principal moments and axes
+        inertia, axes = principal_axes(inertia)
+        omega = jnp.einsum("nji,nj->ni", axes, omega)
+    return motion_period(inertia, omega), -jnp.floor(4 * jnp.log2(speed))
+
+
 def plan_bodies(model, omega0, q0, ts, args, formulation, chunk_size, sort):
     """The batch flattened to per-body arrays, each body's omega scales and the chunk plan:
     ``(batch, leaves, flat, omega0, q0, sigma, plan)``. The one place the chunks' body order is
@@ -62,9 +83,11 @@ def plan_bodies(model, omega0, q0, ts, args, formulation, chunk_size, sort):
         sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
     else:
         sigma = jnp.ones_like(omega0)
-    # Sorting by speed groups bodies of similar step size; without scales there is nothing to sort by.
-    sort_key = jnp.max(sigma, axis=-1) if sort and formulation.uses_scale else None
-    plan = batching.plan_chunks(math.prod(batch), chunk_size, sort_key, shardable=ts.shape[0] > 1)
+    # Without scales there is nothing to sort by.
+    sort_keys = (
+        _chunk_order_keys(model, leaves, flat, omega0, sigma) if sort and formulation.uses_scale else None
+    )
+    plan = batching.plan_chunks(math.prod(batch), chunk_size, sort_keys, shardable=ts.shape[0] > 1)
     return batch, leaves, flat, omega0, q0, sigma, plan
 
 

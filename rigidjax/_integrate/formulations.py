@@ -78,13 +78,13 @@ class ScaledODE(eqx.Module):
     def vector_field(self, shell, leaves, values, sigma):
         euler_seq = self.euler_seq
 
-        def body_rhs(body_values, t, w, attitude, args):
+        def body_rhs(body_values, t, w, attitude, pull_rate, args):
             body = shell.replace_body_leaves(leaves, body_values)
             if attitude is None:
                 return body.angular_acceleration(t, State(w, None), args), None
             if euler_seq is None:
                 q = attitude
-                dattitude = _quat_derivative(q, w)
+                dattitude = _quat_derivative(q, w, pull_rate)
             else:
                 q = _quat_from_euler(attitude, euler_seq)
                 dattitude = _euler_rates(attitude, w, euler_seq, throw=False)
@@ -92,6 +92,10 @@ class ScaledODE(eqx.Module):
 
         scale = sigma.T
         inverse_scale = 1.0 / scale  # once per chunk: a division per stage was a hot spot
+        # The quaternion's norm pull at a constant rate per body, its largest omega scale, rather than
+        # at |omega|: no square root per stage (10^4 tennis-racket bodies, "balanced": 12 % less
+        # time; the same steps, also for heavy tops).
+        pull_rate = jnp.max(sigma, axis=-1)
 
         def vector_field(t, y, args):
             # Bodies on the last (contiguous) axis of the state: measured 1.5-2x faster than
@@ -99,9 +103,9 @@ class ScaledODE(eqx.Module):
             # outside the per-body function: inside it (slices and a concatenation per body) the
             # "balanced" preset ran 2x slower.
             attitude = y[3:] if y.shape[0] > 3 else None
-            in_axes = (0, None, 1, None if attitude is None else 1, None)
+            in_axes = (0, None, 1, None if attitude is None else 1, 0, None)
             domega, dattitude = jax.vmap(body_rhs, in_axes=in_axes, out_axes=1)(
-                values, t, y[:3] * scale, attitude, args
+                values, t, y[:3] * scale, attitude, pull_rate, args
             )
             du = (domega * inverse_scale).astype(y.dtype)
             return du if attitude is None else jnp.concatenate([du, dattitude.astype(y.dtype)])
