@@ -626,47 +626,55 @@ def test_heavy_top_accepts_a_list_for_com():
         rj.HeavyTop([1.0, 1.0, 0.5], 1.0, [0.0, 0.1])
 
 
-def test_torque_free_bodies_share_chunks_by_period():
+def test_torque_free_bodies_share_chunks_by_period_and_phase():
     """Bodies of one speed class go into chunks by the period of their motion (the closed form's
-    torque_free_period), so that the bodies of a chunk flip at the same times: the chunks' period
-    ranges do not overlap, twice as fast bodies come first, a tensor inertia gets the period of its
-    principal moments, and on tennis-racket bodies (periods 13 - 30 s) the sorted chunks take fewer
-    steps than chunks of the bodies in their given order."""
+    torque_free_period), and within groups of four chunks by the time of their next flip (the first
+    sign change of the intermediate component, found on a fine grid of the closed form), so that the
+    bodies of a chunk flip at the same times: twice as fast bodies come first, the groups' period
+    ranges do not overlap, each chunk spans under half its group's flip times, a tensor inertia
+    is ordered as its principal moments, and on tennis-racket bodies (periods 13 - 30 s) at random
+    phases the sorted chunks take fewer steps than chunks of the bodies in their given order."""
     from rigidjax._integrate import chunked
     from rigidjax._integrate.formulations import ScaledODE
 
     rng = np.random.default_rng(3)
-    n = 1024
+    n, chunk = 1024, 64
     inertia = np.array([1.0, 2.0, 2.5]) * (1.0 + 0.05 * rng.uniform(-1.0, 1.0, (n, 3)))
     # 3 rad/s: the speed classes are 2^(1/4) wide from 1 rad/s, and 3 (1 +- 2 %) lies inside one.
     omega0 = np.array([0.04, 3.0, 0.04]) + 0.008 * rng.standard_normal((n, 3))
-    omega0[:128] *= 2.0  # a faster speed class
-    period = np.asarray(rj.torque_free_period(jnp.asarray(inertia), jnp.asarray(omega0)))
+    free = rj.FreeBody(jnp.asarray(inertia))
+    period = np.array(rj.torque_free_period(jnp.asarray(inertia), jnp.asarray(omega0)))
+    start = rng.uniform(0, 1, n) * period  # random phases
+    omega0 = np.array(rj.torque_free_omega(free.inertia, jnp.asarray(omega0), jnp.asarray(start)))
+    omega0[:chunk] *= 2.0  # a faster speed class
+    period[:chunk] /= 2.0
+    grid = np.linspace(0.0, 0.5 * period.max(), 4001)
+    traj = rj.simulate(free, rj.State(jnp.asarray(omega0)), jnp.asarray(grid), accuracy="exact")
+    w2 = np.asarray(traj.omega[..., 1])
+    next_flip = grid[np.argmax(np.sign(w2) != np.sign(w2[:, :1]), axis=1)]
     ts = jnp.array([0.0, 20.0])
 
-    def chunk_periods(model, chunk):
-        plan = chunked.plan_bodies(model, jnp.asarray(omega0), None, ts, None, ScaledODE(), chunk, True)[-1]
-        return period[np.asarray(plan.order)].reshape(-1, chunk)
+    def chunks_of(model, omega):
+        plan = chunked.plan_bodies(model, jnp.asarray(omega), None, ts, None, ScaledODE(), chunk, True)[-1]
+        return np.asarray(plan.order).reshape(-1, chunk)
 
-    chunks = chunk_periods(rj.FreeBody(jnp.asarray(inertia)), 128)
-    fast = np.isin(np.arange(n), np.arange(128))
-    np.testing.assert_array_equal(np.sort(chunks[0]), np.sort(period[fast]))  # the fast class first
-    slow = chunks[1:]
-    assert np.all(slow[:-1].max(axis=1) <= slow[1:].min(axis=1))  # increasing, no overlap
-    assert np.ptp(slow[0]) < 0.2 * np.ptp(period[~fast])
+    chunks = chunks_of(free, omega0)
+    np.testing.assert_array_equal(np.sort(chunks[0]), np.arange(chunk))  # the fast class first
+    # Groups of four chunks in the order by speed class and period: the first holds the fast class.
+    groups = [chunks[1:4]] + [chunks[i : i + 4] for i in range(4, len(chunks), 4)]
+    for group, later in zip(groups, groups[1:], strict=False):
+        assert period[group].max() <= period[later].min()
+    for group in groups:
+        spread = np.ptp(next_flip[group])
+        assert np.all(np.ptp(next_flip[group], axis=1) < 0.5 * spread), (next_flip[group], spread)
 
     turn = np.linalg.qr(rng.standard_normal((3, 3)))[0]
     tensors = np.einsum("ij,nj,kj->nik", turn, inertia, turn)  # the same bodies, turned
-    model = rj.FreeBody(jnp.asarray(tensors))
-    plan = chunked.plan_bodies(model, jnp.asarray(omega0 @ turn.T), None, ts, None, ScaledODE(), 128, True)[
-        -1
-    ]
-    np.testing.assert_allclose(
-        np.sort(period[np.asarray(plan.order)].reshape(-1, 128)), np.sort(chunks), rtol=1e-9
-    )
+    np.testing.assert_array_equal(chunks_of(rj.FreeBody(jnp.asarray(tensors)), omega0 @ turn.T), chunks)
 
-    free, state = rj.FreeBody(jnp.asarray(inertia[128:])), rj.State(jnp.asarray(omega0[128:]))
-    by_period = rj.simulate(free, state, ts, chunk_size=128)
-    given = rj.simulate(free, state, ts, chunk_size=128, sort_by_speed=False)
-    steps = [float(np.mean(t.stats["num_steps"])) for t in (by_period, given)]
+    state = rj.State(jnp.asarray(omega0[chunk:]))
+    slow = rj.FreeBody(jnp.asarray(inertia[chunk:]))
+    by_timing = rj.simulate(slow, state, ts, chunk_size=chunk)
+    given = rj.simulate(slow, state, ts, chunk_size=chunk, sort_by_speed=False)
+    steps = [float(np.mean(t.stats["num_steps"])) for t in (by_timing, given)]
     assert steps[0] < 0.9 * steps[1], steps

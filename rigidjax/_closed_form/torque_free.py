@@ -33,7 +33,7 @@ from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 from .barrier import _materialised
-from .elliptic import _ellipj_checked, _sin_cos, ellipkm1
+from .elliptic import _ellipj_checked, _legendre, _sin_cos, ellipkm1
 from .frame import _safe_div, _solution_parameters, _sorted_frame, _unsort
 from .precession import _general_orientation, _norm
 
@@ -224,6 +224,26 @@ def _period_failures(inertia, omega0):
 @eqx.filter_jit
 def _period_program(inertia, omega0, *, checked):
     return motion_period(*_period_inputs(inertia, omega0, checked))
+
+
+def motion_timing(inertia, omega0):
+    """When a torque-free body flips: its period (:func:`torque_free_period`) and the time to its
+    next half period's start (the intermediate component's next sign change), from principal
+    moments and omega of the same shape ``(..., 3)``, without checks; steady rotations: inf and 0.
+
+    The phase of the start is ``F(a | m)``, ``a`` its elliptic amplitude forward in time modulo
+    ``pi``; the next flip comes after ``(2 K - F) / lambda``, i.e. ``1 - F / (2 K)`` of the half
+    period. For ordering bodies: not differentiable."""
+    period = motion_period(inertia, omega0)
+    frame = _frame(inertia, omega0)
+    parts = _motion_parts(frame, jnp.zeros(period.shape, period.dtype))[1]
+    sn0, cn0, _ = parts["start"]
+    amplitude = jnp.mod(jnp.where(parts["speed"] < 0, -1.0, 1.0) * jnp.arctan2(sn0, cn0), jnp.pi)
+    moving = jnp.isfinite(period) & ~frame["steady"] & (parts["p"] > 0)
+    p = jnp.where(moving, parts["p"], 0.5)
+    phase = _legendre(amplitude, 1.0 - p, p)[0]
+    half_periods = jnp.where(moving, 1.0 - phase / (2.0 * ellipkm1(p)), 0.0)
+    return period, jnp.where(moving, half_periods * jnp.where(moving, period, 0.0) / 2, 0.0)
 
 
 def motion_period(inertia, omega0):

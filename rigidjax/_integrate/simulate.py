@@ -162,10 +162,11 @@ def simulate(
       (default on CPU: 2^17 body-samples per block, which keeps the closed form's intermediates in
       the cache; one block on accelerators).
     - `sort_by_speed`: group bodies of similar angular-velocity scale into the same chunk, and
-      torque-free bodies of one speed class (a factor ``2^(1/4)``) by the period of their motion, so
-      that the bodies of a chunk flip and wobble at the same times and the shared step is long in
-      between (10^4 tennis-racket bodies: 104 instead of 126 steps per chunk). ``False``: chunks
-      of the bodies in their given order.
+      torque-free bodies of one speed class (a factor ``2^(1/4)``) by the period of their motion
+      and the time of their next flip, so that the bodies of a chunk flip at the same times and
+      the shared step is long in between (10^4 tennis-racket bodies, "balanced": 102 instead of
+      126 steps per chunk started in phase, 115 instead of 127 at random phases). ``False``:
+      chunks of the bodies in their given order.
     - `throw`: raise on invalid input or failed integration (default); the error names the first
       failed body (its index in the batch), the sample times around the failure and the cause
       (under the user's ``jit``: the cause). With ``throw=False`` a failed body is flagged in
