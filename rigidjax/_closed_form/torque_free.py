@@ -33,7 +33,8 @@ from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 from .barrier import _materialised
-from .elliptic import _ellipj_checked, _legendre, _sin_cos, ellipkm1
+from .carlson import _carlson_rf_rd
+from .elliptic import _ellipj_checked, _sin_cos, ellipkm1
 from .frame import _safe_div, _solution_parameters, _sorted_frame, _unsort
 from .precession import _general_orientation, _norm
 
@@ -85,16 +86,15 @@ def _frame(inertia, omega0):
     return dict(swaps=swaps, index=index, moments=moments, omega=omega, parity=parity, steady=steady)
 
 
-def _motion_parts(frame, t):
-    """The elliptic solution at ``t`` in the body's axes, and in the sorted frame the pieces the
-    orientation reuses."""
+def _start(frame):
+    """The elliptic parameters of the body in the sorted frame, the Jacobi functions of its initial
+    phase (read off ``omega0`` directly) and the signed rate ``speed`` of its elliptic argument."""
     moments, omega, parity = frame["moments"], frame["omega"], frame["parity"]
     around_largest, (amp_a, amp_b, amp_c), rate, m, p, nu = _solution_parameters(moments, omega)
     w_a = jnp.where(around_largest, omega[0], omega[2])
     w_b = omega[1]
     w_c = jnp.where(around_largest, omega[2], omega[0])
     sign_c = jnp.where(w_c < 0, -1.0, 1.0).astype(w_c.dtype)
-    # Jacobi functions of the initial phase, straight from omega0.
     # amp_a and amp_b vanish together (pure spin about axis c): phase 0, so that cn0^2 + sn0^2 = 1.
     cn0 = jnp.where(amp_a > 0, w_a / jnp.where(amp_a > 0, amp_a, 1.0), 1.0)
     sn0 = _safe_div(w_b, amp_b)
@@ -102,6 +102,27 @@ def _motion_parts(frame, t):
     # The sign of d(tau)/dt follows the sense of rotation about axis c; an odd relabelling of the
     # body axes reverses it (it flips the cross product in Euler's equations).
     speed = parity * sign_c * rate
+    return dict(
+        around_largest=around_largest,
+        amplitudes=(amp_a, amp_b, amp_c),
+        m=m,
+        p=p,
+        nu=nu,
+        speed=speed,
+        sign_c=sign_c,
+        start=(sn0, cn0, dn0),
+        omega_start=(w_a, w_b, w_c),
+    )
+
+
+def _motion_parts(frame, t):
+    """The elliptic solution at ``t`` in the body's axes, and in the sorted frame the pieces the
+    orientation reuses."""
+    first = _start(frame)
+    around_largest, (amp_a, amp_b, amp_c) = first["around_largest"], first["amplitudes"]
+    m, p, nu, speed, sign_c = first["m"], first["p"], first["nu"], first["speed"], first["sign_c"]
+    sn0, cn0, dn0 = first["start"]
+    w_a, w_b, w_c = first["omega_start"]
     u = speed * t
     sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
     sn, cn, dn = _materialised((sn, cn, dn))  # read by every component of omega and q
@@ -236,13 +257,20 @@ def motion_timing(inertia, omega0):
     period. For ordering bodies: not differentiable."""
     period = motion_period(inertia, omega0)
     frame = _frame(inertia, omega0)
-    parts = _motion_parts(frame, jnp.zeros(period.shape, period.dtype))[1]
-    sn0, cn0, _ = parts["start"]
-    amplitude = jnp.mod(jnp.where(parts["speed"] < 0, -1.0, 1.0) * jnp.arctan2(sn0, cn0), jnp.pi)
-    moving = jnp.isfinite(period) & ~frame["steady"] & (parts["p"] > 0)
-    p = jnp.where(moving, parts["p"], 0.5)
-    phase = _legendre(amplitude, 1.0 - p, p)[0]
-    half_periods = jnp.where(moving, 1.0 - phase / (2.0 * ellipkm1(p)), 0.0)
+    first = _start(frame)
+    sn0, cn0, _ = first["start"]
+    amplitude = jnp.mod(jnp.where(first["speed"] < 0, -1.0, 1.0) * jnp.arctan2(sn0, cn0), jnp.pi)
+    moving = jnp.isfinite(period) & ~frame["steady"] & (first["p"] > 0)
+    p = jnp.where(moving, first["p"], 0.5)
+    # F(a | m) = 2 j K + sin r R_F(cos^2 r, 1 - m sin^2 r, 1), a = j pi + r, |r| <= pi / 2.
+    upper = amplitude > jnp.pi / 2
+    reduced = jnp.where(upper, amplitude - jnp.pi, amplitude)
+    sin_r, cos_r = jnp.sin(reduced), jnp.cos(reduced)
+    one = jnp.ones_like(p)
+    rf = _carlson_rf_rd(cos_r * cos_r, cos_r * cos_r + p * sin_r * sin_r, one, with_rd=False)[0]
+    quarter = ellipkm1(p)
+    phase = sin_r * rf + jnp.where(upper, 2.0 * quarter, 0.0)
+    half_periods = jnp.where(moving, 1.0 - phase / (2.0 * quarter), 0.0)
     return period, jnp.where(moving, half_periods * jnp.where(moving, period, 0.0) / 2, 0.0)
 
 
