@@ -50,7 +50,7 @@ def preset_solver(accuracy: str, differentiated: bool, n_bodies: int) -> diffrax
 def default_chunk_size() -> int:
     """Bodies per shared-step chunk when the caller names none: 256 on CPU, where a chunk's stages
     stay in the core's cache (``benchmarks/step_cost.py``, 10^4 tennis-racket bodies, "balanced":
-    145 ns per body and step in chunks of 256 against 238 in chunks of 1024), and
+    134 ns per body and step in chunks of 256 against 195 in chunks of 1024), and
     65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk than as ten)."""
     return 256 if jax.default_backend() == "cpu" else 65536
 
