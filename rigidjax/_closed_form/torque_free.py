@@ -120,10 +120,9 @@ def _motion_parts(frame, t):
     orientation reuses."""
     first = _start(frame)
     around_largest, (amp_a, amp_b, amp_c) = first["around_largest"], first["amplitudes"]
-    m, p, nu, speed, sign_c = first["m"], first["p"], first["nu"], first["speed"], first["sign_c"]
+    m, p, sign_c = first["m"], first["p"], first["sign_c"]
     sn0, cn0, dn0 = first["start"]
-    w_a, w_b, w_c = first["omega_start"]
-    u = speed * t
+    u = first["speed"] * t
     sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
     sn, cn, dn = _materialised((sn, cn, dn))  # read by every component of omega and q
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
@@ -135,17 +134,7 @@ def _motion_parts(frame, t):
     out_a, out_b, out_c = amp_a * cn_t, amp_b * sn_t, sign_c * amp_c * dn_t
     sorted_out = [jnp.where(around_largest, out_a, out_c), out_b, jnp.where(around_largest, out_c, out_a)]
     omega_t = _unsort(jnp.stack(sorted_out, axis=-1), frame["index"])
-    return omega_t, dict(
-        around_largest=around_largest,
-        m=m,
-        p=p,
-        nu=nu,
-        u=u,
-        speed=speed,
-        start=(sn0, cn0, dn0),
-        omega_start=(w_a, w_b, w_c),
-        omega_now=(out_a, out_b, out_c),
-    )
+    return omega_t, {**first, "u": u, "omega_now": (out_a, out_b, out_c)}
 
 
 def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
