@@ -233,7 +233,7 @@ def _period_failures(inertia, omega0):
 
 @eqx.filter_jit
 def _period_program(inertia, omega0, *, checked):
-    return motion_period(*_period_inputs(inertia, omega0, checked))
+    return _period_and_quarter(*_period_inputs(inertia, omega0, checked))[0]
 
 
 def motion_timing(inertia, omega0):
@@ -244,7 +244,7 @@ def motion_timing(inertia, omega0):
     The phase of the start is ``F(a | m)``, ``a`` its elliptic amplitude forward in time modulo
     ``pi``; the next flip comes after ``(2 K - F) / lambda``, i.e. ``1 - F / (2 K)`` of the half
     period. For ordering bodies: not differentiable."""
-    period = motion_period(inertia, omega0)
+    period, quarter = _period_and_quarter(inertia, omega0)
     frame = _frame(inertia, omega0)
     first = _start(frame)
     sn0, cn0, _ = first["start"]
@@ -257,15 +257,15 @@ def motion_timing(inertia, omega0):
     sin_r, cos_r = jnp.sin(reduced), jnp.cos(reduced)
     one = jnp.ones_like(p)
     rf = _carlson_rf_rd(cos_r * cos_r, cos_r * cos_r + p * sin_r * sin_r, one, with_rd=False)[0]
-    quarter = ellipkm1(p)
     phase = sin_r * rf + jnp.where(upper, 2.0 * quarter, 0.0)
     half_periods = jnp.where(moving, 1.0 - phase / (2.0 * quarter), 0.0)
     return period, jnp.where(moving, half_periods * jnp.where(moving, period, 0.0) / 2, 0.0)
 
 
-def motion_period(inertia, omega0):
+def _period_and_quarter(inertia, omega0):
     """:func:`torque_free_period` of principal moments and omega of the same shape ``(..., 3)``,
-    without checks."""
+    without checks, and the quarter period ``K(m)`` of the elliptic argument (that of a generic
+    body where the motion is steady)."""
     _, _, moments, omega, _ = _sorted_frame(inertia, omega0)
     rate = _solution_parameters(moments, omega)[2]
     # rate = 0 (a sphere, a symmetric body in steady rotation): the period is infinite; a generic
@@ -275,7 +275,7 @@ def motion_period(inertia, omega0):
     omega = [jnp.where(still, 1.0, w) for w in omega]
     _, _, rate, _, p, _ = _solution_parameters(moments, omega)
     quarter = ellipkm1(jnp.where(p > 0, p, 1.0))
-    return jnp.where(~still & (p > 0), 4.0 * quarter / rate, jnp.inf)
+    return jnp.where(~still & (p > 0), 4.0 * quarter / rate, jnp.inf), quarter
 
 
 # --------------------------------------------------------------------------------------------------
