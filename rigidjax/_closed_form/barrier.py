@@ -8,8 +8,28 @@ one). ``jax.lax.optimization_barrier`` and a ``cond`` do not stop this on CPU (b
 fusion); a loop whose trip count XLA cannot know does.
 """
 
+import contextlib
+import contextvars
+
 import jax
 import jax.numpy as jnp
+
+_TANGENTS_HELD = contextvars.ContextVar("tangents_held", default=False)
+
+
+@contextlib.contextmanager
+def tangents_held():
+    """Forward-mode derivatives taken inside also hold their tangents in memory at each
+    :func:`_materialised` (otherwise they pass through and every reader recomputes them: a closed
+    form's Jacobian took 0.14 s instead of 8 ms on 10^3 bodies). Forward mode only: the loop that
+    holds them has no transpose, so what is differentiated inside must not be transposed (see
+    :func:`.derivatives.sample_jacobians`, whose reverse mode transposes only the contraction of the
+    Jacobians taken inside)."""
+    token = _TANGENTS_HELD.set(True)
+    try:
+        yield
+    finally:
+        _TANGENTS_HELD.reset(token)
 
 
 @jax.custom_jvp
@@ -19,7 +39,7 @@ def _materialised(arrays):
     The identity: one pass of a loop that multiplies by one, with the trip count read at run time
     (0 where the first element is NaN, which returns the arrays as they are), so that XLA can
     neither remove the loop nor fuse across it. The tangents pass through unchanged (a custom JVP),
-    so reverse mode sees no loop.
+    so reverse mode sees no loop, except under :func:`tangents_held`.
     """
     if not arrays or any(jnp.size(a) == 0 for a in arrays):
         return arrays
@@ -35,4 +55,7 @@ def _materialised(arrays):
 @_materialised.defjvp
 def _materialised_jvp(primals, tangents):
     (arrays,), (dots,) = primals, tangents
+    if _TANGENTS_HELD.get() and all(jnp.issubdtype(d.dtype, jnp.inexact) for d in dots):
+        held = _materialised(tuple(arrays) + tuple(dots))
+        return held[: len(arrays)], held[len(arrays) :]
     return _materialised(arrays), dots

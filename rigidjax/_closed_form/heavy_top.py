@@ -39,13 +39,17 @@ Derivatives (forward and reverse) are those of the motion, including a start on 
 top sleeping exactly at a pole (the linearised tilt, two circular modes). A top started exactly at
 a pole with a finite wobble (``theta0 = 0``, ``omega0`` not along the axis) has exact values and
 finite derivatives, but the derivative with respect to the tilt of ``q0`` is not the motion's.
-Only ``com_z`` and the mean of ``I1`` and ``I2`` enter, so the derivatives with respect to
-``com_x``, ``com_y`` (zero) and ``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
+Reverse mode transposes every sample's Jacobian (:mod:`.derivatives`). Only ``com_z`` and the mean
+of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``, ``com_y`` (zero) and
+``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
+
+import functools
 
 import jax
 import jax.numpy as jnp
 
 from .._numerics import safe_norm
+from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
 
@@ -301,7 +305,7 @@ def _half(half, body, t, now, reduced, side):
     return chosen[0] * rotor, chosen[1], chosen[2], udot
 
 
-def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
+def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t, side: str | None = None):
     """Body-frame ``omega(t)`` and orientation ``q(t)`` of Lagrange's top, in closed form.
 
     **Arguments:**
@@ -316,8 +320,20 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     the unit quaternion ``(w, x, y, z)`` (body to space), shape ``batch + (4,)``; ``batch`` is the
     broadcast of the bodies' batch axes with ``t``'s shape. The inputs are not checked here:
     ``simulate`` checks them (a physical inertia, ``I1 = I2``, ``com`` on the z axis, a unit ``q0``).
+    ``side``: as in :func:`lagrange_top_at`. Derivatives: every sample's Jacobian
+    (:func:`.sample_jacobians`), so that reverse mode costs about what forward mode does.
     """
-    return lagrange_top_at(lagrange_top_parts(inertia, mass, com, gravity, omega0, q0), t)
+    return _MOTION_ON_SIDE[side](inertia, mass, com, gravity, omega0, q0, t)
+
+
+def _motion_on_side(side, inertia, mass, com, gravity, omega0, q0, t):
+    return lagrange_top_at(lagrange_top_parts(inertia, mass, com, gravity, omega0, q0), t, side)
+
+
+_MOTION_ON_SIDE = {
+    side: sample_jacobians(functools.partial(_motion_on_side, side), (3, 0, 3, 0, 3, 4, 0))
+    for side in (None, "upper", "lower")
+}
 
 
 def lagrange_top_parts(inertia, mass, com, gravity, omega0, q0) -> dict:

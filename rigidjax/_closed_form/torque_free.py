@@ -34,6 +34,7 @@ from .._kinematics.quaternion import _quat_multiply
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 from .barrier import _materialised
 from .carlson import _carlson_rf_rd
+from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos, ellipkm1
 from .frame import _safe_div, _solution_parameters, _sorted_frame, _unsort
 from .precession import _general_orientation, _norm
@@ -188,11 +189,16 @@ def _torque_free_omega(inertia, omega0, t, *, checked):
     errors, host callbacks: JAX's persistent cache keeps no program that holds one) for callers
     whose values are valid by construction, such as the fit's parametrised moments."""
     inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t, checked)
+    return _omega_core(inertia, omega0, jnp.broadcast_to(t, batch))
+
+
+def _omega_at(inertia, omega0, t):
+    """``omega(t)`` of bodies whose arrays are broadcast (:func:`_body_arrays`), ``t`` of the batch's
+    shape."""
     frame = _frame(inertia, omega0)
     steady = frame["steady"]
     omega_g = _motion_parts(frame, t)[0]
-    omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
-    return jnp.broadcast_to(omega, batch + (3,))
+    return jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
 
 
 def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
@@ -462,10 +468,17 @@ def _motion_failures(inertia, omega0, q0, t):
 def _torque_free_motion(inertia, omega0, q0, t, *, checked):
     """:func:`torque_free_motion`; ``checked=False`` as in :func:`_torque_free_omega`."""
     inertia, omega0, q0, t, batch = _broadcast_motion_inputs(inertia, omega0, q0, t, checked)
+    omega, turn = _motion_core(inertia, omega0, jnp.broadcast_to(t, batch))
+    return jnp.broadcast_to(omega, batch + (3,)), _quat_multiply(q0, turn)
+
+
+def _motion_at(inertia, omega0, t):
+    """``omega(t)`` and the rotation ``q0* q(t)`` of bodies whose arrays are broadcast
+    (:func:`_body_arrays`), ``t`` of the batch's shape."""
     frame = _frame(inertia, omega0)
     steady = frame["steady"]
     omega_g, parts = _motion_parts(frame, t)
-    q_g = _quat_multiply(q0, _general_orientation(frame, parts, t))
+    turn_g = _general_orientation(frame, parts, t)
 
     half = _norm(omega0[..., 0], omega0[..., 1], omega0[..., 2]) * t / 2
     # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
@@ -475,10 +488,14 @@ def _torque_free_motion(inertia, omega0, q0, t, *, checked):
     small = jnp.abs(half) < 1e-3
     sinc = jnp.where(small, 1 - half * half / 6, sin_h / jnp.where(small, 1.0, half))
     vector = (t / 2 * sinc)[..., None] * omega0
-    q_s = _quat_multiply(q0, jnp.concatenate([cos_h[..., None], vector], -1))
+    turn_s = jnp.concatenate([cos_h[..., None], vector], -1)
     omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
-    q = jnp.where(steady[..., None], q_s, q_g)
-    return jnp.broadcast_to(omega, batch + (3,)), jnp.broadcast_to(q, batch + (4,))
+    return omega, jnp.where(steady[..., None], turn_s, turn_g)
+
+
+# Reverse mode transposes the contraction of every sample's Jacobian (see .derivatives).
+_omega_core = sample_jacobians(_omega_at, (3, 3, 0))
+_motion_core = sample_jacobians(_motion_at, (3, 3, 0))
 
 
 @eqx.filter_jit

@@ -25,7 +25,7 @@ from .._checks import (
     raise_collected,
 )
 from .._closed_form.barrier import _materialised
-from .._closed_form.heavy_top import lagrange_top_at, lagrange_top_parts
+from .._closed_form.heavy_top import lagrange_top_motion, lagrange_top_parts
 from .._closed_form.jacobi import upper_side
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import FreeBody, HeavyTop
@@ -100,8 +100,7 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
 
     def motion(bodies, side=None):
         """omega ``(bodies, samples, 3)``, the orientation ``(bodies, samples, 4)`` and its largest
-        departure from unit norm per body (or None, None); ``side``: see :func:`.lagrange_top_at`
-        (Lagrange's top with its ``parts`` among ``bodies``)."""
+        departure from unit norm per body (or None, None); ``side``: see :func:`.lagrange_top_at`."""
         omega, q = samples(bodies, side)
         return omega, q, None if q is None else _norm_error(q)
 
@@ -112,8 +111,8 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
             return first_omega[:, None], None if q0 is None else first_q[:, None]
         inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
         if heavy:
-            parts = bodies["parts"] if "parts" in bodies else _lagrange_parts(bodies)
-            omega, q = lagrange_top_at(parts, t, side)
+            names = ("inertia", "mass", "com", "gravity", "omega0", "q0")
+            omega, q = lagrange_top_motion(*(bodies[name][:, None] for name in names), t, side)
         elif q0 is None:
             omega, q = torque_free_omega(inertia, omega0, t), None
         else:
@@ -189,11 +188,9 @@ def _one_side_blocks(motion, flat, per_block):
     rank = jnp.where(slot < lower_slots, jnp.minimum(slot, n_lower - 1), n_lower + slot - lower_slots)
     source = order[jnp.clip(rank, 0, n - 1)]
 
-    # Per-top arrays go to the blocks; the rest (constants of the closed form) is shared by every top.
-    per_top, shared = eqx.partition(
-        {**flat, "parts": parts}, lambda x: hasattr(x, "shape") and x.ndim >= 1 and x.shape[0] == n
-    )
-    blocked = jax.tree.map(lambda x: x[source].reshape((n_blocks, per_block) + x.shape[1:]), per_top)
+    # The blocks take the tops' inputs, not their parts (which the side was read from): the closed
+    # form's derivatives are taken from the inputs (see .derivatives).
+    blocked = jax.tree.map(lambda x: x[source].reshape((n_blocks, per_block) + x.shape[1:]), flat)
     # With no top above 1/2 the last block holds copies of a top below: it runs the lower side too.
     # Its values are not used, but the upper side's formulas are not finite at such a top (measured),
     # and no block should compute non-finite numbers that derivatives pass through.
@@ -201,7 +198,6 @@ def _one_side_blocks(motion, flat, per_block):
 
     def one_block(inputs):
         block, is_upper = inputs
-        block = eqx.combine(block, shared)
         return jax.lax.cond(is_upper, lambda b: motion(b, "upper"), lambda b: motion(b, "lower"), block)
 
     outputs = jax.lax.map(one_block, (blocked, block_upper))
