@@ -7,7 +7,8 @@ intermediates per sample: on 10^4 torque-free bodies (omega and q at one time) a
 derivative of ``motion`` is instead every sample's Jacobian, taken in forward mode (one direction per
 component of each differentiated input, batched), contracted with the input tangents: the tangent is
 linear in them through these few numbers per sample, and reverse mode transposes only the
-contraction (the same gradient: 0.08 s, 10 forward evaluations).
+contraction (the same gradient: 0.08 s, 10 forward evaluations). The torque-free omega alone, whose
+reverse mode is cheap as it is, is not wrapped (see ``torque_free._motion_core``).
 """
 
 from collections.abc import Callable, Sequence

@@ -493,8 +493,11 @@ def _motion_at(inertia, omega0, t):
     return omega, jnp.where(steady[..., None], turn_s, turn_g)
 
 
-# Reverse mode transposes the contraction of every sample's Jacobian (see .derivatives).
-_omega_core = sample_jacobians(_omega_at, (3, 3, 0))
+# omega alone is differentiated as it is computed: its reverse mode is cheap (10^3 bodies at one time
+# 4.5 ms, 45 bodies at 120 times 3.0 ms, against 2.4 and 7.8 ms by every sample's Jacobian). With the
+# orientation, reverse mode transposes the contraction of every sample's Jacobian (see .derivatives):
+# 14 ms against 651 ms for the 10^3 bodies, 8.9 against 31 ms for the 45 bodies.
+_omega_core = _omega_at
 _motion_core = sample_jacobians(_motion_at, (3, 3, 0))
 
 
