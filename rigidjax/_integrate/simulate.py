@@ -132,6 +132,10 @@ def simulate(
       spin by third-kind integrals, including tops that pass through the vertical; any other
       HeavyTop is a ``ValueError`` naming the condition it fails. Accurate to roundoff at any
       time (up to the conditioning of the motion); the cost does not grow with the duration.
+      Differentiable in both modes: with an orientation the derivative is every sample's Jacobian
+      (forward mode, contracted with the tangents), so that a reverse-mode gradient costs about
+      one JVP and keeps 7 numbers per body, sample time and differentiated input component (42
+      for the inertia and omega0; docs: Gradients).
       ``rigidjax.solvers.PRESETS`` lists the presets.
     - `solver`: any diffrax solver instead of the preset's; or a structure-preserving solver from
       ``rigidjax.solvers`` (:class:`RKMK`, :class:`LiePoissonSplitting`,
