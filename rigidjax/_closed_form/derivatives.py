@@ -28,7 +28,9 @@ def sample_jacobians(motion: Callable, components: Sequence[int]) -> Callable:
     of the Jacobian (a vector per body: ``3`` for ``omega0``), or ``0`` for an input whose every
     element is one direction (a scalar per body or per sample: ``mass``, ``t``). Inputs without a
     tangent (symbolic zeros) add no direction. Each input's shape (without the last axis where
-    ``components[i] > 0``) broadcasts against ``batch``.
+    ``components[i] > 0``) broadcasts against ``batch``, and each output sample must depend only on
+    the input elements it is broadcast against (bodies and sample times do not interact): one
+    direction then moves every body's component at once and yields every sample's column.
 
     Reverse mode keeps ``(sum of the differentiated components) x k`` numbers per sample and output:
     ``6 x 7`` for a free body's omega and q differentiated in inertia and ``omega0``.
