@@ -189,16 +189,11 @@ def _torque_free_omega(inertia, omega0, t, *, checked):
     errors, host callbacks: JAX's persistent cache keeps no program that holds one) for callers
     whose values are valid by construction, such as the fit's parametrised moments."""
     inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t, checked)
-    return _omega_core(inertia, omega0, jnp.broadcast_to(t, batch))
-
-
-def _omega_at(inertia, omega0, t):
-    """``omega(t)`` of bodies whose arrays are broadcast (:func:`_body_arrays`), ``t`` of the batch's
-    shape."""
     frame = _frame(inertia, omega0)
     steady = frame["steady"]
     omega_g = _motion_parts(frame, t)[0]
-    return jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
+    omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
+    return jnp.broadcast_to(omega, batch + (3,))
 
 
 def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
@@ -493,11 +488,10 @@ def _motion_at(inertia, omega0, t):
     return omega, jnp.where(steady[..., None], turn_s, turn_g)
 
 
-# omega alone is differentiated as it is computed: its reverse mode is cheap (10^3 bodies at one time
-# 4.5 ms, 45 bodies at 120 times 3.0 ms, against 2.4 and 7.8 ms by every sample's Jacobian). With the
-# orientation, reverse mode transposes the contraction of every sample's Jacobian (see .derivatives):
-# 14 ms against 651 ms for the 10^3 bodies, 8.9 against 31 ms for the 45 bodies.
-_omega_core = _omega_at
+# With the orientation, reverse mode transposes the contraction of every sample's Jacobian (see
+# .derivatives): 14 ms against 651 ms for 10^3 bodies at one time, 8.9 against 31 ms for 45 bodies at
+# 120 times. omega alone (_torque_free_omega) is differentiated as it is computed: its reverse mode is
+# cheap (4.5 and 3.0 ms there, against 2.4 and 7.8 ms by every sample's Jacobian).
 _motion_core = sample_jacobians(_motion_at, (3, 3, 0))
 
 

@@ -111,8 +111,7 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
             return first_omega[:, None], None if q0 is None else first_q[:, None]
         inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
         if heavy:
-            names = ("inertia", "mass", "com", "gravity", "omega0", "q0")
-            omega, q = lagrange_top_motion(*(bodies[name][:, None] for name in names), t, side)
+            omega, q = lagrange_top_motion(*(bodies[name][:, None] for name in _TOP_INPUTS), t, side)
         elif q0 is None:
             omega, q = torque_free_omega(inertia, omega0, t), None
         else:
@@ -163,10 +162,13 @@ def _norm_error(q):
     return jnp.max(jnp.abs(norm - 1.0), axis=-1)
 
 
+_TOP_INPUTS = ("inertia", "mass", "com", "gravity", "omega0", "q0")
+"""Lagrange's top's per-body inputs, in the order of :func:`.lagrange_top_motion`'s arguments."""
+
+
 def _lagrange_parts(bodies):
     """:func:`.lagrange_top_parts` of flat per-body inputs, with a samples axis to broadcast against."""
-    names = ("inertia", "mass", "com", "gravity", "omega0", "q0")
-    return lagrange_top_parts(*(bodies[name][:, None] for name in names))
+    return lagrange_top_parts(*(bodies[name][:, None] for name in _TOP_INPUTS))
 
 
 def _one_side_blocks(motion, flat, per_block):
