@@ -332,6 +332,13 @@ def main(argv=None):
     p.add_argument("--out-prefix", default=DEFAULT_PREFIX, help="writes PREFIX.json, PREFIX.md, PREFIX.png")
     p.add_argument("--no-plot", action="store_true")
     p.add_argument(
+        "--cpu-devices",
+        type=int,
+        default=1,
+        help="JAX devices the CPU is split into (rigidjax.use_cpu_cores) for every method of the run; "
+        "0: one per core",
+    )
+    p.add_argument(
         "--no-readme",
         action="store_true",
         help="do not rewrite the key-rows table of docs/guides/accuracy.md (a full run with the default "
@@ -352,6 +359,9 @@ def main(argv=None):
             update_readme(saved["meta"], saved["rows"], saved["targets"])
         return
 
+    import rigidjax as rj
+
+    cpu_devices = rj.use_cpu_cores(a.cpu_devices or None)
     t_start = time.perf_counter()
     meta = B.run_meta(
         "benchmarks/work_precision.py",
@@ -361,6 +371,7 @@ def main(argv=None):
         repeats=a.repeats,
         T=B.T_END,
         backend=jax.default_backend(),
+        cpu_devices=cpu_devices,
     )
     print(f"N={a.n} on {meta['devices']}, {os.cpu_count()} CPUs, load {meta['loadavg_start']}", flush=True)
     scene = B.reference_scene(a.n)

@@ -58,6 +58,7 @@ from ._fit import estimate_inertia as estimate_inertia
 from ._fit import fit_inertia as fit_inertia
 from ._fit import fit_inertia_to_orientation as fit_inertia_to_orientation
 from ._fit import omega_from_orientations as omega_from_orientations
+from ._integrate.cores import use_cpu_cores as use_cpu_cores
 from ._integrate.simulate import simulate as simulate
 from ._integrate.trajectory import Trajectory as Trajectory
 from ._kinematics.euler import body_angular_velocity as body_angular_velocity
@@ -132,6 +133,7 @@ __all__ = [
     "torque_free_motion",
     "torque_free_omega",
     "torque_free_period",
+    "use_cpu_cores",
     # stability
     "SleepingTop",
     "SpinStability",

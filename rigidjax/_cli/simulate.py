@@ -439,9 +439,9 @@ def add_parser(subparsers) -> None:
         help="solve the batch a second time, more accurately, for a per-body error estimate "
         "(rigidjax.simulate(..., error_estimate=True)); the summary names the worst body, the .npz "
         "stores error_estimate_omega and error_estimate_orientation per body. The second solve, "
-        "at a hundredth of the tolerance, takes more steps: the default job integrates in 1.6 s "
-        "without it and 4.4 s with it on 2 CPU cores (compile time unchanged: the second solve is "
-        "the same program)",
+        "at a hundredth of the tolerance, takes more steps: the default job integrates in 0.9-1.0 s "
+        "without it and 2.6-3.0 s with it on 2 CPU cores (compile time unchanged: the second solve "
+        "is the same program)",
     )
     sim.add_argument("-q", "--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=run)

@@ -1,0 +1,130 @@
+"""``rigidjax.use_cpu_cores`` and ``--cpu-devices``: the CPU as several JAX devices. The reference
+for the trajectories is the same batch integrated on this process's single device: splitting the
+chunks over devices must not change a bit."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_cli import _run
+
+import rigidjax as rj
+
+
+def _fresh_process(code: str, **env) -> str:
+    """Runs ``code`` in a new Python process (JAX not started), returns its stdout."""
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
+    environment = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", **env}
+    done = subprocess.run(
+        [sys.executable, "-c", code], env=environment, capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+@pytest.mark.parametrize("count", [0, -2, 1.5, True, "2"])
+def test_count_must_be_a_positive_integer(count, without_runtime_typecheck):
+    with pytest.raises(ValueError, match="use_cpu_cores: count must be a positive integer"):
+        rj.use_cpu_cores(count)
+
+
+def test_after_jax_started_only_its_count_is_accepted():
+    jnp.zeros(1).block_until_ready()  # JAX has started in this process
+    current = len(jax.devices("cpu"))
+    assert rj.use_cpu_cores(current) == current
+    with pytest.raises(RuntimeError, match=rf"already started .* {current} CPU device.*right after"):
+        rj.use_cpu_cores(current + 1)
+    assert len(jax.devices("cpu")) == current
+
+
+def test_a_count_chosen_by_xla_flags_is_kept_and_every_core_is_the_default():
+    code = "import rigidjax as rj, jax; n = rj.use_cpu_cores(); print(n, jax.device_count('cpu'))"
+    out = _fresh_process(code, XLA_FLAGS="--xla_force_host_platform_device_count=3")
+    assert out.split() == ["3", "3"]
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert _fresh_process(code).split() == [str(cores), str(cores)]
+
+
+_BATCH = """
+import numpy as np
+rng = np.random.default_rng(7)
+inertia = np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (45, 3)))
+omega = np.array([0.05, 4.0, 0.05]) + 0.01 * rng.normal(size=(45, 3))
+q0 = np.tile([1.0, 0.0, 0.0, 0.0], (45, 1))
+"""
+
+
+def _batch():
+    scope = {}
+    exec(_BATCH, scope)
+    return scope["inertia"], scope["omega"], scope["q0"]
+
+
+@pytest.mark.slow
+def test_two_devices_give_the_trajectories_of_one(tmp_path):
+    path = tmp_path / "two.npy"
+    code = f"""
+import rigidjax as rj
+assert rj.use_cpu_cores(2) == 2
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+assert jax.device_count() == 2, jax.devices()
+{_BATCH}
+traj = rj.simulate(rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega), jnp.asarray(q0)),
+                   jnp.linspace(0.0, 5.0, 6), chunk_size=8)
+assert len(traj.omega.sharding.device_set) == 2  # the chunks ran on both devices
+np.save({str(path)!r}, np.concatenate([np.asarray(traj.omega), np.asarray(traj.orientation)], axis=-1))
+"""
+    _fresh_process(code)
+    inertia, omega, q0 = _batch()
+    traj = rj.simulate(
+        rj.FreeBody(jnp.asarray(inertia)),
+        rj.State(jnp.asarray(omega), jnp.asarray(q0)),
+        jnp.linspace(0.0, 5.0, 6),
+        chunk_size=8,
+    )
+    one = np.concatenate([np.asarray(traj.omega), np.asarray(traj.orientation)], axis=-1)
+    np.testing.assert_array_equal(np.load(path), one)
+
+
+def test_the_command_names_a_device_count_it_cannot_have(tmp_path):
+    jnp.zeros(1).block_until_ready()
+    wanted = len(jax.devices("cpu")) + 1
+    out = str(tmp_path / "x.npz")
+    argv = ["simulate", "--scene", "free", "-n", "4", "--cpu-devices", str(wanted), "--out", out]
+    code, _, err = _run(argv)
+    assert code == 2
+    assert f"--cpu-devices {wanted}: use_cpu_cores({wanted}): JAX has already started" in err
+    assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.slow
+def test_the_command_on_two_devices_writes_what_one_device_writes(tmp_path):
+    argv = ["simulate", "--scene", "free", "-n", "600", "--blocks", "2", "--duration", "2", "--samples", "5"]
+    argv += ["--no-plot", "-q"]  # blocks of 300 bodies: two chunks each, one per device
+    env = dict(os.environ, RIGIDJAX_NO_COMPILATION_CACHE="1", JAX_PLATFORMS="cpu")
+    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f)
+    for devices in ("1", "2"):
+        out = str(tmp_path / f"{devices}.npz")
+        done = subprocess.run(
+            [sys.executable, "-m", "rigidjax._cli", *argv, "--cpu-devices", devices, "--out", out],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, done.stderr
+    with np.load(tmp_path / "1.npz") as one, np.load(tmp_path / "2.npz") as two:
+        assert set(one.files) == set(two.files)
+        for key in set(one.files) - {"summary_json"}:
+            np.testing.assert_array_equal(one[key], two[key], err_msg=key)
+        summaries = [json.loads(str(f["summary_json"])) for f in (one, two)]
+    timings = ("wall_time_s", "compile_time_s", "analysis_time_s", "body_steps_per_s")
+    one, two = ({k: v for k, v in s.items() if k not in timings} for s in summaries)
+    assert one == two and one["bodies"] == 600 and one["failed_bodies"] == 0
