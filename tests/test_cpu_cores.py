@@ -125,6 +125,7 @@ def test_the_command_on_two_devices_writes_what_one_device_writes(tmp_path):
         for key in set(one.files) - {"summary_json"}:
             np.testing.assert_array_equal(one[key], two[key], err_msg=key)
         summaries = [json.loads(str(f["summary_json"])) for f in (one, two)]
-    timings = ("wall_time_s", "compile_time_s", "analysis_time_s", "body_steps_per_s")
+    assert [s["devices"] for s in summaries] == [1, 2]
+    timings = ("wall_time_s", "compile_time_s", "analysis_time_s", "body_steps_per_s", "devices")
     one, two = ({k: v for k, v in s.items() if k not in timings} for s in summaries)
     assert one == two and one["bodies"] == 600 and one["failed_bodies"] == 0

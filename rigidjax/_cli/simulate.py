@@ -95,6 +95,7 @@ def _summary(plan: Plan, batch: Batch, args, compile_time: float) -> tuple[dict,
         "samples": plan.samples,
         "seed": args.seed,
         "chunk_size": batch.chunk_size,
+        "devices": jax.device_count(),
         "solver_steps": batch.steps_total,
         "body_steps": batch.body_steps,
         "wall_time_s": batch.sim_time,
@@ -215,6 +216,13 @@ def _animate(plan: Plan, batch: Batch, args) -> None:
     plot.animate(trajectory, args.animate, bodies=tuple(range(count)))
 
 
+def _devices_text(count: int) -> str:
+    kind = jax.default_backend()
+    if count == 1:
+        return f"1 {kind} device"
+    return f"{count} {kind} devices (each block's chunks spread over them; --cpu-devices on a CPU)"
+
+
 def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, out_files, t_start) -> None:
     blocks, block_size, padded = plan.blocks, plan.block_size, plan.padded
     mean_steps = batch.steps_total / max(1, blocks * math.ceil(block_size / max(batch.chunk_size, 1)))
@@ -232,6 +240,7 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
         ("dtype", args.dtype),
         ("accuracy", method),
         ("samples", f"{plan.samples:,} over {duration_text}"),
+        ("devices", _devices_text(summary["devices"])),
         (
             "solver steps",
             f"{batch.steps_total:,} (summed over chunks of <= {batch.chunk_size:,} bodies sharing one step "
