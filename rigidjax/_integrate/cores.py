@@ -46,8 +46,10 @@ def use_cpu_cores(count: int | None = None) -> int:
     float64, 2-core CPU): 2 devices ran 1.3-1.8x faster than one when the second core was free.
     When other programs keep every core busy, more devices can be slower (0.64-1.32x on a loaded
     2-core machine); a batch of a single chunk runs on one device whatever the count. Arrays are
-    placed on the first device unless sharded, so code that does not shard is unaffected, but
-    ``jax.devices()`` and ``jax.device_count()`` report the new count for the whole process.
+    placed on the first device unless sharded, so code that does not shard runs there as before
+    (a ``jax.vmap`` of a diffrax solve of 10^4 bodies measured 2-17 % slower beside a second
+    device), and ``jax.devices()`` and ``jax.device_count()`` report the new count for the whole
+    process.
 
     **Arguments:**
 
