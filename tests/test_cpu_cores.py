@@ -16,13 +16,13 @@ from test_cli import _run
 import rigidjax as rj
 
 
-def _fresh_process(code: str, **env) -> str:
-    """Runs ``code`` in a new Python process (JAX not started), returns its stdout."""
+def _fresh_process(*args: str, **env) -> str:
+    """Runs ``python *args`` in a new process (JAX not started, no device count chosen unless
+    ``env`` chooses one), asserts it succeeded and returns its stdout."""
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
     environment = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", **env}
-    done = subprocess.run(
-        [sys.executable, "-c", code], env=environment, capture_output=True, text=True, timeout=600
-    )
+    argv = [sys.executable, *args]
+    done = subprocess.run(argv, env=environment, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     return done.stdout
 
@@ -44,10 +44,10 @@ def test_after_jax_started_only_its_count_is_accepted():
 
 def test_a_count_chosen_by_xla_flags_is_kept_and_every_core_is_the_default():
     code = "import rigidjax as rj, jax; n = rj.use_cpu_cores(); print(n, jax.device_count('cpu'))"
-    out = _fresh_process(code, XLA_FLAGS="--xla_force_host_platform_device_count=3")
+    out = _fresh_process("-c", code, XLA_FLAGS="--xla_force_host_platform_device_count=3")
     assert out.split() == ["3", "3"]
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    assert _fresh_process(code).split() == [str(cores), str(cores)]
+    assert _fresh_process("-c", code).split() == [str(cores), str(cores)]
 
 
 _BATCH = """
@@ -81,7 +81,7 @@ traj = rj.simulate(rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega
 assert len(traj.omega.sharding.device_set) == 2  # the chunks ran on both devices
 np.save({str(path)!r}, np.concatenate([np.asarray(traj.omega), np.asarray(traj.orientation)], axis=-1))
 """
-    _fresh_process(code)
+    _fresh_process("-c", code)
     inertia, omega, q0 = _batch()
     traj = rj.simulate(
         rj.FreeBody(jnp.asarray(inertia)),
@@ -108,18 +108,10 @@ def test_the_command_names_a_device_count_it_cannot_have(tmp_path):
 def test_the_command_on_two_devices_writes_what_one_device_writes(tmp_path):
     argv = ["simulate", "--scene", "free", "-n", "600", "--blocks", "2", "--duration", "2", "--samples", "5"]
     argv += ["--no-plot", "-q"]  # blocks of 300 bodies: two chunks each, one per device
-    env = dict(os.environ, RIGIDJAX_NO_COMPILATION_CACHE="1", JAX_PLATFORMS="cpu")
-    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f)
     for devices in ("1", "2"):
         out = str(tmp_path / f"{devices}.npz")
-        done = subprocess.run(
-            [sys.executable, "-m", "rigidjax._cli", *argv, "--cpu-devices", devices, "--out", out],
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
-        assert done.returncode == 0, done.stderr
+        command = ["-m", "rigidjax._cli", *argv, "--cpu-devices", devices, "--out", out]
+        _fresh_process(*command, RIGIDJAX_NO_COMPILATION_CACHE="1")
     with np.load(tmp_path / "1.npz") as one, np.load(tmp_path / "2.npz") as two:
         assert set(one.files) == set(two.files)
         for key in set(one.files) - {"summary_json"}:
