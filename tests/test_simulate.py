@@ -637,3 +637,59 @@ def test_torque_free_bodies_share_chunks_by_period_and_phase():
     given = rj.simulate(slow, state, ts, chunk_size=chunk, sort_by_speed=False)
     steps = [float(np.mean(t.stats["num_steps"])) for t in (by_timing, given)]
     assert steps[0] < 0.9 * steps[1], steps
+
+
+@pytest.mark.parametrize("devices", [1, 2])
+def test_chunks_are_equal_and_the_padding_under_one_body_per_chunk(devices, monkeypatch):
+    """Against the definition, by enumeration: the fewest chunks of at most ``chunk_size`` bodies
+    (with two devices, an even count), all of one size, the smallest size that holds the batch."""
+    from rigidjax._integrate import batching
+
+    monkeypatch.setattr(jax, "device_count", lambda: devices)
+    for n in (1, 2, 7, 255, 256, 257, 300, 10_000, 100_000):
+        for chunk_size in (1, 4, 256, 65536):
+            chunk, n_chunks, shard = batching.chunk_layout(n, chunk_size)
+            fewest = min(k for k in range(1, n + 1) if k * chunk_size >= n)
+            if devices > 1 and fewest > 1:
+                fewest += fewest % 2
+            assert n_chunks == fewest and shard == (devices > 1 and n_chunks > 1)
+            assert chunk == min(c for c in range(1, n + 1) if c * n_chunks >= n) <= chunk_size
+            assert 0 <= n_chunks * chunk - n < n_chunks
+
+
+def test_simulate_reports_its_equal_chunks():
+    """300 bodies with the default 256 per chunk run as two chunks of 150 (not 256 and 44 padded to
+    256), and meet the preset's accuracy against the closed form."""
+    rng = np.random.default_rng(11)
+    inertia = jnp.asarray(np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (300, 3))))
+    omega0 = jnp.asarray(np.array([0.3, 1.0, 0.2]) + 0.05 * rng.normal(size=(300, 3)))
+    model, state = rj.FreeBody(inertia), rj.State(omega0)
+    ts = jnp.linspace(0.0, 5.0, 3)
+    traj = rj.simulate(model, state, ts)
+    assert int(traj.stats["chunk_size"]) == 150 and np.asarray(traj.stats["num_steps"]).shape == (2,)
+    exact = rj.simulate(model, state, ts, accuracy="exact")
+    scale = np.max(np.abs(np.asarray(exact.omega)), axis=(1, 2), keepdims=True)
+    assert np.max(np.abs(np.asarray(traj.omega) - np.asarray(exact.omega)) / scale) < 5e-7
+
+
+class _Accelerator:
+    platform = "gpu"
+    core_count = 132
+
+    @staticmethod
+    def memory_stats():
+        return {"bytes_limit": 139 * 2**30}
+
+
+def test_default_chunk_size_on_an_accelerator(monkeypatch):
+    """On a pretend H200 (132 cores, 139 GiB): 512 bodies per core; with 10^5 sample times a chunk's
+    samples (saved, then gathered: 2 x 7 components x 8 bytes each) and about 32 stages' states
+    stay under an eighth of the memory; on CPU 256."""
+    from rigidjax._integrate.presets import default_chunk_size
+
+    assert default_chunk_size() == 256
+    monkeypatch.setattr(jax, "devices", lambda *a: [_Accelerator()])
+    assert default_chunk_size() == 512 * 132
+    per_body = (100_000 + 32) * 7 * 2 * 8
+    assert default_chunk_size(100_000, 8) == 139 * 2**30 // (8 * per_body) < 512 * 132
+    assert default_chunk_size(100_000, 4) == 139 * 2**30 // (8 * per_body // 2)

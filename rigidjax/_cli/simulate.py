@@ -407,7 +407,7 @@ def add_parser(subparsers) -> None:
         "--chunk-size",
         type=positive_int,
         default=None,
-        help="bodies per shared-step chunk inside rigidjax.simulate (default: 256 on CPU, 65536 on GPU)",
+        help="bodies per shared-step chunk inside rigidjax.simulate (default: 256 on CPU, 512 per GPU core)",
     )
     sim.add_argument(
         "--out",

@@ -136,6 +136,7 @@ def _exact_motion(model, omega0, q0, ts, chunk_size, one_side=True):
         return omega, q
 
     per_block = max(1, block_elements() // max(n_times, 1)) if chunk_size is None else chunk_size
+    block = min(per_block, n_bodies)
     if n_bodies <= per_block:
         omega, orientation, q_norm_error = motion(flat)
     elif heavy and n_times > 1 and one_side:
@@ -143,6 +144,7 @@ def _exact_motion(model, omega0, q0, ts, chunk_size, one_side=True):
     else:
         # Blocks of bodies in a loop; the last one is filled up with copies of the last body.
         plan = batching.plan_chunks(n_bodies, per_block, shardable=False)
+        block = plan.chunk
         blocks = {name: batching.to_chunks(plan, x) for name, x in flat.items()}
         outputs = jax.lax.map(motion, blocks)
         omega, orientation, q_norm_error = (batching.from_chunks(plan, x) for x in outputs)
@@ -158,7 +160,7 @@ def _exact_motion(model, omega0, q0, ts, chunk_size, one_side=True):
         success=jnp.ones(batch, bool),
         stats={
             "num_steps": jnp.zeros((), jnp.int32),
-            "chunk_size": min(per_block, n_bodies),
+            "chunk_size": block,
             "quaternion_norm_error": q_norm_error,
         },
     )

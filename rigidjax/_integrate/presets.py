@@ -47,12 +47,39 @@ def preset_solver(accuracy: str, differentiated: bool, n_bodies: int) -> diffrax
     return solver()
 
 
-def default_chunk_size() -> int:
-    """Bodies per shared-step chunk when the caller names none: 256 on CPU, where a chunk's stages
-    stay in the core's cache (``benchmarks/step_cost.py``, 10^4 tennis-racket bodies, "balanced":
-    134 ns per body and step in chunks of 256 against 195 in chunks of 1024), and
-    65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk than as ten)."""
-    return 256 if jax.default_backend() == "cpu" else 65536
+BODIES_PER_ACCELERATOR_CORE = 512
+"""Default chunk on an accelerator, per streaming multiprocessor (67584 bodies on an H200's 132)."""
+
+CHUNK_MEMORY_SHARE = 8
+"""On an accelerator, a chunk's samples and solver stages take at most this share of the device's
+memory (``1 / CHUNK_MEMORY_SHARE``)."""
+
+
+def default_chunk_size(n_samples: int = 2, itemsize: int = 8) -> int:
+    """Bodies per shared-step chunk when the caller names none.
+
+    On CPU 256, where a chunk's stages stay in the core's cache (``benchmarks/step_cost.py``, 10^4
+    tennis-racket bodies, "balanced": 134 ns per body and step in chunks of 256 against 195 in
+    chunks of 1024).
+
+    On an accelerator, ``BODIES_PER_ACCELERATOR_CORE`` per core (streaming multiprocessor), about
+    the batch from which a step's time grows with the number of bodies; beyond it, a larger chunk's
+    shared step (set by its most demanding body) costs more than running chunks one after another.
+    Measured on an H200 (132 multiprocessors), tennis-racket bodies, "balanced": one chunk of 10^4
+    bodies 0.020 s, of 65536 0.028 s, of 10^5 0.059 s, of 262144 0.15 s; 10^6 bodies in chunks of
+    65536 0.44 s, of 262144 0.60 s, in one 0.59 s (``benchmarks/results/accelerator.gpu.json``).
+    Capped so that a chunk's ``n_samples`` samples and its solver's stages (about 32 states) take
+    at most ``1 / CHUNK_MEMORY_SHARE`` of the device's memory."""
+    device = jax.devices()[0]
+    if device.platform == "cpu":
+        return 256
+    cores = getattr(device, "core_count", None)
+    chunk = BODIES_PER_ACCELERATOR_CORE * cores if cores else 65536
+    limit = (device.memory_stats() or {}).get("bytes_limit")
+    if limit:
+        per_body = (n_samples + 32) * 7 * 2 * itemsize  # the samples twice: saved, then gathered
+        chunk = min(chunk, max(1, limit // (CHUNK_MEMORY_SHARE * per_body)))
+    return int(chunk)
 
 
 MIN_MAX_STEPS = 100_000

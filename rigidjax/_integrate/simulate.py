@@ -160,11 +160,12 @@ def simulate(
       1e5 inside ``jit``, where the values are unknown, and with ``adjoint=diffrax.DirectAdjoint()``
       (whose loop is sized by the limit). Otherwise the limit costs no memory (reverse mode keeps
       ``log(max_steps)`` checkpoints).
-    - `chunk_size`: bodies per shared-step chunk. Default: 256 on CPU (cache-sized chunks run one
-      after another), 65536 on accelerators (one H100 ran 10^4 bodies 9.4x faster as one chunk
-      than as ten; ``benchmarks/README.md``). With ``accuracy="exact"``: bodies evaluated together
-      (default on CPU: 2^17 body-samples per block, which keeps the closed form's intermediates in
-      the cache; one block on accelerators).
+    - `chunk_size`: bodies per shared-step chunk, at most (the chunks are made equal, so the last
+      one is not mostly padding). Default: 256 on CPU (cache-sized chunks run one after another);
+      on accelerators 512 per core (67584 on an H200; ``benchmarks/README.md``), fewer where the
+      samples of one chunk would take over an eighth of the device's memory. With
+      ``accuracy="exact"``: bodies evaluated together (default on CPU: 2^17 body-samples per
+      block, which keeps the closed form's intermediates in the cache; one block on accelerators).
     - `sort_by_speed`: group bodies of similar angular-velocity scale into the same chunk, and
       torque-free bodies of one speed class (a factor ``2^(1/4)``) by the period of their motion
       and the time of their next flip, so that the bodies of a chunk flip at the same times and
@@ -264,7 +265,7 @@ def simulate(
     q0 = None if state0.orientation is None else state0.orientation.astype(dtype)
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
     if chunk_size is None:
-        chunk_size = default_chunk_size()
+        chunk_size = default_chunk_size(ts.shape[0], jnp.dtype(dtype).itemsize)
     if max_steps is None:
         # DirectAdjoint runs nested scans sized by max_steps: its cost grows with the limit.
         direct = isinstance(adjoint, diffrax.DirectAdjoint)
