@@ -658,22 +658,24 @@ def test_chunks_are_equal_and_the_padding_under_one_body_per_chunk(devices, monk
 
 
 def test_simulate_reports_its_equal_chunks():
-    """300 bodies with the default 256 per chunk run as two chunks of 150 (not 256 and 44 padded to
-    256), and meet the preset's accuracy against the closed form."""
+    """300 bodies in chunks of at most 256 run as two chunks of 150 (not 256 and 44 padded to 256),
+    and meet the preset's accuracy against the closed form."""
     rng = np.random.default_rng(11)
     inertia = jnp.asarray(np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (300, 3))))
     omega0 = jnp.asarray(np.array([0.3, 1.0, 0.2]) + 0.05 * rng.normal(size=(300, 3)))
     model, state = rj.FreeBody(inertia), rj.State(omega0)
     ts = jnp.linspace(0.0, 5.0, 3)
-    traj = rj.simulate(model, state, ts)
+    traj = rj.simulate(model, state, ts, chunk_size=256)
     assert int(traj.stats["chunk_size"]) == 150 and np.asarray(traj.stats["num_steps"]).shape == (2,)
     exact = rj.simulate(model, state, ts, accuracy="exact")
     scale = np.max(np.abs(np.asarray(exact.omega)), axis=(1, 2), keepdims=True)
     assert np.max(np.abs(np.asarray(traj.omega) - np.asarray(exact.omega)) / scale) < 5e-7
 
 
-class _Accelerator:
-    platform = "gpu"
+class _Device:
+    def __init__(self, platform):
+        self.platform = platform
+
     core_count = 132
 
     @staticmethod
@@ -687,8 +689,9 @@ def test_default_chunk_size_on_an_accelerator(monkeypatch):
     stay under an eighth of the memory; on CPU 256."""
     from rigidjax._integrate.presets import default_chunk_size
 
+    monkeypatch.setattr(jax, "devices", lambda *a: [_Device("cpu")])
     assert default_chunk_size() == 256
-    monkeypatch.setattr(jax, "devices", lambda *a: [_Accelerator()])
+    monkeypatch.setattr(jax, "devices", lambda *a: [_Device("gpu")])
     assert default_chunk_size() == 512 * 132
     per_body = (100_000 + 32) * 7 * 2 * 8
     assert default_chunk_size(100_000, 8) == 139 * 2**30 // (8 * per_body) < 512 * 132

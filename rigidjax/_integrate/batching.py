@@ -95,9 +95,10 @@ class ChunkPlan(NamedTuple):
 def chunk_layout(n: int, chunk_size: int, *, shardable: bool = True) -> tuple[int, int, bool]:
     """``(chunk, n_chunks, sharded)`` for ``n`` bodies in chunks of at most ``chunk_size``: the fewest
     chunks (with several devices, a multiple of the device count), all of one size, as even as
-    possible, so that the last chunk's padding stays under one body per chunk. Measured on an H200,
-    10^5 tennis-racket bodies: two chunks of 65536 (31072 of them padding) 0.069 s, one of 10^5
-    0.059 s (``benchmarks/results/accelerator.gpu.json``)."""
+    possible, so that the padding stays under one body per chunk. On an H200, 10^5 tennis-racket
+    bodies, "balanced": two chunks of 65536 (31072 of them padding) 0.069 s against one chunk of
+    10^5 0.059 s in one run, two chunks of 50000 0.064 s against 0.061 s in another
+    (``benchmarks/results/accelerator.gpu*.json``)."""
     n_chunks = -(-n // min(chunk_size, n))
     n_devices = jax.device_count()
     shard = shardable and n_devices > 1 and n_chunks > 1
