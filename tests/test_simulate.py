@@ -641,8 +641,9 @@ def test_torque_free_bodies_share_chunks_by_period_and_phase():
 
 @pytest.mark.parametrize("devices", [1, 2])
 def test_chunks_are_equal_and_the_padding_under_one_body_per_chunk(devices, monkeypatch):
-    """Against the definition, by enumeration: the fewest chunks of at most ``chunk_size`` bodies
-    (with two devices, an even count), all of one size, the smallest size that holds the batch."""
+    """Against the definition, by enumeration: the fewest chunks of at most ``chunk_size`` bodies,
+    all of one size, the smallest size that holds the batch; with two devices the same chunks, and
+    a chunk of padding where their count is odd (so that the trajectories are those of one device)."""
     from rigidjax._integrate import batching
 
     monkeypatch.setattr(jax, "device_count", lambda: devices)
@@ -650,11 +651,10 @@ def test_chunks_are_equal_and_the_padding_under_one_body_per_chunk(devices, monk
         for chunk_size in (1, 4, 256, 65536):
             chunk, n_chunks, shard = batching.chunk_layout(n, chunk_size)
             fewest = min(k for k in range(1, n + 1) if k * chunk_size >= n)
-            if devices > 1 and fewest > 1:
-                fewest += fewest % 2
-            assert n_chunks == fewest and shard == (devices > 1 and n_chunks > 1)
-            assert chunk == min(c for c in range(1, n + 1) if c * n_chunks >= n) <= chunk_size
-            assert 0 <= n_chunks * chunk - n < n_chunks
+            assert chunk == min(c for c in range(1, n + 1) if c * fewest >= n) <= chunk_size
+            assert 0 <= fewest * chunk - n < fewest
+            padding_chunk = devices > 1 and fewest > 1 and fewest % 2
+            assert n_chunks == fewest + padding_chunk and shard == (devices > 1 and fewest > 1)
 
 
 def test_simulate_reports_its_equal_chunks():

@@ -94,17 +94,19 @@ class ChunkPlan(NamedTuple):
 
 def chunk_layout(n: int, chunk_size: int, *, shardable: bool = True) -> tuple[int, int, bool]:
     """``(chunk, n_chunks, sharded)`` for ``n`` bodies in chunks of at most ``chunk_size``: the fewest
-    chunks (with several devices, a multiple of the device count), all of one size, as even as
-    possible, so that the padding stays under one body per chunk. On an H200, 10^5 tennis-racket
-    bodies, "balanced": two chunks of 65536 (31072 of them padding) 0.069 s against one chunk of
-    10^5 0.059 s in one run, two chunks of 50000 0.064 s against 0.061 s in another
-    (``benchmarks/results/accelerator.gpu*.json``)."""
+    chunks, all of one size, as even as possible, so that the padding stays under one body per
+    chunk. With several devices the chunk count is then rounded up to a multiple of the device count
+    with chunks of padding, so that the chunks, and the trajectories, are those of one device. On
+    an H200, 10^5 tennis-racket bodies, "balanced": two chunks of 65536 (31072 of them padding)
+    0.069 s against one chunk of 10^5 0.059 s in one run, two chunks of 50000 0.064 s against
+    0.061 s in another (``benchmarks/results/accelerator.gpu*.json``)."""
     n_chunks = -(-n // min(chunk_size, n))
+    chunk = -(-n // n_chunks)
     n_devices = jax.device_count()
     shard = shardable and n_devices > 1 and n_chunks > 1
     if shard:
         n_chunks = -(-n_chunks // n_devices) * n_devices
-    return -(-n // n_chunks), n_chunks, shard
+    return chunk, n_chunks, shard
 
 
 def plan_chunks(n: int, chunk_size: int, sort_keys=None, *, shardable: bool = True) -> ChunkPlan:

@@ -97,8 +97,10 @@ def plan_bodies(model, omega0, q0, ts, args, formulation, chunk_size, sort):
         sigma = jnp.ones_like(omega0)
     # Without scales there is nothing to sort by.
     sorted_ = sort and formulation.uses_scale
-    sort_keys = _chunk_order_keys(model, leaves, flat, omega0, sigma, chunk_size) if sorted_ else None
-    plan = batching.plan_chunks(math.prod(batch), chunk_size, sort_keys, shardable=ts.shape[0] > 1)
+    n, shardable = math.prod(batch), ts.shape[0] > 1
+    chunk = batching.chunk_layout(n, chunk_size, shardable=shardable)[0]  # the groups hold whole chunks
+    sort_keys = _chunk_order_keys(model, leaves, flat, omega0, sigma, chunk) if sorted_ else None
+    plan = batching.plan_chunks(n, chunk_size, sort_keys, shardable=shardable)
     return batch, leaves, flat, omega0, q0, sigma, plan
 
 

@@ -139,7 +139,8 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
         raise ValueError(_TRACED)
     batch = batching.batch_shape(model, omega0, q0)
     n = int(np.prod(batch))
-    chunk, n_chunks, _ = batching.chunk_layout(n, chunk_size, shardable=False)
+    # The chunks of the whole batch's program (which shards where ts has several samples).
+    chunk, n_chunks, _ = batching.chunk_layout(n, chunk_size)
     if ts.shape[0] == 1 or n_chunks == 1:
         traj = run(model, omega0, q0, chunk_size, sort)
         report(n, n)
