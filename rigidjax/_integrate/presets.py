@@ -66,8 +66,8 @@ def default_chunk_size(n_samples: int = 2, itemsize: int = 8) -> int:
     the batch from which a step's time grows with the number of bodies; beyond it, a larger chunk's
     shared step (set by its most demanding body) costs more than running chunks one after another.
     Measured on an H200 (132 multiprocessors), tennis-racket bodies, "balanced": one chunk of 10^4
-    bodies 0.020 s, of 65536 0.028 s, of 10^5 0.059 s, of 262144 0.15 s; 10^6 bodies in chunks of
-    65536 0.44 s, of 262144 0.60 s, in one 0.59 s (``benchmarks/results/accelerator.gpu.json``).
+    bodies 0.020 s, of 10^5 0.059 s; 10^6 bodies in chunks of 65536 0.44 s (0.028 s a chunk), of
+    262144 0.60 s (0.15 s a chunk), in one 0.59 s (``benchmarks/results/accelerator.gpu.json``).
     Capped so that a chunk's ``n_samples`` samples and its solver's stages (about 32 states) take
     at most ``1 / CHUNK_MEMORY_SHARE`` of the device's memory."""
     device = jax.devices()[0]
