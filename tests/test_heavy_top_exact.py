@@ -327,8 +327,8 @@ def test_blocks_of_tops_match_one_block(sides, n_samples):
         np.asarray(blocks.orientation), np.asarray(whole.orientation), rtol=0, atol=1e-13
     )
     np.testing.assert_allclose(
-        np.asarray(blocks.stats["quaternion_norm_error"]),
-        np.asarray(whole.stats["quaternion_norm_error"]),
+        np.asarray(blocks.invariants()["quaternion_norm"]),
+        np.asarray(whole.invariants()["quaternion_norm"]),
         rtol=0,
         atol=1e-15,
     )

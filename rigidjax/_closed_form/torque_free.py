@@ -28,6 +28,7 @@ from .._checks import (
     check_rotation_quaternion,
     collected_failures,
     common_float,
+    packed_failures,
 )
 from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
@@ -181,7 +182,7 @@ def _omega_program(inertia, omega0, t, *, checked):
 def _omega_failures(inertia, omega0, t):
     with collected_failures() as failures:
         _broadcast_inputs(inertia, omega0, t)
-    return list(failures)
+    return packed_failures(failures)
 
 
 def _torque_free_omega(inertia, omega0, t, *, checked):
@@ -229,7 +230,7 @@ def _period_inputs(inertia, omega0, checked):
 def _period_failures(inertia, omega0):
     with collected_failures() as failures:
         _period_inputs(inertia, omega0, checked=True)
-    return list(failures)
+    return packed_failures(failures)
 
 
 @eqx.filter_jit
@@ -457,7 +458,7 @@ def _motion_program(inertia, omega0, q0, t, *, checked):
 def _motion_failures(inertia, omega0, q0, t):
     with collected_failures() as failures:
         _broadcast_motion_inputs(inertia, omega0, q0, t)
-    return list(failures)
+    return packed_failures(failures)
 
 
 def _torque_free_motion(inertia, omega0, q0, t, *, checked):

@@ -13,6 +13,7 @@ from .._checks import (
     error_if,
     is_traced,
     known_values,
+    packed_failures,
     raise_collected,
 )
 from .._kinematics.euler import _euler_from_quat
@@ -43,7 +44,7 @@ def checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
 def _checks_collected(model, omega0, q0, ts, euler_seq, lock_tolerance):
     with collected_failures() as failures:
         checked = _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
-    return checked, list(failures)
+    return checked, packed_failures(failures)
 
 
 def _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance):

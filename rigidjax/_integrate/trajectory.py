@@ -31,7 +31,9 @@ class Trajectory(eqx.Module):
     is False where the integration failed (only with ``throw=False``): such a body keeps the samples
     before its failure and is NaN from there on.
     ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk),
-    ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body),
+    ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body;
+    None for ``accuracy="exact"``, whose quaternions nothing normalises: :meth:`invariants` measures
+    their norm from the samples),
     ``result`` (per body: 0 for success, otherwise diffrax's result code, or -1 for a state that turned
     NaN or inf under a fixed-step solver) and ``first_failed_sample`` (per body: the index of its
     first NaN sample, ``T`` when it has none); with ``simulate(..., error_estimate=True)`` also
@@ -184,7 +186,8 @@ class Trajectory(eqx.Module):
         torque, a gyrostat's rotors included: ``L = I omega + h``), ``space_angular_momentum`` (the
         same, with orientation, ``|L(t) - L(0)| / |L(0)|``),
         ``vertical_angular_momentum`` (heavy top, relative to |L(0)|), ``quaternion_norm``
-        (``| |q| - 1 |`` before the output was normalised).
+        (``| |q| - 1 |`` before the output was normalised; for ``accuracy="exact"``, whose output
+        nothing normalises, ``| |q| - 1 |`` of the samples).
         """
         out = {}
         model = self.model
@@ -211,5 +214,8 @@ class Trajectory(eqx.Module):
             Lz = self.space_angular_momentum()[..., 2]
             out["vertical_angular_momentum"] = drift(Lz, L_norm[..., 0])
         if self.orientation is not None:
-            out["quaternion_norm"] = self.stats["quaternion_norm_error"]
+            q_norm = self.stats.get("quaternion_norm_error")
+            if q_norm is None:
+                q_norm = jnp.max(jnp.abs(jnp.linalg.norm(self.orientation, axis=-1) - 1), axis=-1)
+            out["quaternion_norm"] = q_norm
         return out
