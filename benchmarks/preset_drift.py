@@ -82,7 +82,7 @@ def main():
             space_L_error=float(
                 np.max(np.linalg.norm(L_space - L_space[0], axis=-1)) / np.linalg.norm(L_space[0])
             ),
-            quaternion_norm_error=float(np.max(np.asarray(traj.stats["quaternion_norm_error"]))),
+            quaternion_norm_error=float(np.max(np.asarray(traj.invariants()["quaternion_norm"]))),
             omega_error=float(np.max(np.abs(w - omega_ref)) / np.max(np.abs(omega_ref))),
             angle_error=float(np.max(_angle(q, q_ref))),
             steps=int(np.max(np.asarray(traj.stats["num_steps"]))) if "num_steps" in traj.stats else None,
