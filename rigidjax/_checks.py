@@ -213,7 +213,8 @@ def call_checked(program, failures, *args):
     values = known_values(args)
     if values is None:
         return program(*args, checked=True)
-    raise_collected(failures(*values))
+    with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over the values
+        raise_collected(failures(*values))
     return program(*args, checked=False)
 
 

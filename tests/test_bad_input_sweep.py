@@ -21,6 +21,7 @@ import importlib
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import dop853_free_body
@@ -408,10 +409,18 @@ def test_generated_bad_input_gets_a_clear_error(name, data, without_runtime_type
 
 @pytest.mark.parametrize("name", list(SWEEP))
 def test_good_input_gives_finite_output(name):
-    """The table's good calls are good: the corruptions above are the only problem."""
+    """The table's good calls are good: the corruptions above are the only problem. The same call
+    inside a ``jit`` that closes over the arrays (constants of the traced program, whose checks
+    read their values while it is traced) gives the eager values."""
     fn, args, _ = SWEEP[name]
-    for out in jax.tree.leaves(fn(*[a.value for a in args])):
+    arrays = [jnp.asarray(a.value) for a in args]
+    eager = jax.tree.leaves(fn(*arrays))
+    for out in eager:
         assert np.all(np.isfinite(np.asarray(out, float))), name
+    closed_over = jax.tree.leaves(jax.jit(lambda: fn(*arrays))())
+    assert len(closed_over) == len(eager)
+    for x, y in zip(closed_over, eager, strict=True):
+        np.testing.assert_allclose(np.asarray(x, float), np.asarray(y, float), rtol=1e-13, atol=1e-15)
 
 
 def test_sequence_functions_reject_unknown_sequences():

@@ -578,6 +578,30 @@ def test_simulate_routes_structure_preserving_solvers():
         rj.simulate(top, state0, ts, solver=rj.solvers.RKMK())
 
 
+@pytest.mark.parametrize(
+    "model, accuracy",
+    [
+        (rj.FreeBody(jnp.array([1.0, 2.0, 3.0])), "fast"),
+        (rj.FreeBody(jnp.array([1.0, 2.0, 3.0])), "exact"),
+        (rj.HeavyTop(jnp.array([1.0, 1.0, 0.5]), 1.0, jnp.array([0.0, 0.0, 0.3])), "exact"),
+    ],
+    ids=["free body, fast", "free body, exact", "heavy top, exact"],
+)
+def test_simulate_inside_a_jit_that_closes_over_its_inputs(model, accuracy):
+    """Arrays a jitted function closes over are constants of its program: their checks read their
+    values while it is traced, the program gives the eager values, and a bad one raises the eager
+    ``ValueError`` when the function is traced."""
+    omega0, ts = jnp.array([0.1, 2.0, 0.1]), jnp.linspace(0.0, 1.0, 5)
+    q0 = jnp.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
+    eager = rj.simulate(model, rj.State(omega0, q0), ts, accuracy=accuracy)
+    closed_over = jax.jit(lambda: rj.simulate(model, rj.State(omega0, q0), ts, accuracy=accuracy))()
+    np.testing.assert_allclose(closed_over.omega, eager.omega, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(closed_over.orientation, eager.orientation, rtol=0, atol=1e-14)
+    not_unit = jnp.array([1.0, 0.1, 0.0, 0.0])
+    with pytest.raises(ValueError, match="state0.orientation is not a unit quaternion"):
+        jax.jit(lambda: rj.simulate(model, rj.State(omega0, not_unit), ts, accuracy=accuracy))()
+
+
 def test_heavy_top_accepts_a_list_for_com():
     top = rj.HeavyTop([1.0, 1.0, 0.5], 1.0, [0.0, 0.0, 0.1])
     assert top.com.shape == (3,)

@@ -107,7 +107,8 @@ def omega_from_orientations(ts, q_observed):
     lo = np.clip(np.arange(T) - 1, 0, T - 1)
     hi = np.clip(np.arange(T) + 1, 0, T - 1)
     conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])
-    rel = np.asarray(_quat_multiply(conj, q[hi]))
+    with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over q_observed
+        rel = np.asarray(_quat_multiply(conj, q[hi]))
     rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)
     vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
     angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])

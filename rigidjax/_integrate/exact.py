@@ -309,9 +309,9 @@ def _check_lagrange_top(model, state0):
         return  # traced: checked at run time by _lagrange_checked
     inertia, com = (np.asarray(x, np.float64) for x in values)
     dtype = float_dtype(model.inertia, model.com)
-    asymmetric, off_axis = (
-        np.asarray(x) for x in _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
-    )
+    with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over the values
+        failures = _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
+    asymmetric, off_axis = (np.asarray(x) for x in failures)
     if np.any(asymmetric):
         bad = np.broadcast_to(inertia, asymmetric.shape + (3,))[asymmetric][0]
         raise ValueError(_ASYMMETRIC.format(f"; got I1 = {bad[0]:g}, I2 = {bad[1]:g}"))
@@ -330,8 +330,9 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         ts = check_times_shape(ts)
         leaves = (model.inertia, model.mass, model.com, model.gravity)
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
-        top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
-        omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
+        with jax.ensure_compile_time_eval():  # a constant of a jit's program stays one (checked now)
+            top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
+            omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
         return _run_exact(top, omega0, q0, ts, chunk_size)
     if not model.torque_free:
         raise ValueError(
@@ -346,19 +347,21 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         )
     ts = check_times_shape(ts)
     dtype = float_dtype(state0.omega, state0.orientation, model.inertia)
-    q0 = None if state0.orientation is None else jnp.asarray(state0.orientation, dtype)
-    body, omega0, ts = (
-        FreeBody(jnp.asarray(model.inertia, dtype)),
-        state0.omega.astype(dtype),
-        ts.astype(dtype),
-    )
+    with jax.ensure_compile_time_eval():  # a constant of a jit's program stays one (checked now)
+        q0 = None if state0.orientation is None else jnp.asarray(state0.orientation, dtype)
+        body, omega0, ts = (
+            FreeBody(jnp.asarray(model.inertia, dtype)),
+            state0.omega.astype(dtype),
+            ts.astype(dtype),
+        )
     return _run_exact(body, omega0, q0, ts, chunk_size)
 
 
 def _run_exact(model, omega0, q0, ts, chunk_size):
     if not is_traced(model, omega0, q0, ts):
-        traj, failures = _exact_collected(model, omega0, q0, ts, chunk_size)
-        raise_collected(failures)
+        with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over them
+            traj, failures = _exact_collected(model, omega0, q0, ts, chunk_size)
+            raise_collected(failures)
         return traj
     checked = _raise_on_bad_values(model, omega0, q0, ts)
     return _exact(model, omega0, q0, ts, chunk_size, checked, not is_differentiated(model, omega0, q0, ts))
