@@ -49,6 +49,7 @@ import jax
 import jax.numpy as jnp
 
 from .._numerics import safe_norm
+from .barrier import _materialised
 from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
@@ -175,23 +176,28 @@ def _body(A, C, weight_l, omega0, q0):
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
     rho0 = _start_phase(sn0, cn0, dn0, p, _quarter_period(m, p))
-    halves = []
-    for k, z0, zdot0, dist0 in (
-        (1.0, jax.lax.complex(w, z), jax.lax.complex(qdot0[..., 0], qdot0[..., 3]), 2 * up),
-        (-1.0, jax.lax.complex(x, y), jax.lax.complex(qdot0[..., 1], qdot0[..., 2]), 2 * down),
-    ):
-        coeff = h + k * a * dist0  # b + k a
-        near = dist0 + k * x_s  # 1 + k u at the start circle (P) and at the other (P')
-        far = dist0 + k * x_o
-        near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
-        # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
-        third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
-        reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) < third)
-        phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
-        halves.append(
-            dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0,
-                 phase=phase)
-        )  # fmt: skip
+    # The two halves (k = +1: w + iz, pole u = -1; k = -1: x + iy, pole u = 1) on a leading axis of
+    # every array: their arithmetic is written, traced and compiled once.
+    batch = jnp.broadcast_shapes(u0.shape, a.shape, beta.shape, g0.shape)
+    k = jnp.asarray([1.0, -1.0], dtype).reshape((2,) + (1,) * len(batch))
+
+    def pair(plus, minus):
+        return jnp.stack([jnp.broadcast_to(plus, batch), jnp.broadcast_to(minus, batch)])
+
+    z0 = pair(jax.lax.complex(w, z), jax.lax.complex(x, y))
+    zdot0 = pair(jax.lax.complex(qdot0[..., 0], qdot0[..., 3]), jax.lax.complex(qdot0[..., 1], qdot0[..., 2]))
+    dist0 = pair(2 * up, 2 * down)
+    coeff = h + k * a * dist0  # b + k a
+    near = dist0 + k * x_s  # 1 + k u at the start circle (P) and at the other (P')
+    far = dist0 + k * x_o
+    near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
+    # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
+    third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
+    reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) < third)
+    phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
+    halves = dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0,
+                  phase=phase)  # fmt: skip
+    halves = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + batch), halves)
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
         start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
@@ -247,7 +253,8 @@ def _quat_times_omega(q, omega):
 
 
 def _half(half, body, t, now, reduced, side):
-    """One Cayley-Klein half at time ``t``: its signed modulus, unit phase and modulus rate."""
+    """Both Cayley-Klein halves at time ``t`` (on the leading axis of ``half``'s arrays): their unit
+    phases, signed moduli and moduli's rates, and ``du/dt``."""
     k, coeff, near, far = half["k"], half["coeff"], half["near"], half["far"]
     sn, cn, dn = now
     rate, amp, sigma = body["rate"], body["amp"], body["sigma"]
@@ -360,19 +367,23 @@ def lagrange_top_at(body: dict, t, side: str | None = None):
     cn = (cn_v * cn0 - sn_v * sn0 * dn_v * dn0) / den
     dn = (dn_v * dn0 - m * sn_v * sn0 * cn_v * cn0) / den
     now = (sn, cn, dn)
-    (ph_p, mod_p, rate_p, udot), (ph_m, mod_m, rate_m, _) = (
-        _half(half, body, t, now, v, side) for half in body["halves"]
+    # The halves' leading axis in front of the samples' axes (t may have more axes than the tops).
+    samples = max(jnp.ndim(t), body["halves"]["k"].ndim - 1)
+    halves = jax.tree.map(
+        lambda x: x.reshape((2,) + (1,) * (samples - x.ndim + 1) + x.shape[1:]), body["halves"]
     )
+    ph, mod, mod_rate, udot = _half(halves, body, t, now, v, side)
+    # Held in memory: read by every component of omega and q (each would recompute them otherwise).
+    ph_re, ph_im, mod, mod_rate, udot = _materialised((jnp.real(ph), jnp.imag(ph), mod, mod_rate, udot))
+    (ph_p, ph_m), (mod_p, mod_m), (rate_p, rate_m) = jax.lax.complex(ph_re, ph_im), mod, mod_rate
     q = [mod_p * jnp.real(ph_p), mod_m * jnp.real(ph_m), mod_m * jnp.imag(ph_m), mod_p * jnp.imag(ph_p)]
     # omega_1 + i omega_2 = (i/2)(h + i du/dt) / (A_- A_+) * E_- conj(E_+); at a reached pole the
     # ratio (h + i du/dt) / A_pole is taken from its limit form.
     a = body["a"]
-    up_pole, down_pole = body["halves"][0]["reached"], body["halves"][1]["reached"]
+    up_pole, down_pole = halves["reached"]
     # h = b - a u from the pole the top is nearer: (b - a) + a (1 - u) or (b + a) - a (1 + u).
     dist_m, dist_p = 2 * mod_m * mod_m, 2 * mod_p * mod_p
-    h = jnp.where(
-        dist_m <= dist_p, body["halves"][1]["coeff"] + a * dist_m, body["halves"][0]["coeff"] - a * dist_p
-    )
+    h = jnp.where(dist_m <= dist_p, halves["coeff"][1] + a * dist_m, halves["coeff"][0] - a * dist_p)
     regular = _times(_safe_div(1.0, mod_m * mod_p), jax.lax.complex(h, udot))
     at_down = _times(_safe_div(1.0, mod_p), jax.lax.complex(2 * a * mod_m, -4 * rate_m))
     at_up = _times(_safe_div(1.0, mod_m), jax.lax.complex(-2 * a * mod_p, 4 * rate_p))
@@ -386,8 +397,8 @@ def lagrange_top_at(body: dict, t, side: str | None = None):
     # (T' = -i W^2 Omega), s = -1 hanging straight down (T' = i Z^2 conj(Omega)).
     tiny = body["amp"] <= jnp.finfo(body["amp"].dtype).eps ** (2 / 3)
     sleep_up, sleep_down = down_pole & tiny, up_pole & tiny & ~down_pole
-    halves = body["halves"]
-    tilt_args = (a, body["beta"], halves[0]["z0"], halves[1]["z0"], body["w1"], body["w2"], t, ph_p, ph_m)
+    z_up, z_down = halves["z0"]
+    tilt_args = (a, body["beta"], z_up, z_down, body["w1"], body["w2"], t, ph_p, ph_m)
 
     def sleeping(q, transverse):
         q = list(q)
