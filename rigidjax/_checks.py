@@ -112,6 +112,19 @@ def is_traced(*trees) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
+def evaluated_now(function, *args):
+    """``function(*args)`` on arguments that have values, with values: called as it is, or, where the
+    call is being traced (the user's ``jit`` closing over the arguments, which are constants of its
+    program), called again under ``jax.ensure_compile_time_eval`` (the traced call's result is
+    unused and leaves the program). Only there: the context's programs are cached apart from the
+    others' (an eager call would compile them twice)."""
+    out = function(*args)
+    if is_traced(out):
+        with jax.ensure_compile_time_eval():
+            out = function(*args)
+    return out
+
+
 class _NoValue(Exception):
     pass
 
@@ -213,8 +226,7 @@ def call_checked(program, failures, *args):
     values = known_values(args)
     if values is None:
         return program(*args, checked=True)
-    with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over the values
-        raise_collected(failures(*values))
+    raise_collected(evaluated_now(failures, *values))
     return program(*args, checked=False)
 
 

@@ -5,6 +5,7 @@ orientation samples."""
 import jax
 import numpy as np
 
+from .._checks import evaluated_now
 from .._kinematics.quaternion import _quat_multiply
 
 
@@ -107,8 +108,7 @@ def omega_from_orientations(ts, q_observed):
     lo = np.clip(np.arange(T) - 1, 0, T - 1)
     hi = np.clip(np.arange(T) + 1, 0, T - 1)
     conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])
-    with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over q_observed
-        rel = np.asarray(_quat_multiply(conj, q[hi]))
+    rel = np.asarray(evaluated_now(_quat_multiply, conj, q[hi]))
     rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)
     vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
     angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])

@@ -20,6 +20,7 @@ from .._checks import (
     checks_done,
     collected_failures,
     error_if,
+    evaluated_now,
     float_dtype,
     is_full_tensor,
     is_traced,
@@ -309,8 +310,7 @@ def _check_lagrange_top(model, state0):
         return  # traced: checked at run time by _lagrange_checked
     inertia, com = (np.asarray(x, np.float64) for x in values)
     dtype = float_dtype(model.inertia, model.com)
-    with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over the values
-        failures = _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
+    failures = evaluated_now(lambda: _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype)))
     asymmetric, off_axis = (np.asarray(x) for x in failures)
     if np.any(asymmetric):
         bad = np.broadcast_to(inertia, asymmetric.shape + (3,))[asymmetric][0]
@@ -330,9 +330,13 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         ts = check_times_shape(ts)
         leaves = (model.inertia, model.mass, model.com, model.gravity)
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
-        with jax.ensure_compile_time_eval():  # a constant of a jit's program stays one (checked now)
-            top = HeavyTop(*(jnp.asarray(x, dtype) for x in leaves))
-            omega0, q0, ts = state0.omega.astype(dtype), state0.orientation.astype(dtype), ts.astype(dtype)
+        # Constants of the user's jit stay constants (values to check now).
+        top, omega0, q0, ts = evaluated_now(
+            lambda: (
+                HeavyTop(*(jnp.asarray(x, dtype) for x in leaves)),
+                *(x.astype(dtype) for x in (state0.omega, state0.orientation, ts)),
+            )
+        )
         return _run_exact(top, omega0, q0, ts, chunk_size)
     if not model.torque_free:
         raise ValueError(
@@ -347,22 +351,24 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         )
     ts = check_times_shape(ts)
     dtype = float_dtype(state0.omega, state0.orientation, model.inertia)
-    with jax.ensure_compile_time_eval():  # a constant of a jit's program stays one (checked now)
-        q0 = None if state0.orientation is None else jnp.asarray(state0.orientation, dtype)
-        body, omega0, ts = (
+    # Constants of the user's jit stay constants (values to check now).
+    body, omega0, q0, ts = evaluated_now(
+        lambda: (
             FreeBody(jnp.asarray(model.inertia, dtype)),
             state0.omega.astype(dtype),
+            None if state0.orientation is None else jnp.asarray(state0.orientation, dtype),
             ts.astype(dtype),
         )
+    )
     return _run_exact(body, omega0, q0, ts, chunk_size)
 
 
 def _run_exact(model, omega0, q0, ts, chunk_size):
     if not is_traced(model, omega0, q0, ts):
-        with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over them
-            traj, failures = _exact_collected(model, omega0, q0, ts, chunk_size)
+        traj, failures = _exact_collected(model, omega0, q0, ts, chunk_size)
+        if not is_traced(failures):  # traced: constants of the user's jit, which holds the program
             raise_collected(failures)
-        return traj
+            return traj
     checked = _raise_on_bad_values(model, omega0, q0, ts)
     return _exact(model, omega0, q0, ts, chunk_size, checked, not is_differentiated(model, omega0, q0, ts))
 

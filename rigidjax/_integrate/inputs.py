@@ -2,7 +2,6 @@
 concrete inputs, ``eqx.error_if`` in the user's program for traced ones."""
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 
 from .._checks import (
@@ -12,6 +11,7 @@ from .._checks import (
     checks_done,
     collected_failures,
     error_if,
+    evaluated_now,
     is_traced,
     known_values,
     packed_failures,
@@ -33,9 +33,8 @@ def checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
     values = known_values((model, omega0, q0, ts))
     if values is None:
         return _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance)
-    with jax.ensure_compile_time_eval():  # also while a jit traces a caller that closes over the values
-        checked, failures = _checks_collected(*values, euler_seq, lock_tolerance)
-        raise_collected(failures)
+    checked, failures = evaluated_now(_checks_collected, *values, euler_seq, lock_tolerance)
+    raise_collected(failures)
     if not is_traced(model, omega0, q0, ts):
         return checked
     with checks_done():
