@@ -26,7 +26,7 @@ import optax
 from .._checks import is_positive_int
 from .._dynamics.models import GravityTorque, _as_torque_tuple
 from .data import _check_data, _check_quaternions
-from .optimisers import _default_optimizer, _run
+from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
 from .problem import LOSSES, WINDOW_MAX_STEPS
 from .result import InertiaFit
@@ -197,8 +197,6 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
     """Runs the optimiser on a prepared problem and returns the fit in the user's units, with
     standard errors from the covariance of the scaled parameters."""
     problem = data.problem
-    if method == "optax" and optimizer is None:
-        optimizer = _default_optimizer()
     p0 = jnp.asarray(data.p0, dtype)
     # optax's own internals (L-BFGS's memory indices) mix int32 and int64, which a user's strict
     # dtype promotion would reject; rigidjax's arithmetic does not depend on the setting.
@@ -342,11 +340,15 @@ _COMMON_ARGS_DOC = """\
       through the residuals' forward-mode Jacobian up to 4096 samples, by reverse mode beyond and
       with a known torque) or ``"levenberg-marquardt"`` (Gauss–Newton with damping, the Jacobian by
       forward mode: few parameters, many residuals). Both reach the same optimum; Levenberg–Marquardt
-      needs 5-17x fewer iterations, compiles faster (5-6 s vs 6.5-8 s) and runs up to 2x faster once
-      compiled (0.35 s vs 0.74 s on an 1800-sample record in 45 windows; about equal on 240 samples,
-      ``benchmarks/fit_methods.py`` on a 2-core CPU): pass it when fitting many records.
-    - `optimizer`: any optax ``GradientTransformation`` (default ``optax.lbfgs()``) for ``"optax"``.
-      It is part of the compiled fit: pass the same object again to avoid a recompile.
+      needs 4-16x fewer iterations, compiles about as fast (13-16 s vs 14-18 s for the first call on
+      a loaded 2-core CPU) and runs up to 2x faster once compiled (1.1 s vs 2.4 s on an 1800-sample
+      record in 45 windows; 0.18 s vs 0.22 s on 240 samples, ``benchmarks/fit_methods.py``): pass it
+      when fitting many records.
+    - `optimizer`: any optax ``GradientTransformation`` for ``"optax"``. By default L-BFGS: optax's
+      ``scale_by_lbfgs`` directions with a strong-Wolfe line search that the fit's loop runs, so
+      that the model is compiled once; ``optax.lbfgs()``, whose own line search calls the model from
+      two more places, takes about 1.7x as long to compile (24 s vs 14 s on 240 samples). The
+      optimiser is part of the compiled fit: pass the same object again to avoid a recompile.
     - `steps`: iteration limit (default 200 for Levenberg–Marquardt, 2000 for optax).
     - `loss`: ``"squared"``, or a robust loss against outliers: ``"huber"``, ``"soft_l1"``,
       ``"cauchy"`` (as in ``scipy.optimize.least_squares``).

@@ -12,14 +12,13 @@ rather than from further evaluations of the model.
 ``callback``, when given, is called on the host after every iteration as
 ``callback(iteration, loss, step_norm)`` (the loss and the step in the optimiser's scaled units)."""
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .linesearch import wolfe_advance, wolfe_start
 from .problem import _Problem
 
 
@@ -175,18 +174,20 @@ def _jacobian_with_residuals(problem: _Problem, reverse: bool = False):
     return jacobian
 
 
-@functools.cache
-def _default_optimizer():
-    # One object for every call: the optimiser is static in the compiled fit, so a new object
-    # would recompile it.
-    return optax.lbfgs()
-
-
 FORWARD_GRADIENT_SAMPLES = 4096
 """Up to this many samples the optax fits take their gradients through the forward-mode Jacobian
 (:func:`_forward_mode_loss`: less to compile, a few tangents more to run); beyond it, in reverse
 mode. Measured on a 2-core CPU: the forward gradient saves ~5 s of compile and costs ~0.6 ms per
 sample and fit more to run (1800 samples: 0.43 -> 1.4 s), so the two break even near 8000 samples."""
+
+
+def _stops(i, value, previous, steps, loss_tol):
+    """(stop here, converged, recent losses) for iteration ``i`` of an optax fit whose loss is
+    ``value``: converged when the loss has changed by at most ``loss_tol`` (relative) over the last
+    ten iterations."""
+    recent = previous.at[i % 10].set(value)
+    converged = (i >= 10) & (jnp.max(recent) - jnp.min(recent) <= loss_tol * jnp.abs(value))
+    return converged | (i >= steps), converged, recent
 
 
 def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callback):
@@ -220,12 +221,6 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     # ~1e-4 of their standard errors).
     loss_tol = tol if problem.torque is None else max(tol, 1e-8)
 
-    def stops(i, value, previous):
-        """(stop here, converged) for the pass ``i`` whose loss is ``value``."""
-        recent = previous.at[i % 10].set(value)
-        converged = (i >= 10) & (jnp.max(recent) - jnp.min(recent) <= loss_tol * jnp.abs(value))
-        return converged | (i >= steps), converged, recent
-
     def cond(carry):
         return ~carry["exit"]
 
@@ -241,13 +236,13 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
             else:
                 stored, known = jax.value_and_grad(loss)(p), jnp.asarray(True)
             # The model is evaluated here only where the loss is not known yet or the fit stops.
-            need_jacobian = ~known | stops(i, stored[0], carry["previous"])[0]
+            need_jacobian = ~known | _stops(i, stored[0], carry["previous"], steps, loss_tol)[0]
             J, (r, raw) = jax.lax.cond(
                 need_jacobian, jacobian, lambda _: (carry["J"], (carry["r"], carry["raw"])), p
             )
             value = jnp.where(known, stored[0], jnp.sum(r * r) / n)
             grad = jnp.where(known, stored[1], 2.0 * (J.T @ r) / n)
-        stop, converged, recent = stops(i, value, carry["previous"])
+        stop, converged, recent = _stops(i, value, carry["previous"], steps, loss_tol)
 
         def step(_):
             updates, new_state = optimizer.update(grad, state, p, value=value, grad=grad, value_fn=loss)
@@ -290,6 +285,135 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     return out["p"], out["history"], out["i"], out["converged"], out["J"], out["r"], out["raw"]
 
 
+def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
+    """The default optax fit: L-BFGS directions (optax's ``scale_by_lbfgs``) with a strong-Wolfe
+    line search (:mod:`.linesearch`) run by this loop. Returns ``(p, history, iterations, converged,
+    J, r, raw)`` as :func:`_optax_fit` does, with the same stopping rule.
+
+    Every pass evaluates the model once, at one trial point, from one place in the program: the start,
+    each line-search trial, and (up to :data:`FORWARD_GRADIENT_SAMPLES` samples) the Jacobian for the
+    covariance all come from the forward-mode pass that gives the loss and its gradient
+    (``2 J^T r / n``). ``optax.lbfgs()``, whose line search calls the loss itself from two branches,
+    compiles the model three times in this loop (``benchmarks/fit_methods.py``: 24 s against 14 s
+    for the first fit of a 240-sample record). Past that many samples, and with a known torque, the
+    gradient comes from reverse mode and the covariance's Jacobian is evaluated once after the loop.
+    """
+    lbfgs = optax.scale_by_lbfgs()
+    forward = not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
+    jacobian = _jacobian_with_residuals(problem, reverse=problem.reverse_mode)
+    n = problem.count()
+    loss_tol = tol if problem.torque is None else max(tol, 1e-8)  # as in _optax_fit
+
+    def loss_with_residuals(p):
+        r, raw = problem.residuals_and_raw(p)
+        return jnp.sum(r * r) / n, (r, raw)
+
+    def evaluate(x, carry):
+        if forward:
+            J, (r, raw) = jacobian(x)
+            return jnp.sum(r * r) / n, 2.0 * (J.T @ r) / n, J, r, raw
+        (value, (r, raw)), grad = jax.value_and_grad(loss_with_residuals, has_aux=True)(x)
+        return value, grad, carry["J"], r, raw
+
+    def direction(grad, state, p):
+        updates, state = lbfgs.update(grad, state, p)
+        d = -updates
+        slope = jnp.vdot(grad, d)
+        # Not a descent direction (roundoff in the memory): a steepest-descent step of length <= 1.
+        steepest = -grad * jnp.minimum(1.0, 1.0 / jnp.maximum(jnp.linalg.norm(grad), 1e-300))
+        usable = jnp.isfinite(slope) & (slope < 0)
+        d = jnp.where(usable, d, steepest)
+        return d, jnp.where(usable, slope, jnp.vdot(grad, steepest)), state
+
+    def cond(carry):
+        return ~carry["exit"]
+
+    def body(carry):
+        first, search, d = carry["first"], carry["search"], carry["d"]
+        x = carry["p"] + search.stepsize * d
+        x = jnp.where(first, carry["p"], x)
+        value, grad, J_x, r_x, raw_x = evaluate(x, carry)
+        search = wolfe_advance(search, value, jnp.vdot(grad, d))
+        accept = first | search.accepted
+        p, i = carry["p"], carry["i"]
+        p_new = jnp.where(accept, x, p)
+        value_new = jnp.where(accept, value, carry["value"])
+        grad_new = jnp.where(accept, grad, carry["grad"])
+        J = jnp.where(accept, J_x, carry["J"])
+        r = jnp.where(accept, r_x, carry["r"])
+        raw = jnp.where(accept, raw_x, carry["raw"])
+
+        stop, converged, recent = _stops(i, value_new, carry["previous"], steps, loss_tol)
+        stop = accept & stop
+        # A start whose loss is NaN or inf (a known torque's integration that fails there): no step.
+        bad_start = first & ~jnp.isfinite(value)
+        relative_decrease = (carry["value"] - value_new) / jnp.maximum(jnp.abs(value_new), 1e-300)
+        decrease = jnp.where(accept & ~first, relative_decrease, carry["decrease"])
+        # No stepsize along the direction lowers the loss: a minimum to roundoff if the last step
+        # barely changed the loss, a failure otherwise.
+        stalled = ~first & search.failed
+        converged = jnp.where(stalled, decrease <= jnp.sqrt(loss_tol), accept & converged)
+        if callback is not None:
+
+            def report():
+                jax.debug.callback(callback, i, value_new, jnp.linalg.norm(p_new - p), ordered=True)
+
+            jax.lax.cond(accept & ~first, report, lambda: None)
+
+        recorded = carry["history"].at[jnp.minimum(i, steps - 1)].set(value_new)
+        history = jnp.where(accept & ~stop, recorded, carry["history"])
+        step = accept & ~stop & ~bad_start
+        d_new, slope_new, state_new = direction(grad_new, carry["lbfgs"], p_new)
+        lbfgs_state = jax.tree.map(lambda a, b: jnp.where(step, a, b), state_new, carry["lbfgs"])
+        search = jax.tree.map(
+            lambda a, b: jnp.where(step, a, b), wolfe_start(value_new, slope_new, 1.0), search
+        )
+        return {
+            "p": p_new,
+            "value": value_new,
+            "grad": grad_new,
+            "d": jnp.where(step, d_new, d),
+            "search": search,
+            "lbfgs": lbfgs_state,
+            "first": jnp.asarray(False),
+            "i": jnp.where(step, i + 1, i),
+            "history": history,
+            "previous": jnp.where(accept, recent, carry["previous"]),
+            "decrease": decrease,
+            "exit": stop | bad_start | stalled,
+            "converged": converged,
+            "J": J,
+            "r": r,
+            "raw": raw,
+        }
+
+    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
+    zero = jnp.zeros((), p0.dtype)
+    init = {
+        "p": p0,
+        "value": jnp.asarray(jnp.inf, p0.dtype),
+        "grad": jnp.zeros_like(p0),
+        "d": jnp.zeros_like(p0),
+        "search": wolfe_start(zero, zero, zero),
+        "lbfgs": lbfgs.init(p0),
+        "first": jnp.asarray(True),
+        "i": jnp.asarray(0),
+        "history": jnp.full((steps,), jnp.nan, p0.dtype),
+        "previous": jnp.full((10,), jnp.inf, p0.dtype),
+        "decrease": jnp.asarray(jnp.inf, p0.dtype),
+        "exit": jnp.asarray(False),
+        "converged": jnp.asarray(False),
+        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
+        "r": jnp.zeros(r0.shape, r0.dtype),
+        "raw": jnp.zeros(raw0.shape, raw0.dtype),
+    }
+    out = jax.lax.while_loop(cond, body, init)
+    J, r, raw = out["J"], out["r"], out["raw"]
+    if not forward:
+        J, (r, raw) = jacobian(out["p"])
+    return out["p"], out["history"], out["i"], out["converged"], J, r, raw
+
+
 def _forward_mode_loss(problem: _Problem, jacobian):
     """The mean loss, differentiated through the forward-mode Jacobian of the residuals
     (``grad = 2 J^T r / n``) instead of in reverse mode.
@@ -325,6 +449,8 @@ def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, 
     Gauss–Newton covariance of the parameters, the final loss and the rms residual per component."""
     if method == "levenberg-marquardt":
         p, history, n_steps, done, J, r, raw = _levenberg_marquardt(problem, p0, steps, tol, callback)
+    elif optimizer is None:
+        p, history, n_steps, done, J, r, raw = _lbfgs_fit(problem, p0, steps, tol, callback)
     else:
         p, history, n_steps, done, J, r, raw = _optax_fit(problem, p0, optimizer, steps, tol, callback)
     n = problem.count()
