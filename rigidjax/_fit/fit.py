@@ -359,7 +359,8 @@ _COMMON_ARGS_DOC = """\
       trace 1.
     - `known_moment`: fixes the scale gauge instead by ``(k, I_kk)``: one known diagonal entry in
       sensor axes (kg m^2).
-    - `tol`: relative tolerance on the loss for convergence.
+    - `tol`: relative tolerance on the loss for convergence; at least ten times the machine epsilon
+      of `dtype` (2.2e-15 in float64, 1.2e-6 in float32).
     - `dtype`: float dtype of the fit (default: JAX's default float; float64 with x64 enabled).
     - `callback`: called on the host as ``callback(iteration, loss)`` after every iteration; the
       loss is in the optimiser's scaled units.

@@ -315,15 +315,19 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
         (value, (r, raw)), grad = jax.value_and_grad(loss_with_residuals, has_aux=True)(x)
         return value, grad, carry["J"], r, raw
 
+    def steepest_descent(grad):
+        """A steepest-descent direction of length <= 1 and its slope."""
+        d = -grad * jnp.minimum(1.0, 1.0 / jnp.maximum(jnp.linalg.norm(grad), 1e-300))
+        return d, jnp.vdot(grad, d)
+
     def direction(grad, state, p):
         updates, state = lbfgs.update(grad, state, p)
         d = -updates
         slope = jnp.vdot(grad, d)
-        # Not a descent direction (roundoff in the memory): a steepest-descent step of length <= 1.
-        steepest = -grad * jnp.minimum(1.0, 1.0 / jnp.maximum(jnp.linalg.norm(grad), 1e-300))
+        # Not a descent direction (roundoff in the memory): steepest descent instead.
         usable = jnp.isfinite(slope) & (slope < 0)
-        d = jnp.where(usable, d, steepest)
-        return d, jnp.where(usable, slope, jnp.vdot(grad, steepest)), state
+        steepest, steepest_slope = steepest_descent(grad)
+        return jnp.where(usable, d, steepest), jnp.where(usable, slope, steepest_slope), state
 
     def cond(carry):
         return ~carry["exit"]
@@ -347,12 +351,14 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
         stop = accept & stop
         # A start whose loss is NaN or inf (a known torque's integration that fails there): no step.
         bad_start = first & ~jnp.isfinite(value)
-        relative_decrease = (carry["value"] - value_new) / jnp.maximum(jnp.abs(value_new), 1e-300)
-        decrease = jnp.where(accept & ~first, relative_decrease, carry["decrease"])
-        # No stepsize along the direction lowers the loss: a minimum to roundoff if the last step
-        # barely changed the loss, a failure otherwise.
-        stalled = ~first & search.failed
-        converged = jnp.where(stalled, decrease <= jnp.sqrt(loss_tol), accept & converged)
+        # No stepsize along the direction lowers the loss. Along an L-BFGS direction: start afresh
+        # with steepest descent and an empty memory. Along steepest descent (the search shrinks the
+        # step to ~1e-20 of the gradient's unit length first): the gradient is roundoff, a minimum to
+        # the working precision (float32's, for instance, above the tolerance asked for).
+        failed = ~first & search.failed
+        restart = failed & ~carry["steepest"]
+        stalled = failed & carry["steepest"]
+        converged = jnp.where(stalled, jnp.all(jnp.isfinite(grad_new)), accept & converged)
         if callback is not None:
 
             def report():
@@ -364,22 +370,27 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
         history = jnp.where(accept & ~stop, recorded, carry["history"])
         step = accept & ~stop & ~bad_start
         d_new, slope_new, state_new = direction(grad_new, carry["lbfgs"], p_new)
-        lbfgs_state = jax.tree.map(lambda a, b: jnp.where(step, a, b), state_new, carry["lbfgs"])
+        d_restart, slope_restart = steepest_descent(grad_new)
+        d_new = jnp.where(restart, d_restart, d_new)
+        slope_new = jnp.where(restart, slope_restart, slope_new)
+        state_new = jax.tree.map(lambda a, b: jnp.where(restart, a, b), lbfgs.init(p_new), state_new)
+        renew = step | restart
+        lbfgs_state = jax.tree.map(lambda a, b: jnp.where(renew, a, b), state_new, carry["lbfgs"])
         search = jax.tree.map(
-            lambda a, b: jnp.where(step, a, b), wolfe_start(value_new, slope_new, 1.0), search
+            lambda a, b: jnp.where(renew, a, b), wolfe_start(value_new, slope_new, 1.0), search
         )
         return {
             "p": p_new,
             "value": value_new,
             "grad": grad_new,
-            "d": jnp.where(step, d_new, d),
+            "d": jnp.where(renew, d_new, d),
+            "steepest": restart | (carry["steepest"] & ~accept),
             "search": search,
             "lbfgs": lbfgs_state,
             "first": jnp.asarray(False),
             "i": jnp.where(step, i + 1, i),
             "history": history,
             "previous": jnp.where(accept, recent, carry["previous"]),
-            "decrease": decrease,
             "exit": stop | bad_start | stalled,
             "converged": converged,
             "J": J,
@@ -400,7 +411,7 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
         "i": jnp.asarray(0),
         "history": jnp.full((steps,), jnp.nan, p0.dtype),
         "previous": jnp.full((10,), jnp.inf, p0.dtype),
-        "decrease": jnp.asarray(jnp.inf, p0.dtype),
+        "steepest": jnp.asarray(False),
         "exit": jnp.asarray(False),
         "converged": jnp.asarray(False),
         "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
@@ -447,6 +458,9 @@ def _forward_mode_loss(problem: _Problem, jacobian):
 def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, callback):
     """The compiled fit: the optimum, its history and step count, whether it converged, the
     Gauss–Newton covariance of the parameters, the final loss and the rms residual per component."""
+    # The loss resolves changes of about its dtype's epsilon only (float32: 1.2e-7): a tolerance
+    # below that could be met only by chance.
+    tol = max(tol, 10.0 * float(jnp.finfo(p0.dtype).eps))
     if method == "levenberg-marquardt":
         p, history, n_steps, done, J, r, raw = _levenberg_marquardt(problem, p0, steps, tol, callback)
     elif optimizer is None:
