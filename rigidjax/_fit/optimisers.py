@@ -1,13 +1,14 @@
-"""The optimisers of the fit, both one compiled loop over a :class:`_Problem`'s flat parameters:
-Levenberg–Marquardt on its residuals (the Jacobian by forward mode), or any optax
+"""The optimisers of the fit, each one compiled loop over a :class:`_Problem`'s flat parameters:
+Levenberg–Marquardt on its residuals (the Jacobian by forward mode), the default L-BFGS on its mean
+loss (optax's L-BFGS directions, the line search of :mod:`.linesearch` run by the loop), or any optax
 ``GradientTransformation`` on its mean loss. :func:`_run` adds the covariance at the optimum.
 
 Compile time, not run time, dominates a fit, and it grows with every place in the program that
 evaluates the model: XLA compiles each of them, identical or not (measured: a second, identical call
 of a jitted Jacobian still compiled in full). So the closed-form model is differentiated in forward
 mode only (the covariance's Jacobian, Levenberg–Marquardt's and the optax gradients), each loop
-evaluates it from as few places as it can, and the final residuals come from the Jacobian's pass
-rather than from further evaluations of the model.
+evaluates it from as few places as it can (Levenberg–Marquardt and the default L-BFGS: one), and
+the final residuals come from the Jacobian's pass rather than from further evaluations of the model.
 
 ``callback``, when given, is called on the host after every iteration as
 ``callback(iteration, loss, step_norm)`` (the loss and the step in the optimiser's scaled units)."""
@@ -20,6 +21,17 @@ import optax
 
 from .linesearch import wolfe_advance, wolfe_start
 from .problem import _Problem
+
+
+def _unset_outputs(problem: _Problem, p0):
+    """Zeros in the shapes of the Jacobian, residuals and raw residuals that a fit's loop carries
+    (as ``J``, ``r``, ``raw``) until it evaluates them at an accepted point."""
+    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
+    return {
+        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
+        "r": jnp.zeros(r0.shape, r0.dtype),
+        "raw": jnp.zeros(raw0.shape, raw0.dtype),
+    }
 
 
 def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback):
@@ -107,7 +119,6 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
             "raw": raw,
         }
 
-    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
     false = jnp.asarray(False)
     init = {
         "trial": p0,
@@ -122,9 +133,7 @@ def _levenberg_marquardt(problem: _Problem, p0, steps: int, tol: float, callback
         "history": jnp.full((steps,), jnp.nan, p0.dtype),
         "converged": false,
         "last_decrease": jnp.asarray(jnp.inf, p0.dtype),
-        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
-        "r": jnp.zeros(r0.shape, r0.dtype),
-        "raw": jnp.zeros(raw0.shape, raw0.dtype),
+        **_unset_outputs(problem, p0),
     }
     out = jax.lax.while_loop(cond, body, init)
     return out["p"], out["history"], out["i"], out["converged"], out["J"], out["r"], out["raw"]
@@ -268,7 +277,6 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
             "raw": raw,
         }
 
-    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
     init = {
         "p": p0,
         "state": state0,
@@ -277,9 +285,7 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
         "previous": jnp.full((10,), jnp.inf, p0.dtype),
         "exit": jnp.asarray(False),
         "converged": jnp.asarray(False),
-        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
-        "r": jnp.zeros(r0.shape, r0.dtype),
-        "raw": jnp.zeros(raw0.shape, raw0.dtype),
+        **_unset_outputs(problem, p0),
     }
     out = jax.lax.while_loop(cond, body, init)
     return out["p"], out["history"], out["i"], out["converged"], out["J"], out["r"], out["raw"]
@@ -398,7 +404,6 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
             "raw": raw,
         }
 
-    r0, raw0 = jax.eval_shape(problem.residuals_and_raw, p0)
     zero = jnp.zeros((), p0.dtype)
     init = {
         "p": p0,
@@ -414,9 +419,7 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
         "steepest": jnp.asarray(False),
         "exit": jnp.asarray(False),
         "converged": jnp.asarray(False),
-        "J": jnp.zeros((r0.shape[0], p0.shape[0]), p0.dtype),
-        "r": jnp.zeros(r0.shape, r0.dtype),
-        "raw": jnp.zeros(raw0.shape, raw0.dtype),
+        **_unset_outputs(problem, p0),
     }
     out = jax.lax.while_loop(cond, body, init)
     J, r, raw = out["J"], out["r"], out["raw"]
