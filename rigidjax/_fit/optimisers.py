@@ -190,14 +190,6 @@ mode. Measured on a 2-core CPU: the forward gradient saves ~5 s of compile and c
 sample and fit more to run (1800 samples: 0.43 -> 1.4 s), so the two break even near 8000 samples."""
 
 
-def _loss_tolerance(problem: _Problem, tol: float) -> float:
-    """The relative change of the loss over ten iterations below which an optax fit has converged.
-    An integrated model's loss is smooth only to about the solver's rtol (1e-10; step-size
-    decisions jump), so changes below 1e-8 of it are noise there (and statistically irrelevant:
-    parameters move by ~1e-4 of their standard errors)."""
-    return tol if problem.torque is None else max(tol, 1e-8)
-
-
 def _stops(i, value, previous, steps, loss_tol):
     """(stop here, converged, recent losses) for iteration ``i`` of an optax fit whose loss is
     ``value``: converged when the loss has changed by at most ``loss_tol`` (relative) over the last
@@ -232,7 +224,11 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     n = problem.count()
     # Without a line search and with forward-mode gradients, every pass needs the Jacobian.
     jacobian_every_pass = forward and not reuses_value
-    loss_tol = _loss_tolerance(problem, tol)
+    # Converged when the loss has stopped changing over the last ten iterations. An integrated
+    # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump), so
+    # changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move by
+    # ~1e-4 of their standard errors).
+    loss_tol = tol if problem.torque is None else max(tol, 1e-8)
 
     def cond(carry):
         return ~carry["exit"]
@@ -312,7 +308,7 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
     forward = not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
     jacobian = _jacobian_with_residuals(problem, reverse=problem.reverse_mode)
     n = problem.count()
-    loss_tol = _loss_tolerance(problem, tol)
+    loss_tol = tol if problem.torque is None else max(tol, 1e-8)  # as in _optax_fit
 
     def loss_with_residuals(p):
         r, raw = problem.residuals_and_raw(p)
@@ -344,7 +340,8 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
 
     def body(carry):
         first, search, d = carry["first"], carry["search"], carry["d"]
-        x = carry["p"] + search.stepsize * d  # the first pass: p0 (stepsize and d are zero)
+        x = carry["p"] + search.stepsize * d
+        x = jnp.where(first, carry["p"], x)
         value, grad, J_x, r_x, raw_x = evaluate(x, carry)
         search = wolfe_advance(search, value, jnp.vdot(grad, d))
         accept = first | search.accepted
@@ -382,10 +379,12 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
         d_restart, slope_restart = steepest_descent(grad_new)
         d_new = jnp.where(restart, d_restart, d_new)
         slope_new = jnp.where(restart, slope_restart, slope_new)
-        state_new = optax.tree.where(restart, lbfgs.init(p_new), state_new)
+        state_new = jax.tree.map(lambda a, b: jnp.where(restart, a, b), lbfgs.init(p_new), state_new)
         renew = step | restart
-        lbfgs_state = optax.tree.where(renew, state_new, carry["lbfgs"])
-        search = optax.tree.where(renew, wolfe_start(value_new, slope_new, 1.0), search)
+        lbfgs_state = jax.tree.map(lambda a, b: jnp.where(renew, a, b), state_new, carry["lbfgs"])
+        search = jax.tree.map(
+            lambda a, b: jnp.where(renew, a, b), wolfe_start(value_new, slope_new, 1.0), search
+        )
         return {
             "p": p_new,
             "value": value_new,
