@@ -109,8 +109,11 @@ def test_standard_errors_are_honest():
 def test_float32_fit_reaches_the_float64_optimum(method):
     """In float32 the loss resolves only ~1e-7 of itself, far coarser than the default tolerance:
     the fit still converges (the default L-BFGS stops where even a steepest-descent line search
-    finds no lower loss) and lands within 5 % of a standard error of the float64 fit (measured:
-    L-BFGS 0.02, whose line search compares losses, Levenberg-Marquardt 0.003)."""
+    finds no lower loss) and lands within a small fraction of a standard error of the float64 fit.
+    Levenberg-Marquardt solves for its steps from the Jacobian: 0.003 measured, 0.05 asserted.
+    L-BFGS's line search compares losses, whose float32 roundoff is ~1e-6 of them: 0.02 to 0.07
+    measured on the same record (the stopping point moves with the roundoff of the compiled
+    program), 0.15 asserted."""
     rng = np.random.default_rng(0)
     ts = short_times()
     obs = record(I_TRUE, W0_TRUE, ts, 0.01, rng)
@@ -121,11 +124,12 @@ def test_float32_fit_reaches_the_float64_optimum(method):
     z = (np.asarray(single.inertia, np.float64) - np.asarray(reference.inertia)) / np.asarray(
         reference.inertia_stderr
     )
-    assert np.all(np.abs(z) < 0.05), z
+    limit = 0.15 if method == "optax" else 0.05
+    assert np.all(np.abs(z) < limit), z
     z0 = (np.asarray(single.omega0, np.float64) - np.asarray(reference.omega0)) / np.asarray(
         reference.omega0_stderr
     )
-    assert np.all(np.abs(z0) < 0.05), z0
+    assert np.all(np.abs(z0) < limit), z0
     np.testing.assert_allclose(single.inertia_stderr, reference.inertia_stderr, rtol=1e-3)
 
 
