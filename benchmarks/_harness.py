@@ -229,52 +229,64 @@ def rk4_method(scene, dt: float, dtype: str = "float64") -> Method:
     return Method("hand RK4 (7,N)", f"dt={dt:g}", fn, f"rk4-{dtype}", dtype, kind="peer", at_end=at_end)
 
 
+def peer_vector_field(t, y, inertia):
+    """The user-written peer's field for one body: Euler's equations for principal moments and the
+    quaternion rate, on ``y = (omega, q)`` of shape ``(7,)``."""
+    import jax.numpy as jnp
+
+    w, q = y[:3], y[3:]
+    i1, i2, i3 = inertia
+    dw = jnp.stack([(i2 - i3) / i1 * w[1] * w[2], (i3 - i1) / i2 * w[2] * w[0], (i1 - i2) / i3 * w[0] * w[1]])
+    dq = 0.5 * jnp.stack(
+        [
+            -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
+            q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
+            q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
+            q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
+        ]
+    )
+    return jnp.concatenate([dw, dq])
+
+
+def peer_program(ts=None):
+    """The user-written peer: ``jax.jit(jax.vmap(diffeqsolve(Tsit5(), PIDController)))`` per body,
+    ``solve(inertia, y0, rtol, atol)``: the state at ``T_END`` ``(N, 7)`` when ``ts`` is None, else
+    the states at the sample times ``ts`` (from 0 to ``T_END``), ``(N, T, 7)``."""
+    import diffrax
+    import jax
+    import jax.numpy as jnp
+
+    saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
+
+    @jax.jit
+    def solve(inertia, y0, rtol, atol):
+        def one(inertia, y0):
+            sol = diffrax.diffeqsolve(
+                diffrax.ODETerm(peer_vector_field),
+                diffrax.Tsit5(),
+                # Times in the state's dtype: diffrax promotes a float32 state to float64
+                # times (under x64), which would make the float32 peer a float64 one.
+                jnp.asarray(0.0, y0.dtype),
+                jnp.asarray(T_END, y0.dtype),
+                None,
+                y0,
+                args=inertia,
+                stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+                saveat=saveat,
+                max_steps=100_000,
+                throw=False,
+            )
+            return sol.ys[-1] if ts is None else sol.ys
+
+        return jax.vmap(one)(inertia, y0)
+
+    return solve
+
+
 def _vmap_diffrax_program():
-    """The user-written peer: ``jax.jit(jax.vmap(diffeqsolve(Tsit5(), PIDController)))`` per body."""
+    """:func:`peer_program` at ``T_END``, compiled once for every tolerance."""
     if "vmap" not in _PROGRAMS:
-        import diffrax
-        import jax
-        import jax.numpy as jnp
-
-        def vector_field(t, y, inertia):
-            w, q = y[:3], y[3:]
-            i1, i2, i3 = inertia
-            dw = jnp.stack(
-                [(i2 - i3) / i1 * w[1] * w[2], (i3 - i1) / i2 * w[2] * w[0], (i1 - i2) / i3 * w[0] * w[1]]
-            )
-            dq = 0.5 * jnp.stack(
-                [
-                    -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
-                    q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
-                    q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
-                    q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
-                ]
-            )
-            return jnp.concatenate([dw, dq])
-
-        @jax.jit
-        def solve(inertia, y0, rtol, atol):
-            def one(inertia, y0):
-                sol = diffrax.diffeqsolve(
-                    diffrax.ODETerm(vector_field),
-                    diffrax.Tsit5(),
-                    # Times in the state's dtype: diffrax promotes a float32 state to float64
-                    # times (under x64), which would make the float32 peer a float64 one.
-                    jnp.asarray(0.0, y0.dtype),
-                    jnp.asarray(T_END, y0.dtype),
-                    None,
-                    y0,
-                    args=inertia,
-                    stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-                    saveat=diffrax.SaveAt(t1=True),
-                    max_steps=100_000,
-                    throw=False,
-                )
-                return sol.ys[-1]
-
-            return jax.vmap(one)(inertia, y0)
-
-        _PROGRAMS["vmap"] = solve
+        _PROGRAMS["vmap"] = peer_program()
     return _PROGRAMS["vmap"]
 
 

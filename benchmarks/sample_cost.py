@@ -29,59 +29,14 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _harness import quat_angle, reference_scene, run_meta  # noqa: E402
+from _harness import T_END, peer_program, quat_angle, reference_scene, run_meta  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
 
-T_END = 20.0
 PEER_RTOL = 1e-8
 PRESETS = ("exact", "balanced", "precise")  # "exact" first: the others' reference
-
-
-def peer_program(ts):
-    """The user-written peer, sampled at ``ts``: one ``diffeqsolve`` per body under ``jax.vmap``."""
-
-    def vector_field(t, y, inertia):
-        w, q = y[:3], y[3:]
-        i1, i2, i3 = inertia
-        dw = jnp.stack(
-            [(i2 - i3) / i1 * w[1] * w[2], (i3 - i1) / i2 * w[2] * w[0], (i1 - i2) / i3 * w[0] * w[1]]
-        )
-        dq = 0.5 * jnp.stack(
-            [
-                -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
-                q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
-                q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
-                q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
-            ]
-        )
-        return jnp.concatenate([dw, dq])
-
-    @jax.jit
-    def solve(inertia, y0):
-        def one(inertia, y0):
-            solution = diffrax.diffeqsolve(
-                diffrax.ODETerm(vector_field),
-                diffrax.Tsit5(),
-                ts[0],
-                ts[-1],
-                None,
-                y0,
-                args=inertia,
-                stepsize_controller=diffrax.PIDController(rtol=PEER_RTOL, atol=PEER_RTOL),
-                saveat=diffrax.SaveAt(ts=ts),
-                max_steps=100_000,
-                throw=False,
-            )
-            return solution.ys
-
-        ys = jax.vmap(one)(inertia, y0)
-        return ys[..., :3], ys[..., 3:]
-
-    return solve
 
 
 def methods_at(scene, ts):
@@ -98,8 +53,14 @@ def methods_at(scene, ts):
 
     solve = peer_program(ts)
     y0 = jnp.concatenate([omega0, q0], axis=-1)
+    rtol = jnp.asarray(PEER_RTOL)
+
+    def peer():
+        ys = solve(inertia, y0, rtol, rtol)
+        return ys[..., :3], ys[..., 3:]
+
     methods = {f"simulate {accuracy!r}": preset(accuracy) for accuracy in PRESETS}
-    methods[f"vmapped Tsit5, rtol {PEER_RTOL:g}"] = lambda: solve(inertia, y0)
+    methods[f"vmapped Tsit5, rtol {PEER_RTOL:g}"] = peer
     return methods
 
 

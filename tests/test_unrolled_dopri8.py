@@ -173,3 +173,30 @@ def test_differentiated_presets_run_diffrax_dopri8_with_the_same_values():
     h = 1e-6
     finite = [(loss(inertia + h * e) - loss(inertia - h * e)) / (2 * h) for e in jnp.eye(3)]
     np.testing.assert_allclose(gradient, finite, rtol=1e-5)
+
+
+def test_simulate_traces_the_vector_field_once_or_twice(monkeypatch):
+    """A written-out step evaluates the field 13 times and diffrax traces its step three times; the
+    field is a compiled function of its own, so it is traced once or twice per program rather than
+    at every stage (the integration's tracing time): a plain process traces it once, under this
+    suite's runtime type checks the first-step guess and diffrax's check of the term trace it apart.
+    Counted on the Python function that builds it, with the solver written out."""
+    import equinox as eqx
+
+    from rigidjax._integrate import formulations
+
+    traces = []
+    build = formulations._scaled_vector_field.__wrapped__
+
+    def counted(*args, **kwargs):
+        traces.append(1)
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(formulations, "_scaled_vector_field", eqx.filter_jit(counted))
+    model = rj.FreeBody(jnp.asarray([[1.0, 2.0, 3.0], [1.5, 2.0, 2.5]]))
+    state = rj.State(jnp.asarray([[0.1, 2.0, 0.1], [1.0, 0.2, 0.3]]), jnp.asarray([[1.0, 0.0, 0.0, 0.0]] * 2))
+    ts = jnp.linspace(0.0, 3.0, 4)
+    traj = rj.simulate(model, state, ts, solver=UnrolledDopri8(), rtol=1e-9, atol=1e-9)
+    assert 1 <= len(traces) <= 2
+    reference = rj.simulate(model, state, ts, accuracy="exact")
+    np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(reference.omega), rtol=0, atol=1e-7)

@@ -50,6 +50,39 @@ def _time_first(x):
     return None if x is None else jnp.moveaxis(x, 0, 1)
 
 
+@eqx.filter_jit
+def _scaled_vector_field(shell, leaves, euler_seq, parts, t, y, args):
+    """:meth:`ScaledODE.vector_field`'s field. Compiled as a function of its own so that it is traced
+    once per solve rather than at every stage of every traced step: a written-out Dopri8 step calls
+    it 13 times and diffrax traces its step three times, and tracing the per-body field under
+    ``vmap`` each time was most of the integration's tracing time. The program is the same: XLA
+    inlines the call."""
+    values, scale, inverse_scale, pull_rate = parts
+
+    def body_rhs(body_values, t, w, attitude, pull_rate, args):
+        body = shell.replace_body_leaves(leaves, body_values)
+        if attitude is None:
+            return body.angular_acceleration(t, State(w, None), args), None
+        if euler_seq is None:
+            q = attitude
+            dattitude = _quat_derivative(q, w, pull_rate)
+        else:
+            q = _quat_from_euler(attitude, euler_seq)
+            dattitude = _euler_rates(attitude, w, euler_seq, throw=False)
+        return body.angular_acceleration(t, State(w, q), args), dattitude
+
+    # Bodies on the last (contiguous) axis of the state: measured 1.5-2x faster than bodies-first on
+    # CPU (benchmarks/batch_strategies.py). The rows are split and joined outside the per-body
+    # function: inside it (slices and a concatenation per body) the "balanced" preset ran 2x slower.
+    attitude = y[3:] if y.shape[0] > 3 else None
+    in_axes = (0, None, 1, None if attitude is None else 1, 0, None)
+    domega, dattitude = jax.vmap(body_rhs, in_axes=in_axes, out_axes=1)(
+        values, t, y[:3] * scale, attitude, pull_rate, args
+    )
+    du = (domega * inverse_scale).astype(y.dtype)
+    return du if attitude is None else jnp.concatenate([du, dattitude.astype(y.dtype)])
+
+
 class ScaledODE(eqx.Module):
     """Omega scaled per body and component; bodies on the last axis; any diffrax solver.
 
@@ -76,39 +109,16 @@ class ScaledODE(eqx.Module):
         return jnp.concatenate([u, attitude.T.astype(u.dtype)])
 
     def vector_field(self, shell, leaves, values, sigma):
-        euler_seq = self.euler_seq
-
-        def body_rhs(body_values, t, w, attitude, pull_rate, args):
-            body = shell.replace_body_leaves(leaves, body_values)
-            if attitude is None:
-                return body.angular_acceleration(t, State(w, None), args), None
-            if euler_seq is None:
-                q = attitude
-                dattitude = _quat_derivative(q, w, pull_rate)
-            else:
-                q = _quat_from_euler(attitude, euler_seq)
-                dattitude = _euler_rates(attitude, w, euler_seq, throw=False)
-            return body.angular_acceleration(t, State(w, q), args), dattitude
-
         scale = sigma.T
         inverse_scale = 1.0 / scale  # once per chunk: a division per stage was a hot spot
         # The quaternion's norm pull at a constant rate per body, its largest omega scale, rather than
         # at |omega|: no square root per stage (10^4 tennis-racket bodies, "balanced": 12 % less
         # time; the same steps, also for heavy tops).
         pull_rate = jnp.max(sigma, axis=-1)
+        parts = (values, scale, inverse_scale, pull_rate)
 
         def vector_field(t, y, args):
-            # Bodies on the last (contiguous) axis of the state: measured 1.5-2x faster than
-            # bodies-first on CPU (benchmarks/batch_strategies.py). The rows are split and joined
-            # outside the per-body function: inside it (slices and a concatenation per body) the
-            # "balanced" preset ran 2x slower.
-            attitude = y[3:] if y.shape[0] > 3 else None
-            in_axes = (0, None, 1, None if attitude is None else 1, 0, None)
-            domega, dattitude = jax.vmap(body_rhs, in_axes=in_axes, out_axes=1)(
-                values, t, y[:3] * scale, attitude, pull_rate, args
-            )
-            du = (domega * inverse_scale).astype(y.dtype)
-            return du if attitude is None else jnp.concatenate([du, dattitude.astype(y.dtype)])
+            return _scaled_vector_field(shell, leaves, self.euler_seq, parts, t, y, args)
 
         return vector_field
 
