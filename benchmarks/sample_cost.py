@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import time
 from pathlib import Path
 
 import jax
@@ -31,7 +30,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _harness import T_END, peer_program, quat_angle, reference_scene, run_meta  # noqa: E402
+from _harness import T_END, _call, peer_program, quat_angle, reference_scene, run_meta  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
 
@@ -72,19 +71,13 @@ def errors(out, reference):
     return float(np.max(rel)), float(np.max(quat_angle(q, q_ref)))
 
 
-def call(fn):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    return out, time.perf_counter() - t0
-
-
 def measure(scene, n_samples: int, rounds: int) -> list[dict]:
     ts = jnp.linspace(0.0, T_END, n_samples)
     methods = methods_at(scene, ts)
     rows = {}
     reference = None
     for name, fn in methods.items():
-        out, first = call(fn)
+        out, first = _call(fn)
         if name == "simulate 'exact'":
             reference = tuple(np.asarray(x) for x in out)
         rel, angle = errors(out, reference)
@@ -93,7 +86,7 @@ def measure(scene, n_samples: int, rounds: int) -> list[dict]:
         del out
     for _ in range(rounds):
         for name, fn in methods.items():
-            rows[name]["runs_s"].append(call(fn)[1])
+            rows[name]["runs_s"].append(_call(fn)[1])
     peer = f"vmapped Tsit5, rtol {PEER_RTOL:g}"
     for row in rows.values():
         row["run_s"] = float(np.median(row["runs_s"]))
