@@ -190,6 +190,21 @@ mode. Measured on a 2-core CPU: the forward gradient saves ~5 s of compile and c
 sample and fit more to run (1800 samples: 0.43 -> 1.4 s), so the two break even near 8000 samples."""
 
 
+def _loss_tolerance(problem: _Problem, tol: float) -> float:
+    """The relative change of the loss below which a fit has converged: ``tol``, but at least 1e-8
+    for an integrated (torque) model, whose loss is smooth only to about the solver's rtol (1e-10;
+    step-size decisions jump): changes below 1e-8 of it are noise there (and statistically
+    irrelevant: parameters move by ~1e-4 of their standard errors)."""
+    return tol if problem.torque is None else max(tol, 1e-8)
+
+
+def _forward_gradient(problem: _Problem) -> bool:
+    """Whether a fit takes its gradient through the forward-mode Jacobian (see
+    :data:`FORWARD_GRADIENT_SAMPLES`): not for the integrated (torque) model, which is
+    differentiable in reverse mode only, nor for a long record, where the run dominates."""
+    return not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
+
+
 def _stops(i, value, previous, steps, loss_tol):
     """(stop here, converged, recent losses) for iteration ``i`` of an optax fit whose loss is
     ``value``: converged when the loss has changed by at most ``loss_tol`` (relative) over the last
@@ -216,19 +231,13 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
         reuses_value = optax.tree_utils.tree_get(state0, "value", None) is not None
     except (KeyError, ValueError):
         reuses_value = False
-    # The integrated (torque) model is differentiable in reverse mode only on this path.
     jacobian = _jacobian_with_residuals(problem, reverse=problem.reverse_mode)
-    # A long record makes the run dominate: there the gradient is taken in reverse mode.
-    forward = not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
+    forward = _forward_gradient(problem)
     loss = _forward_mode_loss(problem, jacobian) if forward else problem.loss
     n = problem.count()
     # Without a line search and with forward-mode gradients, every pass needs the Jacobian.
     jacobian_every_pass = forward and not reuses_value
-    # Converged when the loss has stopped changing over the last ten iterations. An integrated
-    # model's loss is smooth only to about the solver's rtol (1e-10; step-size decisions jump), so
-    # changes below 1e-8 of it are noise there (and statistically irrelevant: parameters move by
-    # ~1e-4 of their standard errors).
-    loss_tol = tol if problem.torque is None else max(tol, 1e-8)
+    loss_tol = _loss_tolerance(problem, tol)
 
     def cond(carry):
         return ~carry["exit"]
@@ -305,10 +314,10 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
     gradient comes from reverse mode and the covariance's Jacobian is evaluated once after the loop.
     """
     lbfgs = optax.scale_by_lbfgs()
-    forward = not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
+    forward = _forward_gradient(problem)
     jacobian = _jacobian_with_residuals(problem, reverse=problem.reverse_mode)
     n = problem.count()
-    loss_tol = tol if problem.torque is None else max(tol, 1e-8)  # as in _optax_fit
+    loss_tol = _loss_tolerance(problem, tol)
 
     def loss_with_residuals(p):
         r, raw = problem.residuals_and_raw(p)
