@@ -199,9 +199,10 @@ def _loss_tolerance(problem: _Problem, tol: float) -> float:
 
 
 def _forward_gradient(problem: _Problem) -> bool:
-    """Whether a fit takes its gradient through the forward-mode Jacobian (see
-    :data:`FORWARD_GRADIENT_SAMPLES`): not for the integrated (torque) model, which is
-    differentiable in reverse mode only, nor for a long record, where the run dominates."""
+    """Whether an optax fit takes its gradient through the forward-mode Jacobian (see
+    :data:`FORWARD_GRADIENT_SAMPLES`): not where the problem is differentiated in reverse mode only
+    (the integrated model of a known torque, on this path), nor for a long record, where the run
+    dominates."""
     return not problem.reverse_mode and problem.t.size <= FORWARD_GRADIENT_SAMPLES
 
 
