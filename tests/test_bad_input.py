@@ -24,6 +24,7 @@ the same shape reuses that program; structural errors raise before anything comp
 import functools
 import warnings
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -1188,3 +1189,73 @@ def test_simulate_names_a_bad_chunk_size_or_step_limit(accuracy, name, value, wi
     message = rf"simulate: {name} must be a positive integer or None, got {value!r}"
     with pytest.raises(ValueError, match=message):
         rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy=accuracy, **{name: value})
+
+
+@pytest.mark.parametrize(
+    "options, match",
+    [
+        ({"rtol": -1e-6}, r"rtol must be a number in \[0, 1\).*got -1e-06"),
+        ({"rtol": float("nan")}, r"rtol must be a number in \[0, 1\).*got nan"),
+        ({"rtol": float("inf")}, r"rtol must be a number in \[0, 1\).*got inf"),
+        ({"rtol": 2.0}, r"rtol must be a number in \[0, 1\).*got 2.0"),
+        ({"rtol": 1e-6, "atol": -1e-9}, r"atol must be a number in \[0, 1\).*got -1e-09"),
+        ({"rtol": 0.0}, r"rtol and atol must not both be below float64's roundoff unit.*rtol=0.0, atol=0.0"),
+        (
+            {"rtol": 1e-20, "atol": 0.0},
+            r"rtol and atol must not both be below float64's roundoff unit.*1e-20",
+        ),
+        ({"rtol": np.array([1e-6, 1e-7])}, r"rtol must be a single number, got shape \(2,\)"),
+    ],
+)
+def test_simulate_names_a_bad_tolerance(options, match, without_runtime_typecheck):
+    """Tolerances that no step can meet, or that accept any step, were run (a negative or infinite
+    rtol "succeeded"; rtol = 0 failed as if the state had turned NaN): a ValueError names them before
+    anything is compiled."""
+    with pytest.raises(ValueError, match="simulate: " + match):
+        rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="fast", **options)
+
+
+def test_a_bad_tolerance_under_jit_is_a_run_time_error(without_runtime_typecheck):
+    """Inside the user's jit the tolerance is a tracer: the check is in the program. A valid traced
+    tolerance gives the run at that tolerance given as a number."""
+
+    def run(rtol):
+        return rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="fast", rtol=rtol).omega
+
+    run = jax.jit(run)
+    np.testing.assert_allclose(
+        np.asarray(run(1e-7)),
+        np.asarray(rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="fast", rtol=1e-7).omega),
+        rtol=0,
+        atol=1e-13,
+    )
+    with pytest.raises(RUNTIME, match=r"rtol and atol each must be a number in \[0, 1\)"):
+        jax.block_until_ready(run(-1e-7))
+
+
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("solver", diffrax.Tsit5()),
+        ("rtol", 1e-6),
+        ("atol", 1e-6),
+        ("stepsize_controller", diffrax.PIDController(rtol=1e-6, atol=1e-6)),
+        ("dt0", 0.1),
+        ("adjoint", diffrax.ForwardMode()),
+        ("representation", "euler"),
+    ],
+)
+def test_exact_names_an_integrator_option_instead_of_ignoring_it(name, value, without_runtime_typecheck):
+    """The closed form integrates nothing: an integrator's option given with accuracy='exact' was
+    silently unused (a solver asked for was not the one that ran)."""
+    message = rf"accuracy='exact' is a closed form, no integration: {name} does not apply"
+    with pytest.raises(ValueError, match=message):
+        rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="exact", **{name: value})
+
+
+def test_tolerances_beside_a_step_size_controller_are_an_error(without_runtime_typecheck):
+    """rtol and atol configure the preset's controller: beside the user's own they were ignored."""
+    controller = diffrax.PIDController(rtol=1e-3, atol=1e-3)
+    message = r"with stepsize_controller given, set the tolerances on it.*rtol=1e-12"
+    with pytest.raises(ValueError, match=message):
+        rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, rtol=1e-12, stepsize_controller=controller)

@@ -77,6 +77,15 @@ def test_a_nan_torque_is_named_with_body_and_time_not_as_max_steps():
     assert "throw=False" in message
 
 
+def test_a_body_that_fails_at_its_first_step_is_named_with_that_time():
+    """A torque that is NaN from the start: not even the initial sample is written, and the message
+    names the first step rather than an interval that runs backwards."""
+    torque = rj.Torque(lambda t, s, a: jnp.full(3, jnp.nan), needs_orientation=False)
+    message = r"the body failed at its first step from t = 0 s: it stopped"
+    with pytest.raises(eqx.EquinoxRuntimeError, match=message):
+        rj.simulate(rj.RigidBody(jnp.asarray(INERTIA), torque), rj.State(jnp.asarray(OMEGA)), TS)
+
+
 @pytest.mark.slow
 def test_batch_index_is_named_in_the_batch_shape():
     model, state = _scene(12, bad=7, shape=(3, 4))

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_positive_int, check_times_shape, float_dtype
+from .._checks import check_positive_int, check_times_shape, error_if, float_dtype, known_values
 from .._dynamics.models import AbstractModel, HeavyTop, State
 from .._kinematics.euler import is_proper_sequence
 from . import batching, driver
@@ -143,10 +143,14 @@ def simulate(
       ``[ts[i], ts[i+1]]`` is cut into ``ceil((ts[i+1] - ts[i]) / dt0)`` equal steps so samples fall
       on steps, ``ts`` must be concrete, and the scene's parameters come from ``model`` (the
       solver's own numeric fields are not used).
-    - `rtol`, `atol`: dimensionless tolerances (each body's omega is measured against its own
-      scale, the quaternion is O(1)); ``atol`` defaults to ``rtol``.
+    - `rtol`, `atol`: dimensionless tolerances of the preset's step-size controller (each body's
+      omega is measured against its own scale, the quaternion is O(1)), each in ``[0, 1)`` and not
+      both below the dtype's roundoff unit; ``atol`` defaults to ``rtol``.
     - `stepsize_controller`: any diffrax step-size controller (e.g. ``ConstantStepSize`` with
-      ``dt0``) instead of the preset's ``PIDController``.
+      ``dt0``) instead of the preset's ``PIDController``; it carries its own tolerances (``rtol``
+      and ``atol`` beside it are an error). With ``accuracy="exact"``, which integrates nothing,
+      ``solver``, ``rtol``, ``atol``, ``stepsize_controller``, ``dt0``, ``adjoint`` and
+      ``representation="euler"`` are an error rather than unused.
     - `dt0`: the first (or fixed) step (s).
     - `adjoint`: any diffrax adjoint, always used when given. Default: ``diffrax.ForwardMode()``
       when ``model``, ``state0``, ``ts`` or ``args`` carry forward-mode tangents (``jax.jvp``,
@@ -233,6 +237,10 @@ def simulate(
     chunk_size = check_positive_int(chunk_size, "chunk_size", "simulate")
     max_steps = check_positive_int(max_steps, "max_steps", "simulate")
     if accuracy == "exact":
+        _check_no_integrator_options(
+            solver=solver, rtol=rtol, atol=atol, stepsize_controller=stepsize_controller, dt0=dt0,
+            adjoint=adjoint, representation=None if representation == "quaternion" else representation,
+        )  # fmt: skip
         traj = simulate_exact(model, state0, ts, chunk_size)
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
@@ -243,6 +251,11 @@ def simulate(
         formulation, grid, n_steps = _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given)
     elif accuracy not in PRESETS:
         raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
+    elif stepsize_controller is not None and (rtol is not None or atol is not None):
+        raise ValueError(
+            "simulate: rtol and atol set the preset's step-size controller; with stepsize_controller "
+            f"given, set the tolerances on it instead (got rtol={rtol!r}, atol={atol!r})."
+        )
     if state0.orientation is None and model.needs_orientation:
         raise ValueError(
             f"{type(model).__name__} needs an orientation: pass State(omega, orientation=q) with a unit "
@@ -386,7 +399,9 @@ def _raise_if_failed(traj, max_steps, formulation):
     code = int(np.asarray(traj.stats["result"]).ravel()[first])
     sample = int(np.asarray(traj.stats["first_failed_sample"]).ravel()[first])
     ts = np.asarray(traj.ts)
-    if sample < ts.shape[0]:
+    if sample == 0:  # not even the first step was taken
+        when = f"at its first step from t = {ts[0]:.6g} s"
+    elif sample < ts.shape[0]:
         when = f"between t = {ts[sample - 1]:.6g} s and t = {ts[sample]:.6g} s"
     else:
         when = "before the last sample time"
@@ -422,6 +437,48 @@ def _error_if_failed(traj, max_steps, formulation):
     return eqx.tree_at(lambda t: t.omega, traj, omega)
 
 
+def _check_no_integrator_options(**options):
+    """``accuracy="exact"`` evaluates a closed form: options that configure an integrator are an error
+    there rather than silently unused."""
+    given = [name for name, value in options.items() if value is not None]
+    if given:
+        raise ValueError(
+            f"simulate: accuracy='exact' is a closed form, no integration: {', '.join(given)} "
+            f"{'does' if len(given) == 1 else 'do'} not apply to it; an integrator takes "
+            f"{'it' if len(given) == 1 else 'them'}: accuracy='fast', 'balanced' or 'precise'."
+        )
+
+
+def _checked_tolerances(rtol, atol, dtype):
+    """``rtol`` and ``atol`` as arrays of ``dtype``, each a single number in ``[0, 1)`` and not both
+    below one roundoff unit of ``dtype`` (no step could meet them); a ``ValueError`` naming the
+    argument where the values are known, a run-time error under ``jit``."""
+    eps = float(jnp.finfo(dtype).eps)
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        if jnp.ndim(value) != 0:
+            raise ValueError(f"simulate: {name} must be a single number, got shape {jnp.shape(value)}.")
+    rule = (
+        "must be a number in [0, 1) (a tolerance per step, relative to each body's scale of omega; "
+        "the quaternion is of size 1)"
+    )
+    floor = (
+        f"rtol and atol must not both be below {np.dtype(dtype).name}'s roundoff unit {eps:.3g}: "
+        "no step can meet them"
+    )
+    values = known_values((rtol, atol))
+    if values is not None:
+        values = tuple(float(v) for v in values)
+        for name, value in zip(("rtol", "atol"), values, strict=True):
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"simulate: {name} {rule}, got {value!r}.")
+        if max(values) < eps:
+            raise ValueError(f"simulate: {floor}; got rtol={values[0]!r}, atol={values[1]!r}.")
+        return jnp.asarray(values[0], dtype), jnp.asarray(values[1], dtype)
+    rtol, atol = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
+    valid = (rtol >= 0) & (rtol < 1) & (atol >= 0) & (atol < 1) & (jnp.maximum(rtol, atol) >= eps)
+    return error_if(rtol, ~valid, f"simulate: rtol and atol each {rule}, and {floor}."), atol
+
+
 def _preset_controller(
     accuracy, solver_from_preset, preset_rtol, rtol, atol, ts, omega0, dtype, representation
 ):
@@ -429,8 +486,11 @@ def _preset_controller(
     # Arrays, not Python floats, so that a new tolerance does not trigger a recompilation.
     # A preset never asks for less than ten roundoff units (float32: 1.2e-6).
     floor = 10 * float(jnp.finfo(dtype).eps)
-    rtol = jnp.asarray(max(preset_rtol, floor) if rtol is None else rtol, dtype)
-    atol = rtol if atol is None else jnp.asarray(atol, dtype)
+    if rtol is None and atol is None:
+        rtol = atol = jnp.asarray(max(preset_rtol, floor), dtype)
+    else:
+        rtol = max(preset_rtol, floor) if rtol is None else rtol
+        rtol, atol = _checked_tolerances(rtol, rtol if atol is None else atol, dtype)
     # "precise" lands a step on every sample time: Dopri8's dense output is accurate to ~1e-9 only,
     # far worse than its steps; the other presets' interpolants are within their tolerance.
     step_ts = ts if accuracy == "precise" and solver_from_preset else None
