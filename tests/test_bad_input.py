@@ -1259,3 +1259,50 @@ def test_tolerances_beside_a_step_size_controller_are_an_error(without_runtime_t
     message = r"with stepsize_controller given, set the tolerances on it.*rtol=1e-12"
     with pytest.raises(ValueError, match=message):
         rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, rtol=1e-12, stepsize_controller=controller)
+
+
+@pytest.mark.parametrize(
+    "options, error, match",
+    [
+        # A string is truthy: "no" ran with throw=True, and sort_by_speed="no" sorted the bodies.
+        ({"throw": "no"}, TypeError, "throw must be True or False, got 'no'"),
+        ({"sort_by_speed": "no"}, TypeError, "sort_by_speed must be True or False, got 'no'"),
+        ({"error_estimate": 1}, TypeError, "error_estimate must be True or False, got 1"),
+        # A string failed with an AttributeError deep in diffrax, a class with a functools error.
+        ({"solver": "Tsit5"}, TypeError, "solver must be a diffrax solver .*got str 'Tsit5'"),
+        ({"solver": diffrax.Tsit5}, TypeError, r"solver must be .*the class Tsit5 itself .*Tsit5\(...\)"),
+        ({"stepsize_controller": 1e-3}, TypeError, "stepsize_controller must be a diffrax step-size"),
+        ({"adjoint": "forward"}, TypeError, "adjoint must be a diffrax adjoint"),
+        # dt0 <= 0 or NaN failed as a state that had turned NaN, or after max_steps.
+        ({"dt0": -0.1}, ValueError, "dt0 must be a positive finite step .*got -0.1"),
+        ({"dt0": 0.0}, ValueError, "dt0 must be a positive finite step .*got 0.0"),
+        ({"dt0": float("nan")}, ValueError, "dt0 must be a positive finite step .*got nan"),
+        ({"dt0": np.array([0.1, 0.2])}, ValueError, r"dt0 must be a single step \(s\), got shape \(2,\)"),
+        # A negative or NaN margin failed as a NaN state; 2 as "within 2 of gimbal lock".
+        ({"lock_tolerance": -1.0}, ValueError, r"lock_tolerance must be a number in \(0, 1\).*got -1.0"),
+        ({"lock_tolerance": 2.0}, ValueError, r"lock_tolerance must be a number in \(0, 1\).*got 2.0"),
+        ({"lock_tolerance": float("nan")}, ValueError, r"lock_tolerance must be a number in \(0, 1\)"),
+        ({"lock_tolerance": "small"}, TypeError, r"lock_tolerance must be a number in \(0, 1\)"),
+    ],
+)
+def test_simulate_names_a_bad_option(options, error, match, without_runtime_typecheck):
+    """Options of the wrong kind or value are named before anything is compiled, instead of being
+    read as something else or failing as the integration's fault."""
+    representation = {"representation": "euler"} if "lock_tolerance" in options else {}
+    with pytest.raises(error, match="simulate: " + match):
+        rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="fast", **representation, **options)
+
+
+@pytest.mark.parametrize("accuracy", ["fast", "exact"])
+def test_an_empty_batch_of_bodies_is_named(accuracy):
+    """Zero bodies failed with a ZeroDivisionError in the chunking."""
+    model, state = rj.FreeBody(np.ones((0, 3)) * I3), rj.State(np.ones((0, 3)), None)
+    with pytest.raises(ValueError, match=r"simulate: the batch of bodies is empty \(batch shape \(0,\)"):
+        rj.simulate(model, state, TS, accuracy=accuracy)
+
+
+def test_a_span_too_long_for_the_step_floor_names_the_closed_form():
+    """A tumbling body over 1e12 s (3e11 turns) needs steps below the floor that stops a NaN body
+    early (1e-12 of the span): the error said only that the state or torque had turned NaN."""
+    with pytest.raises(RUNTIME, match=r"step size collapsed.*more turns than steps of that size.*'exact'"):
+        rj.simulate(rj.FreeBody(I3), rj.State(W, None), np.array([0.0, 1e12]), accuracy="fast")

@@ -1,8 +1,10 @@
 """simulate's run-time checks of its inputs: one program that returns the failed conditions for
 concrete inputs, ``eqx.error_if`` in the user's program for traced ones."""
 
+import diffrax
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import (
     check_model,
@@ -20,7 +22,7 @@ from .._checks import (
 from .._kinematics.euler import _euler_from_quat
 from .formulations import lock_distance
 
-__all__ = ["checked_inputs"]
+__all__ = ["check_options", "checked_inputs"]
 
 
 def checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):
@@ -60,3 +62,47 @@ def _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance):
             f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
         )
     return model, omega0, q0, ts
+
+
+# The options that take an object: its base class and an example of one.
+_OBJECT_OPTIONS = {
+    "solver": (diffrax.AbstractSolver, "a diffrax solver such as diffrax.Tsit5() or rigidjax.solvers.RKMK()"),
+    "stepsize_controller": (
+        diffrax.AbstractStepSizeController,
+        "a diffrax step-size controller such as diffrax.PIDController(rtol=1e-8, atol=1e-8)",
+    ),
+    "adjoint": (diffrax.AbstractAdjoint, "a diffrax adjoint such as diffrax.ForwardMode()"),
+}
+
+
+def check_options(*, flags, objects, dt0, lock_tolerance):
+    """simulate's options that need no values of the scene, checked before anything runs: ``flags``
+    (name: value) are ``True`` or ``False`` (a string such as ``"no"`` would otherwise count as
+    true), ``objects`` (name: value) are None or instances of their diffrax base class, ``dt0`` is
+    None or a positive finite step where its value is known, and ``lock_tolerance`` a number in
+    ``(0, 1)``. A ``TypeError`` or ``ValueError`` naming the option otherwise."""
+    for name, value in flags.items():
+        if not isinstance(value, bool | np.bool_):
+            raise TypeError(f"simulate: {name} must be True or False, got {value!r}.")
+    for name, value in objects.items():
+        base, example = _OBJECT_OPTIONS[name]
+        if value is None or isinstance(value, base):
+            continue
+        if isinstance(value, type):
+            got = f"the class {value.__name__} itself (an instance is needed: {value.__name__}(...))"
+        else:
+            got = f"{type(value).__name__} {value!r}"
+        raise TypeError(f"simulate: {name} must be {example}; got {got}.")
+    if dt0 is not None:
+        if np.ndim(dt0) != 0:
+            raise ValueError(f"simulate: dt0 must be a single step (s), got shape {np.shape(dt0)}.")
+        values = known_values((dt0,))
+        if values is not None and not (np.isfinite(float(values[0])) and float(values[0]) > 0):
+            raise ValueError(f"simulate: dt0 must be a positive finite step (s), got {float(values[0])!r}.")
+    if isinstance(lock_tolerance, bool) or not isinstance(lock_tolerance, int | float | np.number):
+        raise TypeError(f"simulate: lock_tolerance must be a number in (0, 1), got {lock_tolerance!r}.")
+    if not 0 < float(lock_tolerance) < 1:
+        raise ValueError(
+            "simulate: lock_tolerance must be a number in (0, 1) (the smallest |sin(theta)| the "
+            f"Euler-angle state may reach; |cos(theta)| for Tait-Bryan sequences), got {lock_tolerance!r}."
+        )

@@ -24,7 +24,7 @@ from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
 from .exact import simulate_exact
 from .formulations import LieGroupODE, ScaledODE, SplittingODE
-from .inputs import checked_inputs
+from .inputs import check_options, checked_inputs
 from .presets import (
     MIN_MAX_STEPS,
     PRESETS,
@@ -225,6 +225,12 @@ def simulate(
         )
     if not isinstance(state0, State):
         raise TypeError(f"state0 must be a rigidjax.State, got {type(state0).__name__}.")
+    check_options(
+        flags=dict(throw=throw, sort_by_speed=sort_by_speed, error_estimate=error_estimate),
+        objects=dict(solver=solver, stepsize_controller=stepsize_controller, adjoint=adjoint),
+        dt0=dt0,
+        lock_tolerance=lock_tolerance,
+    )
     if error_estimate:
         return with_error_estimate(
             simulate, model, state0, ts, accuracy=accuracy, solver=solver, rtol=rtol, atol=atol,
@@ -234,6 +240,12 @@ def simulate(
             progress=progress,
         )  # fmt: skip
     report = _progress.check_progress(progress)
+    batch = batching.batch_shape(model, state0.omega, state0.orientation)
+    if math.prod(batch) == 0:
+        raise ValueError(
+            f"simulate: the batch of bodies is empty (batch shape {batch}, from the model's and "
+            "state0's leading axes): there is no body to integrate."
+        )
     chunk_size = check_positive_int(chunk_size, "chunk_size", "simulate")
     max_steps = check_positive_int(max_steps, "max_steps", "simulate")
     if accuracy == "exact":
@@ -378,8 +390,11 @@ def _failure_reason(code: int, max_steps: int, formulation) -> str:
         )
     if code == driver.DT_MIN_REACHED:
         return (
-            "stopped because its state or torque became NaN or inf there (the step size collapsed; or "
-            "the scene is singular there). Check the torque functions and the inputs"
+            "stopped because its step size collapsed there (below the smaller of 1e-12 times the span of "
+            "ts and 1e-3 times the smallest gap between sample times): its state or torque became NaN "
+            "or inf, the scene is singular there, or ts spans more turns than steps of that size can "
+            "resolve (a torque-free body over so long a span: accuracy='exact'). Check the torque "
+            "functions and the inputs"
         )
     if code == NON_FINITE:
         return (
