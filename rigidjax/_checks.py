@@ -469,6 +469,12 @@ def check_model_field(label: str, value, where: str):
 
 def check_model(model, where: str):
     """``model`` with every per-body array run-time checked (:func:`check_model_field`)."""
-    leaves = model.body_leaves()
-    checked = [check_model_field(leaf.label, leaf.get(model), where) for leaf in leaves]
+    leaves, rules = model.body_leaves(), model.leaf_rules()
+    checked = []
+    for leaf in leaves:
+        value = check_model_field(leaf.label, leaf.get(model), where)
+        if leaf.label in rules:
+            bad, rule = rules[leaf.label]
+            value = error_if(value, jnp.any(bad(value)), f"{where}: model field {leaf.label!r} {rule}.")
+        checked.append(value)
     return model.replace_body_leaves(leaves, checked)

@@ -1306,3 +1306,72 @@ def test_a_span_too_long_for_the_step_floor_names_the_closed_form():
     early (1e-12 of the span): the error said only that the state or torque had turned NaN."""
     with pytest.raises(RUNTIME, match=r"step size collapsed.*more turns than steps of that size.*'exact'"):
         rj.simulate(rj.FreeBody(I3), rj.State(W, None), np.array([0.0, 1e12]), accuracy="fast")
+
+
+@pytest.mark.parametrize("shape", [(2,), (4,), (5, 2)])
+def test_a_damping_coefficient_of_an_undocumented_shape_is_named(shape):
+    """A trailing axis other than 1 or 3 was read as a batch of per-body scalars (2 bodies from
+    shape (2,)), while (3,) is per body axis: N bodies' coefficients meant either, depending on N."""
+    with pytest.raises(ValueError, match=r"ViscousDamping.coefficient must be .*use shape \(N, 1\)"):
+        rj.ViscousDamping(np.full(shape, 0.1))
+
+
+def test_a_negative_damping_coefficient_is_named_also_under_jit():
+    """A negative coefficient ran and pumped energy in under the name of damping."""
+    message = r"'torques\[0\].coefficient' must be non-negative \(N m s\)"
+
+    def final_omega(c):
+        model = rj.RigidBody(I3, rj.ViscousDamping(c))
+        return rj.simulate(model, rj.State(W, None), TS, accuracy="fast").omega[..., -1, :]
+
+    with pytest.raises(ValueError, match="simulate: model field " + message):
+        final_omega(np.array([[0.1], [-0.1]]))
+    with pytest.raises(RUNTIME, match=message):
+        jax.block_until_ready(jax.jit(final_omega)(-0.1))
+    # The accepted shapes keep their meaning: per body axis, and per body (N, 1).
+    per_axis = final_omega(np.array([0.1, 0.2, 0.3]))
+    per_body = final_omega(np.array([[0.1], [0.2]]))
+    assert per_axis.shape == (3,) and per_body.shape == (2, 3)
+    with pytest.raises(ValueError, match=r"torque \(ViscousDamping\): coefficient must be non-negative"):
+        rj.fit_inertia(TS, np.ones((TS.shape[0], 3)), torque=rj.ViscousDamping(-0.1))
+
+
+@pytest.mark.parametrize("fn", [lambda t: np.zeros(3), lambda t, state: np.zeros(3), 3.0])
+def test_a_torque_function_of_the_wrong_arity_is_named(fn, without_runtime_typecheck):
+    """fn(t) failed inside the integration with Python's own 'takes 1 positional argument but 3 were
+    given', which names neither the torque nor the arguments it is called with."""
+    message = r"Torque: fn must (take three arguments|be a function) fn\(t, state, args\)"
+    with pytest.raises(TypeError, match=message):
+        rj.Torque(fn)
+    if callable(fn):
+        with pytest.raises(TypeError, match=r"Torque: fn must take three arguments"):
+            rj.RigidBody(I3, fn)
+    # Defaults, *args and callables without a readable signature stay accepted.
+    rj.Torque(lambda t, state, args=None, scale=1.0: np.zeros(3))
+    rj.Torque(lambda *a: np.zeros(3))
+
+
+def test_the_closed_forms_read_a_trailing_3_by_3_as_three_bodies_moments():
+    """A diagonal tensor passed as inertia ran as three 'bodies' of moments (1, 0, 0), ... with no
+    error, each returning omega0 unchanged (a steady rotation): the physicality check read the
+    (3, 3) as one tensor, the closed form as three bodies' principal moments."""
+    moments = np.array([1.0, 2.0, 3.0])
+    message = r"torque_free_omega: inertia \(principal moments .*three bodies' moments.* non-positive"
+    with pytest.raises(ValueError, match=message):
+        rj.torque_free_omega(np.diag(moments), W, 1.0)
+    with pytest.raises(ValueError, match="torque_free_period: inertia .* non-positive"):
+        rj.torque_free_period(np.diag(moments), W)
+    # Three bodies' moments in a (3, 3) array keep working, each row its own body (reference: the
+    # same body alone; Euler's equations are invariant under a common scale of the moments).
+    rows = np.stack([moments, 2 * moments, moments[::-1]])
+    alone = [np.asarray(rj.torque_free_omega(row, W, 1.0)) for row in rows]
+    np.testing.assert_allclose(np.asarray(rj.torque_free_omega(rows, W, 1.0)), np.stack(alone), atol=1e-15)
+
+
+def test_torque_free_motion_wants_a_unit_quaternion_like_simulate():
+    """A q0 of norm 2 returned a 'unit quaternion' q(t) of norm 2."""
+    q0 = np.array([2.0, 0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"torque_free_motion: q0 is not a unit quaternion"):
+        rj.torque_free_motion(I3, W, q0, 1.0)
+    with pytest.raises(RUNTIME, match=r"q0 is not a unit quaternion"):
+        jax.block_until_ready(jax.jit(rj.torque_free_motion)(I3, W, q0, 1.0))

@@ -25,7 +25,7 @@ from .._checks import (
     check_batch_shapes,
     check_finite,
     check_last_axis,
-    check_rotation_quaternion,
+    check_unit_quaternion,
     collected_failures,
     common_float,
     packed_failures,
@@ -43,7 +43,15 @@ from .precession import _general_orientation, _norm
 
 def _checked(inertia, omega0, t, where):
     """Run-time value checks of the public closed forms (``eqx.error_if``: also under jit/vmap)."""
-    inertia = check_inertia(inertia, name=f"{where}: inertia")
+    # Principal moments, per body: check_inertia would read a trailing (3, 3) as ONE tensor, and a
+    # diagonal tensor passed here (three "bodies" with zero moments) then ran as steady rotations.
+    name = f"{where}: inertia"
+    if inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3):
+        name += (
+            " (principal moments (..., 3): a trailing (3, 3) is three bodies' moments here, not a "
+            "tensor; diagonalise a tensor with rigidjax.principal_axes)"
+        )
+    inertia = check_inertia(inertia[..., None, :], name=name)[..., 0, :]
     omega0 = check_finite(omega0, "omega0", where)
     t = t if t is None else check_finite(t, "t", where)
     return inertia, omega0, t
@@ -156,7 +164,8 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
 
     **Arguments:**
 
-    - `inertia`: principal moments ``(..., 3)`` in any order (kg m^2). Non-physical moments (beyond
+    - `inertia`: principal moments ``(..., 3)`` in any order (kg m^2); a trailing ``(3, 3)`` is three
+      bodies' moments, not a tensor. Non-physical moments (beyond
       the flat plate, non-positive) are an error at run time.
     - `omega0`: angular velocity at ``t = 0`` in body-frame components (rad/s), ``(..., 3)``.
     - `t`: time (s), broadcast against the batch axes of `inertia` and `omega0`: for a batch of
@@ -389,7 +398,7 @@ def _broadcast_motion_inputs(inertia, omega0, q0, t, checked=True):
     )
     if checked:
         inertia, omega0, t = _checked(inertia, omega0, t, "torque_free_motion")
-        q0 = check_rotation_quaternion(q0, "q0", "torque_free_motion")
+        q0 = check_unit_quaternion(q0, "q0", "torque_free_motion")
     (inertia, omega0, q0), batch = _body_arrays(t, inertia, omega0, q0)
     return inertia, omega0, q0, t, batch
 
@@ -438,7 +447,8 @@ def torque_free_motion(
       :func:`torque_free_omega`.
     - `omega0`: angular velocity at ``t = 0`` in body-frame components (rad/s), ``(..., 3)``.
     - `q0`: orientation at ``t = 0``, a unit quaternion ``(w, x, y, z)`` mapping body-frame to
-      space-frame components, ``(..., 4)``. A zero quaternion raises at run time.
+      space-frame components, ``(..., 4)``; one further than roundoff from unit norm raises at
+      run time (as in :func:`rigidjax.simulate`: normalise it with :func:`rigidjax.quat_normalize`).
     - `t`: time (s), broadcast against the bodies' batch axes as in :func:`torque_free_omega`.
 
     **Returns:** ``(omega, q)``: ``omega(t)`` (rad/s, body frame), shape ``batch + (3,)``, and the

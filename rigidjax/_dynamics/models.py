@@ -10,6 +10,7 @@ the potential energy. Torques are body-frame, in N m.
 """
 
 import abc
+import inspect
 import operator
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
@@ -84,6 +85,11 @@ class AbstractTorque(eqx.Module):
         a batch of bodies can have a torque each. Fields not listed are shared by the batch."""
         return {}
 
+    def _leaf_rules(self) -> dict[str, tuple[Callable, str]]:
+        """Value rules of per-body fields beyond finiteness, checked by ``simulate`` at run time
+        (also under ``jit``): field name to ``(bad(value) -> bool array, what it must be)``."""
+        return {}
+
     @abc.abstractmethod
     def __call__(self, t, state: State, args: Any) -> Float[Array, "3"]: ...
 
@@ -125,19 +131,38 @@ class ConstantTorque(AbstractTorque):
         return tau
 
 
+_NON_NEGATIVE_DAMPING = (
+    "must be non-negative (N m s): a negative damping coefficient feeds energy in (write such a "
+    "torque as Torque(fn))"
+)
+
+
 class ViscousDamping(AbstractTorque):
     """Linear viscous damping ``tau = -coefficient * omega``.
 
     **Arguments:**
 
-    - `coefficient`: N m s; a scalar, or ``(..., 3)`` per body axis. For a batch of per-body
-      scalars use shape ``(N, 1)``.
+    - `coefficient`: N m s, non-negative; a scalar, or ``(..., 3)`` per body axis. For a batch of
+      per-body scalars use shape ``(N, 1)`` (other trailing lengths are an error).
     """
 
     coefficient: Float[ArrayLike, "*batch"] | Float[ArrayLike, "*batch 3"] = eqx.field(
         converter=lambda x: as_float_array(x, "coefficient")
     )
     needs_orientation: ClassVar[bool] = False
+
+    def __check_init__(self):
+        # A trailing axis of other lengths was read as a batch of per-body scalars, except 3 (per
+        # body axis): N bodies' coefficients meant the one or the other depending on N.
+        shape = jnp.shape(self.coefficient)
+        if shape and shape[-1] not in (1, 3):
+            raise ValueError(
+                "ViscousDamping.coefficient must be a scalar, (..., 3) per body axis or (..., 1) per "
+                f"body, got shape {shape}; for N bodies' scalar coefficients use shape (N, 1)."
+            )
+
+    def _leaf_rules(self):
+        return {"coefficient": (lambda c: c < 0, _NON_NEGATIVE_DAMPING)}
 
     def _leaf_core_ndims(self):
         # A trailing axis of 3 (or 1) is per body axis; so a batch of per-body scalars is (N, 1).
@@ -164,6 +189,23 @@ class Torque(AbstractTorque):
     fn: Callable = eqx.field(static=True)
     params: Any = None
     needs_orientation: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        if not callable(self.fn):
+            kind = type(self.fn).__name__
+            raise TypeError(f"Torque: fn must be a function fn(t, state, args), got {kind}.")
+        try:
+            signature = inspect.signature(self.fn)
+        except (TypeError, ValueError):  # builtins and some C callables have none to read
+            return
+        try:
+            signature.bind(None, None, None)
+        except TypeError:
+            name = getattr(self.fn, "__qualname__", type(self.fn).__name__)
+            raise TypeError(
+                f"Torque: fn must take three arguments fn(t, state, args) (args: simulate's args, or "
+                f"the torque's params), got {name}{signature}."
+            ) from None
 
     def __call__(self, t, state, args):
         out = self.fn(t, state, self.params if self.params is not None else args)
@@ -345,6 +387,15 @@ class AbstractModel(eqx.Module):
             for n, c in torque._leaf_core_ndims().items():
                 leaves.append(BodyLeaf(f"torques[{i}].{n}", _torque_field_getter(i, n), c))
         return leaves
+
+    def leaf_rules(self) -> dict[str, tuple[Callable, str]]:
+        """The torques' value rules (:meth:`AbstractTorque._leaf_rules`) by the labels of
+        :meth:`body_leaves`."""
+        return {
+            f"torques[{i}].{name}": rule
+            for i, torque in enumerate(getattr(self, "torques", ()))
+            for name, rule in torque._leaf_rules().items()
+        }
 
     def replace_body_leaves(self, leaves: list[BodyLeaf], values: list) -> "AbstractModel":
         """A copy with the arrays of ``leaves`` (from :meth:`body_leaves`) replaced by ``values``."""

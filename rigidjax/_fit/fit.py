@@ -112,6 +112,10 @@ def _known_torques(torque, inertia_trace, known_moment, *, orientation_data: boo
                 raise ValueError(f"{name} holds NaN or inf; a known torque must be finite.")
         if isinstance(known, GravityTorque) and np.any(np.asarray(known.mass) <= 0):
             raise ValueError(f"{name}: the mass must be positive (kg), got {np.asarray(known.mass)}.")
+        for field, (bad, rule) in known._leaf_rules().items():
+            value = np.asarray(getattr(known, field))
+            if np.any(bad(value)):
+                raise ValueError(f"{name}: {field} {rule}; got {value}.")
     return torques
 
 
