@@ -1375,3 +1375,63 @@ def test_torque_free_motion_wants_a_unit_quaternion_like_simulate():
         rj.torque_free_motion(I3, W, q0, 1.0)
     with pytest.raises(RUNTIME, match=r"q0 is not a unit quaternion"):
         jax.block_until_ready(jax.jit(rj.torque_free_motion)(I3, W, q0, 1.0))
+
+
+def _composite_by_hand(masses, coms, moments, rotations):
+    """Mass, centre of mass and inertia of one body of parts, in NumPy from the definitions."""
+    mass = masses.sum()
+    com = (masses[:, None] * coms).sum(0) / mass
+    inertia = np.zeros((3, 3))
+    for m, c, i, r in zip(masses, coms, moments, rotations, strict=True):
+        d = c - com
+        inertia += r @ np.diag(i) @ r.T + m * (d @ d * np.eye(3) - np.outer(d, d))
+    return mass, com, inertia
+
+
+def test_composite_inertia_broadcasts_batch_axes_after_the_parts_axis(without_runtime_typecheck):
+    """Arguments with fewer batch axes were broadcast from the right, lining a batch axis up with
+    the parts axis: masses (2,) with coms (2, 2, 3) gave a centre of mass of 0.25 for a body whose
+    is 0.75, silently; with unequal sizes a raw broadcasting error named no argument."""
+    rng = np.random.default_rng(7)
+    masses = np.array([1.0, 3.0])  # (P,): shared by the batch
+    coms = rng.normal(size=(2, 4, 3))  # (P, B, 3)
+    moments = rng.uniform(1.0, 2.0, size=(2, 3))  # (P, 3): shared
+    angles = rng.uniform(0.0, 1.0, size=(2, 4, 3))
+    rotations = np.asarray(rj.matrix_from_euler(angles))  # (P, B, 3, 3)
+    total, com, inertia = (np.asarray(x) for x in rj.composite_inertia(masses, coms, moments, rotations))
+    assert total.shape == (4,) and com.shape == (4, 3) and inertia.shape == (4, 3, 3)
+    for b in range(4):
+        mass_b, com_b, inertia_b = _composite_by_hand(masses, coms[:, b], moments, rotations[:, b])
+        np.testing.assert_allclose(total[b], mass_b, rtol=1e-14)
+        np.testing.assert_allclose(com[b], com_b, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(inertia[b], inertia_b, rtol=0, atol=1e-13)
+    message = r"composite_inertia: the batch axes .* do not broadcast: masses \(2, 4\) \(batch \(4,\)\), coms"
+    with pytest.raises(ValueError, match=message):
+        rj.composite_inertia(np.ones((2, 4)), np.zeros((2, 5, 3)), np.ones((2, 3)))
+    with pytest.raises(ValueError, match=r"rotations must have the parts axis first, with 2 parts"):
+        rj.composite_inertia(np.ones(2), np.zeros((2, 3)), np.ones((2, 3)), np.ones((3, 3, 3)))
+    with pytest.raises(ValueError, match=r"inertias must have the parts axis first.*got shape \(3,\)"):
+        rj.composite_inertia(np.ones(1), np.zeros((1, 3)), np.ones(3))
+
+
+@pytest.mark.parametrize(
+    "moments, speed",
+    [
+        ([8.008e37, 8.008e37, 8.034e37], 7.29e-5),  # the Earth
+        ([1e20, 2e20, 2.5e20], 1.0),
+        ([4e-33, 5e-33, 6e-33], 1.0),  # a nanoparticle
+        ([1.0, 2.0, 2.5], 1e-30),
+    ],
+)
+def test_spin_stability_in_float32_at_extreme_scales(moments, speed):
+    """Products of two moments overflowed (or underflowed) float32: the Earth's spin axis came out
+    unstable with frequency 0, and for (1e20, 2e20, 2.5e20) every axis unstable with growth 0.
+    Reference: lambda^2 = Omega^2 (I_i - I_j)(I_k - I_i) / (I_j I_k) in NumPy float64."""
+    I = np.array(moments)
+    I_j, I_k = np.roll(I, -1), np.roll(I, -2)
+    lam2 = speed**2 * (I - I_j) * (I_k - I) / (I_j * I_k)
+    out = rj.spin_stability(jnp.asarray(I, jnp.float32), jnp.float32(speed))
+    np.testing.assert_array_equal(np.asarray(out.stable), lam2 < 0)
+    np.testing.assert_array_equal(np.asarray(out.unstable), lam2 > 0)
+    np.testing.assert_allclose(np.asarray(out.frequency), np.sqrt(np.maximum(-lam2, 0)), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(out.growth_rate), np.sqrt(np.maximum(lam2, 0)), rtol=1e-5)

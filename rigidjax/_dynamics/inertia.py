@@ -273,23 +273,48 @@ def composite_inertia(
     if masses.ndim < 1:
         raise ValueError(f"masses must have a leading parts axis, shape (P, ...), got {masses.shape}.")
     check_last_axis(coms, 3, "coms")
-    if inertias.ndim >= 3 and inertias.shape[-2:] == (3, 3):
-        part_tensors = inertias
-    else:
+    tensors = inertias.ndim >= 3 and inertias.shape[-2:] == (3, 3)
+    if not tensors:
         check_last_axis(inertias, 3, "inertias")
-        part_tensors = inertias[..., None, :] * jnp.eye(3, dtype=inertias.dtype)
     if rotations is not None:
         rotations = args[3]
         check_last_two_axes(rotations, "rotations")
-        rotations = check_rotation_matrix(rotations, "rotations", "composite_inertia")
-        part_tensors = rotations @ part_tensors @ _swap(rotations)
+    # The parts axis leads; the batch axes sit between it and each argument's own trailing axes, so
+    # they are broadcast there (NumPy's rule from the right would line a batch axis up with parts).
     n_parts = masses.shape[0]
-    for arr, nm in ((coms, "coms"), (part_tensors, "inertias"), (rotations, "rotations")):
-        if arr is not None and (arr.ndim < 2 or arr.shape[0] != n_parts):
+    parted = [("masses", masses, 0), ("coms", coms, 1), ("inertias", inertias, 2 if tensors else 1)]
+    if rotations is not None:
+        parted.append(("rotations", rotations, 2))
+    for name, arr, core in parted:
+        if arr.ndim < core + 1 or arr.shape[0] != n_parts:
             raise ValueError(
-                f"{nm} must have the parts axis first, with {n_parts} parts like masses, "
-                f"got shape {arr.shape}."
+                f"composite_inertia: {name} must have the parts axis first, with {n_parts} parts like "
+                f"masses, got shape {arr.shape}."
             )
+    batches = [arr.shape[1 : arr.ndim - core] for _, arr, core in parted]
+    try:
+        batch = jnp.broadcast_shapes(*batches)
+    except ValueError:
+        shapes = ", ".join(
+            f"{name} {arr.shape} (batch {b})" for (name, arr, _), b in zip(parted, batches, strict=True)
+        )
+        raise ValueError(
+            "composite_inertia: the batch axes (between the leading parts axis and the trailing ones) "
+            f"do not broadcast: {shapes}."
+        ) from None
+
+    def parts_first(arr, own_batch, core):
+        core_shape = arr.shape[arr.ndim - core :]
+        padded = arr.reshape((n_parts,) + (1,) * (len(batch) - len(own_batch)) + own_batch + core_shape)
+        return jnp.broadcast_to(padded, (n_parts, *batch, *core_shape))
+
+    masses, coms, inertias, *rest = (
+        parts_first(arr, b, core) for (_, arr, core), b in zip(parted, batches, strict=True)
+    )
+    part_tensors = inertias if tensors else inertias[..., None, :] * jnp.eye(3, dtype=inertias.dtype)
+    if rotations is not None:
+        rotations = check_rotation_matrix(rest[0], "rotations", "composite_inertia")
+        part_tensors = rotations @ part_tensors @ _swap(rotations)
     where = "composite_inertia"
     masses = _check_nonnegative(masses, "masses", where)
     coms = check_finite(coms, "coms", where)

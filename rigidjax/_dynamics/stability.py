@@ -135,14 +135,17 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
     I_i = inertia
     I_j = jnp.roll(inertia, -1, axis=-1)
     I_k = jnp.roll(inertia, -2, axis=-1)
-    shape = (I_i - I_j) * (I_k - I_i) / (I_j * I_k)  # lambda^2 / Omega^2, dimensionless
+    # lambda^2 / Omega^2, dimensionless, as a product of ratios: the products of two moments
+    # overflow (or underflow) float32 for moments beyond ~1e19 kg m^2 (a planet) or below ~1e-19.
+    shape = ((I_i - I_j) / I_j) * ((I_k - I_i) / I_k)
     speed = jnp.abs(omega)[..., None]
-    lam2 = speed * speed * shape
+    # The sign of lambda^2 from its factors: Omega^2 underflows to 0 for a slow spin in float32.
+    spinning = speed > 0
     return SpinStability(
         growth_rate=speed * _safe_sqrt(shape),
         frequency=speed * _safe_sqrt(-shape),
-        stable=lam2 < 0,
-        marginal=lam2 == 0,
+        stable=spinning & (shape < 0),
+        marginal=~spinning | (shape == 0),
     )
 
 
