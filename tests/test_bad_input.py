@@ -1435,3 +1435,20 @@ def test_spin_stability_in_float32_at_extreme_scales(moments, speed):
     np.testing.assert_array_equal(np.asarray(out.unstable), lam2 > 0)
     np.testing.assert_allclose(np.asarray(out.frequency), np.sqrt(np.maximum(-lam2, 0)), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(out.growth_rate), np.sqrt(np.maximum(lam2, 0)), rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "value, error, match",
+    [
+        # NaN switched both symmetry checks off; -1 rejected every top "to a relative -1"; text
+        # failed inside with a sequence error.
+        (float("nan"), ValueError, r"must be a number in \[0, 1\), got nan"),
+        (-1.0, ValueError, r"must be a number in \[0, 1\), got -1.0"),
+        ("0.01", TypeError, "must be a number"),
+    ],
+)
+def test_sleeping_top_names_a_bad_symmetry_tolerance(value, error, match, without_runtime_typecheck):
+    """An asymmetric, off-axis top got a result with symmetry_rtol=nan."""
+    top = (np.array([1.0, 1.5, 0.7]), 1.0, np.array([1.0, 0.0, 0.3]), 5.0)
+    with pytest.raises(error, match="sleeping_top: symmetry_rtol " + match):
+        rj.sleeping_top(*top, symmetry_rtol=value)

@@ -9,6 +9,8 @@ unstable, where the square roots have an infinite slope: there the gradient of t
 is taken as 0).
 """
 
+import numbers
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
@@ -228,6 +230,13 @@ def sleeping_top(
         inertia, mass, com, omega3, gravity, names=["inertia", "mass", "com", "omega3", "gravity"]
     )
     check_last_axis(com, 3, "com")
+    # A tolerance is an option, not data: a NaN one switched both symmetry checks off.
+    if isinstance(symmetry_rtol, bool) or not isinstance(symmetry_rtol, numbers.Real):
+        raise TypeError(
+            f"sleeping_top: symmetry_rtol must be a number (a relative tolerance), got {symmetry_rtol!r}."
+        )
+    if not 0 <= float(symmetry_rtol) < 1:
+        raise ValueError(f"sleeping_top: symmetry_rtol must be a number in [0, 1), got {symmetry_rtol!r}.")
     mass, com, omega3, gravity = (
         check_finite(x, name, "sleeping_top")
         for x, name in ((mass, "mass"), (com, "com"), (omega3, "omega3"), (gravity, "gravity"))
