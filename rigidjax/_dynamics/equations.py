@@ -15,7 +15,6 @@ quaternion raises (any other is normalised, as in :func:`rigidjax.quat_rotate`).
 integrators call unchecked private cores (``_euler_equations``...).
 """
 
-import equinox as eqx
 import jax.numpy as jnp
 
 from .._checks import (
@@ -24,6 +23,7 @@ from .._checks import (
     check_last_axis,
     check_rotation_quaternion,
     common_float,
+    error_if,
     is_full_tensor,
 )
 from .._kinematics.quaternion import _quat_normalize, _quat_rotate
@@ -161,7 +161,7 @@ def _checked(inertia, omega, where, extra=(), invertible=False):
             singular = jnp.abs(jnp.linalg.det(inertia)) <= 1e2 * eps(inertia.dtype) * scale**3
         else:
             singular = jnp.any(inertia == 0, axis=-1)
-        inertia = eqx.error_if(
+        inertia = error_if(
             inertia,
             jnp.any(singular),
             f"{where}: inertia is singular (a zero principal moment): I omega' = ... cannot be "
@@ -275,5 +275,5 @@ def free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
     I1, I3, omega3 = common_float(I1, I3, omega3, names=["I1", "I3", "omega3"])
     check_batch_shapes(where, ("I1", I1, 0), ("I3", I3, 0), ("omega3", omega3, 0))
     I1, I3, omega3 = (check_finite(x, n, where) for x, n in ((I1, "I1"), (I3, "I3"), (omega3, "omega3")))
-    I1 = eqx.error_if(I1, jnp.any(I1 == 0), f"{where}: I1 = 0; the transverse moment must be > 0 kg m^2.")
+    I1 = error_if(I1, jnp.any(I1 == 0), f"{where}: I1 = 0; the transverse moment must be > 0 kg m^2.")
     return _free_precession_rate(I1, I3, omega3)

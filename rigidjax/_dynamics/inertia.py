@@ -20,7 +20,6 @@ for a non-physical inertia. The shape helpers accept zero sizes (a thin rod has 
 moments are valid parts of a composite, and :func:`check_inertia` rejects them for a whole body.
 """
 
-import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
@@ -34,6 +33,7 @@ from .._checks import (  # noqa: F401 (re-exported)
     check_last_two_axes,
     check_rotation_matrix,
     common_float,
+    error_if,
     is_full_tensor,
     is_physical_inertia,
 )
@@ -125,7 +125,7 @@ def parallel_axis(inertia_com: Inertia, mass: Scalar, displacement: Vector) -> M
 def _check_nonnegative(x, name: str, where: str):
     """``x`` wrapped in run-time checks: finite and ``>= 0`` (a mass in kg or a length in m)."""
     x = check_finite(x, name, where)
-    return eqx.error_if(x, jnp.any(x < 0), f"{where}: {name} must be >= 0, got a negative value.")
+    return error_if(x, jnp.any(x < 0), f"{where}: {name} must be >= 0, got a negative value.")
 
 
 _VECTORS = ("size", "semi_axes")  # the (..., 3) arguments of the shape functions; the rest are scalars
@@ -320,7 +320,7 @@ def composite_inertia(
     coms = check_finite(coms, "coms", where)
     part_tensors = check_finite(part_tensors, "inertias", where)
     total_mass = jnp.sum(masses, axis=0)
-    total_mass = eqx.error_if(
+    total_mass = error_if(
         total_mass,
         jnp.any(total_mass <= 0),
         f"{where}: the total mass is 0: the centre of mass is undefined. Give the parts positive masses.",
