@@ -238,6 +238,8 @@ def test_quiet_prints_nothing(tmp_path):
         (["simulate", "--samples", "1"], "must be at least 2"),
         (["simulate", "--scene", "moon"], "invalid choice: 'moon'"),
         (["simulate", "--accuracy", "sloppy"], "invalid choice: 'sloppy'"),
+        # NumPy's own error, in a traceback, before.
+        (["simulate", "--seed", "-1"], "--seed: must be a non-negative integer, got -1"),
     ],
 )
 def test_bad_arguments(argv, message):

@@ -79,6 +79,24 @@ def test_malformed_files_are_named(tmp_path, capsys, text, message):
 def test_missing_file(tmp_path, capsys):
     assert run_fit([str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
+    assert run_fit([str(tmp_path)]) == 2
+    assert "a directory, not a CSV file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"t,wx,wy,wz\n0,1,2,3\n1,\xe9,2,3\n", "not a text file in UTF-8 (byte 21"),
+        (b"t,wx,wy,wz\n0," + b"1" * 140_000 + b",2,3\n", "not a readable CSV file (field larger"),
+    ],
+)
+def test_unreadable_files_are_one_line(tmp_path, capsys, content, message):
+    """A file that is not UTF-8 text, or a cell beyond the csv module's limit, ended in a traceback
+    (UnicodeDecodeError, _csv.Error) with exit 1."""
+    data = tmp_path / "bad.csv"
+    data.write_bytes(content)
+    assert run_fit([str(data), "--quiet"]) == 2
+    assert message in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

@@ -28,7 +28,7 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import StatusLine, bar, check_output, plain, positive_float, positive_int, write_text
+from .common import StatusLine, bar, check_output, plain, positive_float, positive_int, rng_seed, write_text
 
 METHODS = ("fast", "balanced", "precise", "exact")
 
@@ -204,7 +204,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--repeats", type=positive_int, default=3, help="timed calls per setting after the first")
     p.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="simulation dtype")
-    p.add_argument("--seed", type=int, default=0, help="seed of numpy.random.default_rng for the scene")
+    p.add_argument("--seed", type=rng_seed, default=0, help="seed of numpy.random.default_rng for the scene")
     p.add_argument(
         "--json", default=None, help="also write the rows to this .json file (checked before the run)"
     )

@@ -104,6 +104,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def rng_seed(text: str) -> int:
+    """argparse type: a seed of ``numpy.random.default_rng``, an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
     try:

@@ -37,10 +37,20 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
     Standard CSV: quoted cells and a byte-order mark (as spreadsheets write them) are read; blank
     lines, ``#`` comment lines and text after a ``#`` are skipped; an empty cell or ``nan`` is a
     missing sample."""
+    if os.path.isdir(path):
+        raise DataError(f"{path}: a directory, not a CSV file.")
     if not os.path.isfile(path):
         raise DataError(f"{path}: no such file.")
-    with open(path, encoding="utf-8-sig", newline="") as handle:
-        rows = list(csv.reader(handle))
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            rows = list(csv.reader(handle))
+    except UnicodeDecodeError as error:
+        raise DataError(
+            f"{path}: not a text file in UTF-8 (byte {error.start} cannot be read); save the record "
+            "as a UTF-8 (or ASCII) CSV with columns t, wx, wy, wz."
+        ) from None
+    except csv.Error as error:  # a cell beyond the csv module's size limit, a NUL byte
+        raise DataError(f"{path}: not a readable CSV file ({error}).") from None
     names = [name.strip().lower() for name in rows[0]] if rows else []
     if all(c in names for c in QUATERNION_COLUMNS) and not all(c in names for c in OMEGA_COLUMNS):
         raise DataError(

@@ -57,6 +57,7 @@ from .common import (
     info,
     positive_float,
     positive_int,
+    rng_seed,
     write_figure,
     write_npz,
 )
@@ -396,7 +397,9 @@ def add_parser(subparsers) -> None:
         default="float64",
         help="simulation dtype (float64 turns on jax_enable_x64)",
     )
-    sim.add_argument("--seed", type=int, default=0, help="seed of numpy.random.default_rng for the scene")
+    sim.add_argument(
+        "--seed", type=rng_seed, default=0, help="seed of numpy.random.default_rng for the scene"
+    )
     sim.add_argument(
         "--blocks",
         type=positive_int,

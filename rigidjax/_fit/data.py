@@ -105,6 +105,8 @@ def omega_from_orientations(ts, q_observed):
     ts, q = _check_quaternions(ts, q_observed, "q_observed")
     q = _align_signs(q)
     T = ts.shape[0]
+    if T < 2:  # no difference to take: the one sample's omega was [nan, inf, nan]
+        raise ValueError(f"omega_from_orientations needs at least 2 samples, got {T}.")
     lo = np.clip(np.arange(T) - 1, 0, T - 1)
     hi = np.clip(np.arange(T) + 1, 0, T - 1)
     conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])

@@ -148,6 +148,11 @@ def _estimate_quietly(ts, omega_observed, full_tensor, half_width):
     ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
     w, wd = value[ok], slope[ok]
     scale = np.sqrt(np.mean(np.sum(w * w, axis=1))) if w.size else 1.0
+    if not scale > 0:  # divided by below: the SVD then failed to converge on NaN
+        raise ValueError(
+            "the record shows no rotation (its angular velocity is 0 at every sample): it says "
+            "nothing of the inertia."
+        )
     w, wd = w / scale, wd / scale**2  # omega_dot scales as omega^2 in the torque-free equations
     # No complete local fit: no equation, no estimate (the caller says so, or has its own start).
     inertia = _torque_free_inertia(w, wd, full_tensor) if w.shape[0] else None

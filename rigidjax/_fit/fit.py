@@ -183,6 +183,8 @@ def _check_options(
     elif not is_positive_int(steps):
         raise ValueError(f"steps must be a positive integer (the iteration limit), got {steps!r}.")
     _positive_number(tol, "tol", "the relative tolerance on the loss", allow_zero=True)
+    if float(tol) >= 1:  # a relative change of the loss below 1 is met by the first iteration
+        raise ValueError(f"tol must be below 1 (the relative tolerance on the loss), got {float(tol)!r}.")
     if f_scale is not None:
         _positive_number(f_scale, "f_scale", "the robust loss's scale, in the units of the residual")
     if dtype is None:
@@ -195,6 +197,14 @@ def _check_options(
         if not np.issubdtype(dtype, np.floating):
             raise ValueError(f"dtype must be a floating dtype (float32 or float64), got {dtype}.")
     return method, int(steps), inertia_trace, known_moment, dtype
+
+
+def _covariance_out(covariance):
+    """The covariance of the scaled parameters, infinite on the diagonal of a parameter with a
+    component (more than 1e-3) along a direction the record does not determine."""
+    matrix, undetermined = covariance
+    hidden = jnp.diagonal(undetermined) > 1e-6
+    return jnp.where(jnp.diag(hidden), jnp.inf, matrix)
 
 
 def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, callback, scale):
@@ -282,7 +292,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         noise_estimate=jnp.asarray(data.noise, dtype),
         segment_starts=jnp.asarray(data.starts, dtype),
         initial_inertia=initial,
-        covariance=covariance,
+        covariance=_covariance_out(covariance),
         normalised=inertia_trace is None and known_moment is None and problem.torque is None,
         method=method,
         torque=problem.torque,
@@ -313,10 +323,15 @@ def _user_values(problem, p, covariance, omega_scale, inertia_trace, known_momen
     inertia, w0_fit, dq = user_values(p)
     jac_inertia, jac_w0, jac_dq = jax.jacfwd(user_values)(p)
 
+    covariance, undetermined = covariance
+
     def stderr(jac):
         flat = jac.reshape(-1, p.shape[0])
         variance = jnp.einsum("ip,pq,iq->i", flat, covariance, flat)
-        return jnp.sqrt(jnp.maximum(variance, 0.0)).reshape(jac.shape[:-1])
+        # A value that depends on a direction the record does not determine (more than 1e-3 of its
+        # gradient there) is not measured: infinite.
+        hidden = jnp.einsum("ip,pq,iq->i", flat, undetermined, flat) > 1e-6 * jnp.sum(flat * flat, axis=-1)
+        return jnp.where(hidden, jnp.inf, jnp.sqrt(jnp.maximum(variance, 0.0))).reshape(jac.shape[:-1])
 
     tensor = inertia if full_tensor else jnp.diag(inertia)
     evals, evecs = jnp.linalg.eigh(tensor)

@@ -484,7 +484,15 @@ def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, 
     dof = jnp.maximum(n - p.shape[0], 1.0)
     squares = jnp.sum(r * r)
     variance = squares / dof
-    covariance = variance * jnp.linalg.pinv(J.T @ J, hermitian=True)
+    # The pseudo-inverse of J^T J (its cutoff, that of numpy's pinv), and apart the projector onto
+    # the directions it drops: those the record does not determine (a steady spin says nothing of
+    # the inertia), whose standard errors are infinite rather than the pseudo-inverse's zero.
+    evals, evecs = jnp.linalg.eigh(J.T @ J)
+    floor = jnp.max(evals) * (10 * p.shape[0] * jnp.finfo(evals.dtype).eps)
+    determined = evals > floor
+    inverse = jnp.where(determined, 1 / jnp.where(determined, evals, 1.0), 0.0)
+    covariance = variance * (evecs * inverse) @ evecs.T
+    undetermined = (evecs * ~determined) @ evecs.T
     counts = jnp.sum(problem.mask, axis=(0, 1)).astype(raw.dtype)
     rms = jnp.sqrt(jnp.sum(raw * raw, axis=(0, 1)) / jnp.maximum(counts, 1.0))
-    return p, history, n_steps, done, covariance, squares / n, rms
+    return p, history, n_steps, done, (covariance, undetermined), squares / n, rms

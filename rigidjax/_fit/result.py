@@ -30,7 +30,9 @@ class InertiaFit(eqx.Module):
       means a wrong wobble frequency (a local minimum): use ``segments="auto"``.
     - `num_steps`: iterations of the optimiser.
     - `inertia_stderr`, `omega0_stderr`: standard errors (Gauss–Newton approximation of the
-      covariance at the optimum, scaled by the residual variance), same shapes as the values.
+      covariance at the optimum, scaled by the residual variance), same shapes as the values;
+      ``inf`` for a value the record does not determine (a steady spin about a principal axis says
+      nothing of the inertia; a torque of zero fixes no scale).
     - `principal_moments`: the fitted inertia's principal moments, ascending.
     - `principal_axes`: its principal axes as columns (sensor-frame components, ``det = +1``).
     - `residual_rms`: root-mean-square residual per component (rad/s; rad for orientation fits).
@@ -41,7 +43,8 @@ class InertiaFit(eqx.Module):
       about the body axes); None for angular-velocity fits.
     - `segment_starts`: the start time (s) of each window.
     - `initial_inertia`: the data-driven starting estimate (same gauge as `inertia`).
-    - `covariance`: the covariance of the optimiser's scaled parameters.
+    - `covariance`: the covariance of the optimiser's scaled parameters (``inf`` on the diagonal of
+      a parameter the record does not determine).
     - `normalised`: True when `inertia` has trace 1 (no scale was given).
     - `method`: the optimiser, ``"optax"`` or ``"levenberg-marquardt"``.
     - `torque`: the known torque of the fit (a tuple of torques), or None: torque-free.
