@@ -298,8 +298,14 @@ def _inertia_failure(inertia):
         symmetric = asym <= _SYMMETRY_EPS * tol_eps * scale
         moments, _ = _eigh3(0.5 * (safe + _swap(safe)))
         trace = jnp.trace(safe, axis1=-2, axis2=-1)
-        # Eigenvalues carry roundoff of order eps * trace: one within it of zero counts as zero.
-        positive = jnp.all(moments > _TRIANGLE_EPS * tol_eps * jnp.abs(trace)[..., None], axis=-1)
+        # Eigenvalues carry roundoff of order eps * trace: one within it of zero counts as zero. A
+        # diagonal tensor's moments are its diagonal, exactly (float32: a thin rod's 5e-7 of a 0.17
+        # trace was below that roundoff and rejected as non-positive, its moments accepted).
+        diagonal = jnp.diagonal(safe, axis1=-2, axis2=-1)
+        exact = jnp.all(safe == diagonal[..., None] * jnp.eye(3, dtype=safe.dtype), axis=(-2, -1))
+        moments = jnp.where(exact[..., None], diagonal, moments)
+        floor = jnp.where(exact, 0.0, _TRIANGLE_EPS * tol_eps * jnp.abs(trace))
+        positive = jnp.all(moments > floor[..., None], axis=-1)
     else:
         finite = jnp.all(jnp.isfinite(inertia), axis=-1)
         moments = jnp.where(finite[..., None], inertia, jnp.ones_like(inertia))

@@ -93,6 +93,12 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
             "half_width must be an integer >= 2 (each local quadratic fit needs at least 4 observed "
             f"samples), got {half_width!r}."
         )
+    if half_width is not None and 2 * half_width + 1 > ts.shape[0]:
+        # Every local fit would span the whole record: one quadratic through all of it.
+        raise ValueError(
+            f"half_width {half_width} makes each local fit span {2 * half_width + 1} samples, more than "
+            f"the record's {ts.shape[0]}; use at most {(ts.shape[0] - 1) // 2}."
+        )
     estimate = _estimate(ts, omega, full_tensor=full_tensor, half_width=half_width)
     if estimate.inertia is None:
         raise ValueError(f"estimate_inertia: {_NO_EQUATIONS}; widen half_width (now {estimate.half_width}).")
