@@ -1514,3 +1514,15 @@ def test_estimate_inertia_names_a_half_width_longer_than_the_record():
     with pytest.raises(ValueError, match=message):
         rj.estimate_inertia(ts, omega, half_width=1000)
     rj.estimate_inertia(ts, omega, half_width=99)
+
+
+def test_stability_functions_keep_float32_under_jit():
+    """A Python number traced by jit widened float32 input to float64 (float32 eagerly)."""
+    moments = jnp.array([1.0, 2.0, 2.5], jnp.float32)
+    top = (jnp.array([1.0, 1.0, 0.5], jnp.float32), 1.0, jnp.array([0.0, 0.0, 0.3], jnp.float32), 5.0)
+    for f, args in ((rj.spin_stability, (moments, 2.0)), (rj.sleeping_top, top)):
+        eager, jitted = f(*args), jax.jit(f)(*args)
+        for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(jitted), strict=True):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert jax.tree.leaves(jitted)[0].dtype in (jnp.float32, jnp.bool_)

@@ -33,11 +33,19 @@ def _safe_sqrt(x):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
 
 
+def _is_plain_number(a) -> bool:
+    """A Python ``int``/``float``, or what ``jit`` makes of one (a weakly typed scalar tracer)."""
+    if type(a) in (int, float):
+        return True
+    aval = getattr(a, "aval", None)
+    return bool(getattr(aval, "weak_type", False)) and getattr(aval, "ndim", 1) == 0
+
+
 def _common_float(*args, names):
     """Float arrays of one dtype: the widest float among the array arguments (``common_float``).
-    Plain Python numbers (e.g. the default ``gravity=9.81``) take that dtype instead of widening
-    float32 input to float64."""
-    typed = [(a, n) for a, n in zip(args, names, strict=True) if type(a) not in (int, float)]
+    Plain Python numbers (e.g. the default ``gravity=9.81``, also when ``jit`` traced them) take that
+    dtype instead of widening float32 input to float64."""
+    typed = [(a, n) for a, n in zip(args, names, strict=True) if not _is_plain_number(a)]
     if typed:
         arrays = common_float(*[a for a, _ in typed], names=[n for _, n in typed])
         dtype = arrays[0].dtype
@@ -45,7 +53,7 @@ def _common_float(*args, names):
         dtype = jnp.result_type(float)
     out = []
     for a in args:
-        out.append(jnp.asarray(a, dtype) if type(a) in (int, float) else arrays.pop(0))
+        out.append(jnp.asarray(a, dtype) if _is_plain_number(a) else arrays.pop(0))
     return out
 
 
