@@ -170,9 +170,27 @@ def test_incomplete_match_scipy():
     phi, m = np.meshgrid(PHI_GRID, np.concatenate([np.linspace(0.0, 0.999, 12), [-0.5, -3.0]]), indexing="ij")
     f, e = call("ellipkinc", phi, m), call("ellipeinc", phi, m)
     assert np.max(ulp(f, sc.ellipkinc(phi, m))) <= 4
-    assert np.max(ulp(e[:, :-2], sc.ellipeinc(phi, m)[:, :-2])) <= 4
-    # m < 0: the terms of E's formula partly cancel, the error grows like |m| ulp.
-    assert np.max(ulp(e[:, -2:], sc.ellipeinc(phi, m)[:, -2:])) <= 8
+    assert np.max(ulp(e, sc.ellipeinc(phi, m))) <= 4
+
+
+def test_incomplete_large_negative_m_match_mpmath():
+    # m << 0 with m sin^2(phi) of order one: E is small against the terms of the form used for
+    # 0 <= m <= 1 (at m = -1e18, phi = 1e-8, E = 5.2e-8 from terms of 1e10); also under jit and in d/dm.
+    phi, m = (x.ravel() for x in np.meshgrid([1e-8, 1e-4, 0.3, 2.0, -7.0], [-1e18, -1e8, -1e3, -1.0, -1e-6]))
+    e, e_eager = (
+        call("ellipeinc", phi, m),
+        np.array([float(ellipeinc(a, b)) for a, b in zip(phi, m, strict=True)]),
+    )
+    d_m = call("grad_ellipeinc", phi, m)[1]
+    with mpmath.workdps(40):
+        e_ref = np.array([float(mpmath.ellipe(a, b)) for a, b in zip(phi, m, strict=True)])
+        d_ref = [
+            mp_derivative(lambda t, x=x: mpmath.ellipe(mpmath.mpf(x), t), y)
+            for x, y in zip(phi, m, strict=True)
+        ]
+    assert np.max(ulp(e, e_ref)) <= 8
+    assert np.max(ulp(e_eager, e_ref)) <= 8
+    np.testing.assert_allclose(d_m, np.asarray(d_ref, np.float64), rtol=1e-14)
 
 
 def test_incomplete_near_separatrix_match_mpmath():
@@ -347,7 +365,8 @@ def test_complete_integral_derivatives():
 
 def test_incomplete_integral_derivatives():
     phi, m = (
-        x.ravel() for x in np.meshgrid([0.0, 0.4, 1.5, np.pi / 2, 2.0, -4.0, 7.0], [0.0, 0.3, 0.9, 1 - 1e-6])
+        x.ravel()
+        for x in np.meshgrid([0.0, 1e-8, 0.4, 1.5, np.pi / 2, 2.0, -4.0, 7.0], [0.0, 0.3, 0.9, 1 - 1e-6])
     )
     with mpmath.workdps(40):
         for name, mp_f in (("ellipkinc", mpmath.ellipf), ("ellipeinc", mpmath.ellipe)):

@@ -199,8 +199,9 @@ def _legendre_parts(phi, m, p):
 
     ``phi = j pi + r`` with ``|r| <= pi/2``; ``F(phi) = 2 j K + F(r)``, likewise for ``E``. Returns
     a dict with ``j``, ``s = sin r``, ``c = cos r >= 0``, ``delta = sqrt(1 - m s^2)``, ``rf =
-    R_F(c^2, 1, delta^2)``, ``rd = R_D(c^2, 1, delta^2)`` and the complete ``rf0 = K``, ``rd0 = R_D(0,
-    1, p)``, all with unsafe inputs (``m = 1``) replaced by harmless ones.
+    R_F(c^2, 1, delta^2)``, ``rd = R_D(c^2, 1, delta^2)``, ``rd_swapped = R_D(c^2, delta^2, 1)`` and
+    the complete ``rf0 = K``, ``rd0 = R_D(0, 1, p)``, ``rd0_swapped = R_D(0, p, 1)``, all with unsafe
+    inputs (``m = 1``) replaced by harmless ones.
     """
     j, r = _reduce_pi(phi)
     s, c = jnp.sin(r), jnp.cos(r)
@@ -212,9 +213,9 @@ def _legendre_parts(phi, m, p):
     delta2 = c * c + p_safe * s * s
     one = jnp.ones_like(s)
     rf, rd = _carlson_rf_rd(
-        jnp.stack([c * c, jnp.zeros_like(c)]),
-        jnp.stack([one, one]),
-        jnp.stack([delta2, p_safe]),
+        jnp.stack([c * c, jnp.zeros_like(c), c * c, jnp.zeros_like(c)]),
+        jnp.stack([one, one, delta2, p_safe]),
+        jnp.stack([delta2, p_safe, one, one]),
     )
     return dict(
         j=j,
@@ -226,7 +227,9 @@ def _legendre_parts(phi, m, p):
         delta=jnp.sqrt(delta2),
         rf=rf[0],
         rd=rd[0],
+        rd_swapped=rd[2],
         rf0=rf[1],
+        rd0_swapped=rd[3],
         rd0=rd[1],
     )
 
@@ -234,13 +237,19 @@ def _legendre_parts(phi, m, p):
 def _legendre_values(q):
     """``F(phi|m)`` and ``E(phi|m)`` from the parts.
 
-    ``F = s R_F(c^2, delta^2, 1)`` (DLMF 19.25.5) and ``E = p F + (m p / 3) s^3 R_D(c^2, 1, delta^2) +
-    m s c / delta``, the form of DLMF 19.25(ii) whose terms are all >= 0 for ``0 <= m <= 1``.
+    ``F = s R_F(c^2, delta^2, 1)`` (DLMF 19.25.5); ``E`` in the form of DLMF 19.25(ii) whose terms
+    are all >= 0: ``E = p F + (m p / 3) s^3 R_D(c^2, 1, delta^2) + m s c / delta`` for ``0 <= m <= 1``
+    and ``E = F - (m / 3) s^3 R_D(c^2, delta^2, 1)`` (DLMF 19.25.9) for ``m < 0``, where the first
+    form's terms would cancel (``m = -1e18``, ``phi = 1e-8``: ``5.2e-8`` from terms of ``1e10``).
     """
     j, s, c, m, p, delta = q["j"], q["s"], q["c"], q["m"], q["p"], q["delta"]
     f_r = s * q["rf"]
-    e_r = p * f_r + (m * p / 3) * s**3 * q["rd"] + m * s * c / delta
-    e0 = p * q["rf0"] + (m * p / 3) * q["rd0"]
+    e_r = jnp.where(
+        m < 0,
+        f_r - (m / 3) * s**3 * q["rd_swapped"],
+        p * f_r + (m * p / 3) * s**3 * q["rd"] + m * s * c / delta,
+    )
+    e0 = jnp.where(m < 0, q["rf0"] - (m / 3) * q["rd0_swapped"], p * q["rf0"] + (m * p / 3) * q["rd0"])
     f = f_r + 2 * j * q["rf0"]
     e = e_r + 2 * j * e0
     # m = 1: F = atanh(sin r) + 2 j K with K = inf, E = sin r + 2 j.
@@ -269,8 +278,8 @@ def _legendre_jvp(primals, tangents):
     if not _is_zero(m_dot):
         # dF/dm = s^3 R_D(c^2, 1, delta^2) / 6 + 2 j dK/dm (DLMF 19.18.1, dK/dm = R_D(0, 1, p) / 6).
         df_dm = s**3 * q["rd"] / 6 + j * q["rd0"] / 3
-        # dE/dm = (E - F) / (2 m), expanded with the formula for E so that m cancels.
-        de_dm = (pp / 3 * s**3 * q["rd"] - f_r + s * c / delta) / 2 + j * (pp * q["rd0"] / 3 - q["rf0"])
+        # dE/dm = (E - F) / (2 m) = -s^3 R_D(c^2, delta^2, 1) / 6 + ... (DLMF 19.25.9): no cancellation.
+        de_dm = -(s**3) * q["rd_swapped"] / 6 + j * (pp * q["rd0"] / 3 - q["rf0"])
         # m = 1: dF/dm = inf except at phi = 0; dE/dm = (sin r - atanh(sin r)) / 2 - inf j.
         inf = jnp.full_like(s, jnp.inf)
         zero = jnp.zeros_like(s)
@@ -303,8 +312,7 @@ def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
     **Arguments:**
 
     - `phi`: the amplitude (rad), any real value: ``E(phi + j pi) = E(phi) + 2 j E(m)``.
-    - `m`: the parameter ``m = k**2 <= 1``, broadcast against `phi`. For ``m < 0`` the terms of the
-      formula partly cancel: the relative error grows like ``|m| eps``.
+    - `m`: the parameter ``m = k**2 <= 1``, broadcast against `phi`.
 
     **Returns:** ``E(phi | m)``; NaN for ``m > 1`` or NaN input.
     """
