@@ -286,8 +286,9 @@ def _check_inertia_shape(inertia, name: str) -> bool:
 _OK, _TRIANGLE, _NOT_POSITIVE, _NOT_SYMMETRIC, _NOT_FINITE = 0, 1, 2, 3, 4
 
 
-def _inertia_failure(inertia):
-    """Per-body failure code (0 = physical) of principal moments or a tensor, shape ``(...)``."""
+def _inertia_failure(inertia, zero_allowed: bool = False):
+    """Per-body failure code (0 = physical) of principal moments or a tensor, shape ``(...)``. With
+    ``zero_allowed``, zero moments pass (a part: a point mass, a thin rod), negative ones do not."""
     inertia = as_float_array(inertia, "inertia")
     tol_eps = eps(inertia.dtype)
     if _check_inertia_shape(inertia, "inertia"):
@@ -305,12 +306,15 @@ def _inertia_failure(inertia):
         exact = jnp.all(safe == diagonal[..., None] * jnp.eye(3, dtype=safe.dtype), axis=(-2, -1))
         moments = jnp.where(exact[..., None], diagonal, moments)
         floor = jnp.where(exact, 0.0, _TRIANGLE_EPS * tol_eps * jnp.abs(trace))
-        positive = jnp.all(moments > floor[..., None], axis=-1)
+        if zero_allowed:
+            positive = jnp.all(moments >= -floor[..., None], axis=-1)
+        else:
+            positive = jnp.all(moments > floor[..., None], axis=-1)
     else:
         finite = jnp.all(jnp.isfinite(inertia), axis=-1)
         moments = jnp.where(finite[..., None], inertia, jnp.ones_like(inertia))
         symmetric = jnp.ones_like(finite)
-        positive = jnp.all(moments > 0, axis=-1)
+        positive = jnp.all(moments >= 0 if zero_allowed else moments > 0, axis=-1)
         trace = jnp.sum(moments, axis=-1)
     tol = _TRIANGLE_EPS * tol_eps * jnp.abs(trace)
     # I1 + I2 - I3 and its cyclic permutations: trace - 2 I_k >= 0.
@@ -386,6 +390,25 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
             for problem in problems[1:]
         ]
     return branched_error_if(inertia, code != _OK, index, msgs)
+
+
+def check_part_inertia(inertia, name: str, where: str):
+    """``inertia`` (principal moments or a tensor, as a JAX float array) with a run-time check that
+    it can be the inertia of a part about its own centre of mass: the checks of
+    :func:`check_inertia` with zero moments allowed (a point mass, a thin rod about its axis)."""
+    _check_inertia_shape(inertia, name)
+    code = _inertia_failure(inertia, zero_allowed=True)
+    messages = [
+        "",
+        f"{where}: {name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "
+        "moments: no distribution of mass has these moments (equality is a flat plate).",
+        f"{where}: {name} has a negative principal moment: a moment of inertia is >= 0 kg m^2 (0 for a "
+        "point mass).",
+        f"{where}: {name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its "
+        "transpose.",
+        f"{where}: {name} contains NaN or inf.",
+    ]
+    return branched_error_if(inertia, code != _OK, jnp.max(code, initial=_OK), messages)
 
 
 # --- the dtype rule, sample times, states and scenes ---------------------------------------------

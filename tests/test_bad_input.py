@@ -253,6 +253,27 @@ VALUE_CASES = [
     ("hollow_cylinder", "height", np.array(-1.0), "height must be >= 0"),
     ("composite_inertia", "masses", np.array([-1.0, 2.0]), "masses must be >= 0"),
     ("composite_inertia", "masses", np.array([0.0, 0.0]), "total mass is 0"),
+    # A part's moments may be zero (a point mass), not negative, and obey the triangle inequality.
+    (
+        "parallel_axis",
+        "inertia_com",
+        np.array([1.0, -1.0, 1.0]),
+        "inertia_com has a negative principal moment",
+    ),
+    (
+        "parallel_axis",
+        "inertia_com",
+        np.array([1.0, 1.0, 5.0]),
+        "inertia_com violates the triangle inequality",
+    ),
+    ("parallel_axis", "inertia_com", np.array([[1.0, 0.5, 0], [0, 1, 0], [0, 0, 1]]), "not symmetric"),
+    (
+        "composite_inertia",
+        "inertias",
+        np.array([[1.0, 1, 1], [-1, 1, 1]]),
+        "inertias has a negative principal",
+    ),
+    ("composite_inertia", "inertias", np.array([[1.0, 1, 1], [1, 1, 3]]), "inertias violates the triangle"),
 ]
 VALUE_IDS = [f"{n}-{a}-{i}" for i, (n, a, _, _) in enumerate(VALUE_CASES)]
 

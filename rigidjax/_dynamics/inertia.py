@@ -31,6 +31,7 @@ from .._checks import (  # noqa: F401 (re-exported)
     check_inertia,
     check_last_axis,
     check_last_two_axes,
+    check_part_inertia,
     check_rotation_matrix,
     common_float,
     error_if,
@@ -113,7 +114,7 @@ def parallel_axis(inertia_com: Inertia, mass: Scalar, displacement: Vector) -> M
         ("mass", mass, 0),
         ("displacement", displacement, 1),
     )
-    inertia_com = check_finite(inertia_com, "inertia_com", where)
+    inertia_com = check_part_inertia(inertia_com, "inertia_com", where)
     mass = _check_nonnegative(mass, "mass", where)
     displacement = check_finite(displacement, "displacement", where)
     return _as_tensor(inertia_com) + _point_mass_tensor(mass, displacement)
@@ -311,14 +312,14 @@ def composite_inertia(
     masses, coms, inertias, *rest = (
         parts_first(arr, b, core) for (_, arr, core), b in zip(parted, batches, strict=True)
     )
+    where = "composite_inertia"
+    inertias = check_part_inertia(inertias, "inertias", where)
     part_tensors = inertias if tensors else inertias[..., None, :] * jnp.eye(3, dtype=inertias.dtype)
     if rotations is not None:
         rotations = check_rotation_matrix(rest[0], "rotations", "composite_inertia")
         part_tensors = rotations @ part_tensors @ _swap(rotations)
-    where = "composite_inertia"
     masses = _check_nonnegative(masses, "masses", where)
     coms = check_finite(coms, "coms", where)
-    part_tensors = check_finite(part_tensors, "inertias", where)
     total_mass = jnp.sum(masses, axis=0)
     total_mass = error_if(
         total_mass,
