@@ -23,6 +23,9 @@ def as_float_array(x, name: str = "array"):
 
     Integer inputs become the default float dtype. Complex and boolean input is rejected with a
     ``TypeError`` naming ``name`` (a boolean array where numbers are expected is a mistake, not data).
+    Half-precision floats (float16, bfloat16) become float32, as in ``scipy.special``: rigidjax
+    computes in float32 and float64, whose accuracy it measures (in float16 a quaternion's norm is
+    off by 1e-3).
     """
     x = jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
@@ -31,6 +34,8 @@ def as_float_array(x, name: str = "array"):
         raise TypeError(f"{name} must be a real number array, got dtype bool.")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
+    elif jnp.finfo(x.dtype).bits < 32:
+        x = x.astype(jnp.float32)
     return x
 
 
@@ -392,12 +397,13 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
     return branched_error_if(inertia, code != _OK, index, msgs)
 
 
-def check_part_inertia(inertia, name: str, where: str):
+def check_part_inertia(inertia, name: str, where: str, tensor: bool | None = None):
     """``inertia`` (principal moments or a tensor, as a JAX float array) with a run-time check that
     it can be the inertia of a part about its own centre of mass: the checks of
-    :func:`check_inertia` with zero moments allowed (a point mass, a thin rod about its axis)."""
-    _check_inertia_shape(inertia, name)
-    code = _inertia_failure(inertia, zero_allowed=True)
+    :func:`check_inertia` with zero moments allowed (a point mass, a thin rod about its axis).
+    ``tensor``: whether the trailing axes are a tensor (None: a trailing ``(3, 3)`` is one)."""
+    tensor = _check_inertia_shape(inertia, name) if tensor is None else tensor
+    code = _inertia_failure(inertia if tensor else inertia[..., None, :], zero_allowed=True)
     messages = [
         "",
         f"{where}: {name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "

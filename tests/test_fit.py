@@ -136,8 +136,8 @@ def test_float32_fit_reaches_the_float64_optimum(method):
 def test_float32_standard_errors_of_a_flat_body_match_float64():
     """A flat body (I3 = I1 + I2) sits on the edge of the physical moments, where the record does not
     determine the direction across the edge: that moment's standard error is infinite and the other
-    two are finite, in float32 as in float64 (the float64 fit is the reference). Measured before the
-    decomposition of the scaled Jacobian: float32 gave every standard error infinite."""
+    two are finite, in float32 as in float64 (the float64 fit is the reference). With the eigenvalues of
+    J^T J rather than the singular values of J, float32 gave every standard error infinite."""
     rng = np.random.default_rng(1)
     ts = jnp.linspace(0.0, 20.0, 201)
     flat = np.array([1.0, 2.0, 3.0])

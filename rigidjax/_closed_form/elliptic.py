@@ -38,8 +38,9 @@ Derivatives are closed forms (``jax.custom_jvp``), exact up to rounding, in ever
 ``d am/du = dn``, ``d am/dm = -dn dF/dm`` evaluated at ``phi = am``. They stay finite at ``m = 0``;
 at ``m = 1`` the Jacobi functions use the limits of Abramowitz & Stegun 16.15.
 
-Bad input: complex, boolean and unsupported float dtypes (float16) raise ``TypeError``, and
-arguments that do not broadcast raise ``ValueError`` naming them, while tracing. Values follow
+Bad input: complex and boolean arguments raise ``TypeError``, and arguments that do not broadcast
+raise ``ValueError`` naming them, while tracing; half precision (float16, bfloat16) is computed in
+float32, as ``scipy.special`` does. Values follow
 ``scipy.special`` (these are elementwise special functions, used inside rigidjax's closed forms):
 NaN in gives NaN out, and an argument outside the domain (e.g. ``m > 1``) gives NaN, documented per
 function; nothing raises at run time, so a batch with one bad element keeps its other results.

@@ -313,7 +313,7 @@ def composite_inertia(
         parts_first(arr, b, core) for (_, arr, core), b in zip(parted, batches, strict=True)
     )
     where = "composite_inertia"
-    inertias = check_part_inertia(inertias, "inertias", where)
+    inertias = check_part_inertia(inertias, "inertias", where, tensor=tensors)
     part_tensors = inertias if tensors else inertias[..., None, :] * jnp.eye(3, dtype=inertias.dtype)
     if rotations is not None:
         rotations = check_rotation_matrix(rest[0], "rotations", "composite_inertia")

@@ -472,22 +472,17 @@ def _gauss_newton_covariance(J, variance):
     the record does not determine (a steady spin says nothing of the inertia), whose standard
     errors are infinite rather than the pseudo-inverse's zero.
 
-    From the singular value decomposition of ``J`` with unit columns, not the eigenvalues of
-    ``J^T J``, whose roundoff (``eps`` of its largest eigenvalue) tilts the dropped directions: in
-    float32 they leaned on well-determined parameters by more than 1e-3, and every standard error
-    of a fit to noisy data came out infinite. A direction is dropped below ``sqrt(10 p eps)`` of the
-    largest singular value (``p`` parameters), the cutoff ``10 p eps`` on the eigenvalues of
-    ``J^T J``.
+    From the singular value decomposition of ``J``, not the eigenvalues of ``J^T J``, whose roundoff
+    (``eps`` of its largest eigenvalue) tilts the dropped directions: in float32 they leaned on
+    well-determined parameters by more than 1e-3, and every standard error of a fit to noisy data
+    came out infinite. A direction is dropped below ``sqrt(10 p eps)`` of the largest singular
+    value (``p`` parameters), the cutoff ``10 p eps`` on the eigenvalues of ``J^T J``.
     """
-    column = jnp.sqrt(jnp.sum(J * J, axis=0))
-    column = jnp.where(column > 0, column, 1.0)
-    _, singular, vt = jnp.linalg.svd(J / column, full_matrices=False)
+    _, singular, vt = jnp.linalg.svd(J, full_matrices=False)
     determined = singular > singular[0] * float(np.sqrt(10 * J.shape[1] * np.finfo(J.dtype).eps))
     inverse = jnp.where(determined, 1 / jnp.where(determined, singular, 1.0) ** 2, 0.0)
-    covariance = variance * ((vt.T * inverse) @ vt) / (column[:, None] * column[None, :])
-    # The dropped directions in the parameters' own coordinates (J (v / column) = 0), orthonormalised.
-    dropped = (vt.T * ~determined) / column[:, None]
-    undetermined = dropped @ jnp.linalg.pinv(dropped)
+    covariance = variance * (vt.T * inverse) @ vt
+    undetermined = (vt.T * ~determined) @ vt
     return covariance, undetermined
 
 
