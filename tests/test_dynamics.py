@@ -346,6 +346,20 @@ def test_float32():
         np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("scale", [1e-30, 1e-13, 1e13, 8e37])
+def test_float32_tensor_over_the_whole_range(scale):
+    """A float32 tensor of moments from 1e-30 to 8e37 kg m^2 (the Earth's): the adjugate solve's
+    cofactors and determinant (two and three entries multiplied) over- or underflowed float32 from
+    5e12 up and 1e-13 down. Reference: numpy's float64 solve of the same (rounded) tensor."""
+    tensor = (tensors()[0] * scale).astype(np.float32)
+    w = OMEGA[0].astype(np.float32) * (1e-6 if scale > 1e30 else 1.0)  # I omega within float32
+    ref = np_euler_tensor(tensor.astype(np.float64)[None], w.astype(np.float64)[None])[0]
+    for fn in (rj.euler_equations, jax.jit(rj.euler_equations)):
+        out = fn(tensor, w)
+        assert out.dtype == jnp.float32
+        np.testing.assert_allclose(out, ref, rtol=2e-6, atol=2e-6 * np.max(np.abs(ref)))
+
+
 # ----------------------------------------------------------------------------------------------
 # 5. Bad input
 # ----------------------------------------------------------------------------------------------

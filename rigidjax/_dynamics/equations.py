@@ -15,6 +15,7 @@ quaternion raises (any other is normalised, as in :func:`rigidjax.quat_rotate`).
 integrators call unchecked private cores (``_euler_equations``...).
 """
 
+import jax
 import jax.numpy as jnp
 
 from .._checks import (
@@ -53,7 +54,12 @@ def _solve_3x3(matrix, rhs):
     A batched ``jnp.linalg.solve`` of 3 x 3 systems inside an integrator's step made a full-tensor
     body 8x slower than one with principal moments (10^4 bodies, "balanced": 5.4 s against 0.68 s);
     the adjugate is a few dozen fused multiplications. For an inertia tensor (symmetric positive
-    definite) its error is of the same order as LU's, ``cond * eps``."""
+    definite) its error is of the same order as LU's, ``cond * eps``.
+
+    Both sides are divided by the matrix's largest entry first: its cofactors are products of two
+    entries and its determinant of three, which overflow float32 for moments from ~5e12 kg m^2 up
+    (and underflow from ~1e-13 down)."""
+    matrix, rhs = _unit_scaled(matrix, rhs)
     (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = (_components(matrix[..., i, :]) for i in range(3))
     c00, c01, c02 = a11 * a22 - a12 * a21, a12 * a20 - a10 * a22, a10 * a21 - a11 * a20
     c10, c11, c12 = a02 * a21 - a01 * a22, a00 * a22 - a02 * a20, a01 * a20 - a00 * a21
@@ -64,6 +70,16 @@ def _solve_3x3(matrix, rhs):
     x1 = c01 * b0 + c11 * b1 + c21 * b2
     x2 = c02 * b0 + c12 * b1 + c22 * b2
     return jnp.stack([x0, x1, x2], axis=-1) / det[..., None]
+
+
+def _unit_scaled(matrix, *vectors):
+    """``matrix`` (``(..., 3, 3)``) and ``vectors`` (``(..., 3)``) divided by the matrix's largest
+    entry, by its reciprocal square root twice: the reciprocal itself of a float32 entry above ~1e38
+    is subnormal, which the CPU flushes to zero."""
+    scale = jnp.max(jnp.abs(matrix), axis=(-2, -1))
+    root = jax.lax.rsqrt(jnp.where(scale > 0, scale, jnp.ones_like(scale)))
+    matrix = matrix * root[..., None, None] * root[..., None, None]
+    return (matrix, *(v * root[..., None] * root[..., None] for v in vectors))
 
 
 def _inertia_times(inertia: Inertia, omega: Vector) -> VectorOut:
@@ -157,8 +173,8 @@ def _checked(inertia, omega, where, extra=(), invertible=False):
     omega = check_finite(omega, "omega", where)
     if invertible:
         if tensor:
-            scale = jnp.max(jnp.abs(inertia), axis=(-2, -1))
-            singular = jnp.abs(jnp.linalg.det(inertia)) <= 1e2 * eps(inertia.dtype) * scale**3
+            # On the tensor divided by its largest entry: scale**3 overflows float32 from ~5e12 up.
+            singular = jnp.abs(jnp.linalg.det(_unit_scaled(inertia)[0])) <= 1e2 * eps(inertia.dtype)
         else:
             singular = jnp.any(inertia == 0, axis=-1)
         inertia = error_if(
