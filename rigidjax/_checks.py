@@ -346,6 +346,20 @@ def is_physical_inertia(inertia: Inertia) -> Bool[Array, "..."]:
     return _inertia_failure(inertia) == _OK
 
 
+def _triangle_message(name: str) -> str:
+    return (
+        f"{name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "
+        "moments: no distribution of mass has these moments. Each moment must be at most the sum of "
+        "the other two (equality is a flat plate)."
+    )
+
+
+def _asymmetric_message(name: str) -> str:
+    return (
+        f"{name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its transpose."
+    )
+
+
 def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
     """Returns ``inertia`` (as a JAX float array) with a run-time check that it is physical.
 
@@ -362,12 +376,10 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
     what = "tensor" if tensor else "principal moments"
     problems = [
         "",
-        f"{name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "
-        "moments: no distribution of mass has these moments. Each moment must be at most the sum of "
-        "the other two (equality is a flat plate).",
+        _triangle_message(name),
         f"{name} has a non-positive principal moment: every moment of inertia of a rigid body must "
         "be > 0 kg m^2.",
-        f"{name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its transpose.",
+        _asymmetric_message(name),
     ]
     msgs = [
         *problems[:2],
@@ -406,12 +418,10 @@ def check_part_inertia(inertia, name: str, where: str, tensor: bool | None = Non
     code = _inertia_failure(inertia if tensor else inertia[..., None, :], zero_allowed=True)
     messages = [
         "",
-        f"{where}: {name} violates the triangle inequality I1 + I2 >= I3 (and cyclic) of its principal "
-        "moments: no distribution of mass has these moments (equality is a flat plate).",
+        f"{where}: {_triangle_message(name)}",
         f"{where}: {name} has a negative principal moment: a moment of inertia is >= 0 kg m^2 (0 for a "
         "point mass).",
-        f"{where}: {name} is a (..., 3, 3) tensor that is not symmetric: an inertia tensor must equal its "
-        "transpose.",
+        f"{where}: {_asymmetric_message(name)}",
         f"{where}: {name} contains NaN or inf.",
     ]
     return branched_error_if(inertia, code != _OK, jnp.max(code, initial=_OK), messages)
