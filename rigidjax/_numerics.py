@@ -18,9 +18,25 @@ def safe_atan2(y, x):
     return jnp.where(at_origin, jnp.zeros_like(x), jnp.arctan2(y_safe, x_safe))
 
 
+def short_sum(x, axis=-1, keepdims=False):
+    """``jnp.sum`` over a short axis (quaternions, vectors) as a sum of its slices: XLA on CPU hands a
+    reduction over a short last axis to a library call of its own, which cost more than the arithmetic
+    (10^4 quaternions' norm: ~0.4 ms against ~0.02 ms), and splits the computation around it."""
+    axis = axis % x.ndim
+    if x.shape[axis] > 8:
+        return jnp.sum(x, axis=axis, keepdims=keepdims)
+    total = sum(jax.lax.index_in_dim(x, k, axis, keepdims=keepdims) for k in range(x.shape[axis]))
+    return total if x.shape[axis] else jnp.sum(x, axis=axis, keepdims=keepdims)
+
+
+def short_norm(x, axis=-1, keepdims=False):
+    """Euclidean norm over a short axis (see :func:`short_sum`)."""
+    return jnp.sqrt(short_sum(x * x, axis, keepdims))
+
+
 def safe_norm(v, axis=-1, keepdims=False):
     """Euclidean norm whose gradient at the zero vector is 0 instead of NaN."""
-    sq = jnp.sum(v * v, axis=axis, keepdims=keepdims)
+    sq = short_sum(v * v, axis=axis, keepdims=keepdims)
     positive = sq > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, jnp.ones_like(sq))), 0.0)
 

@@ -64,9 +64,10 @@ class State(eqx.Module):
         if orientation is not None:
             orientation = as_float_array(orientation, "orientation")
             check_last_axis(orientation, 4, "State.orientation")
-            dtype = jnp.result_type(omega.dtype, orientation.dtype)
-            self.omega = omega.astype(dtype)
-            orientation = orientation.astype(dtype)
+            if omega.dtype != orientation.dtype:
+                dtype = jnp.result_type(omega.dtype, orientation.dtype)
+                self.omega = omega.astype(dtype)
+                orientation = orientation.astype(dtype)
         self.orientation = orientation
 
 
@@ -382,9 +383,11 @@ class AbstractModel(eqx.Module):
     def body_leaves(self) -> list[BodyLeaf]:
         """Every per-body array of the scene, its own fields and then each torque's, with its number
         of trailing per-body axes; leading axes beyond those are batch axes."""
-        leaves = [BodyLeaf(n, operator.attrgetter(n), c) for n, c in self._leaf_core_ndims().items()]
+        # Methods called by the class: bound to a Module instance, each call would build a Module.
+        own = type(self)._leaf_core_ndims(self)
+        leaves = [BodyLeaf(n, operator.attrgetter(n), c) for n, c in own.items()]
         for i, torque in enumerate(getattr(self, "torques", ())):
-            for n, c in torque._leaf_core_ndims().items():
+            for n, c in type(torque)._leaf_core_ndims(torque).items():
                 leaves.append(BodyLeaf(f"torques[{i}].{n}", _torque_field_getter(i, n), c))
         return leaves
 

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from .._closed_form.torque_free import motion_timing
 from .._dynamics.inertia import principal_axes
 from .._dynamics.models import State
+from .._numerics import short_norm
 from . import batching, driver
 from .trajectory import Trajectory
 
@@ -119,7 +120,7 @@ def _kept_samples(omega, q):
     omega = jnp.where(keep[..., None], omega, jnp.nan)
     if q is None:
         return omega, None, first_bad, None
-    q_norm = jnp.linalg.norm(q, axis=-1, keepdims=True)
+    q_norm = short_norm(q, keepdims=True)
     q_norm_error = jnp.max(jnp.where(keep, jnp.abs(q_norm[..., 0] - 1.0), 0.0), axis=-1)
     return omega, jnp.where(keep[..., None], q / q_norm, jnp.nan), first_bad, q_norm_error
 

@@ -31,9 +31,8 @@ from .._checks import (
 from .._closed_form.barrier import _materialised
 from .._closed_form.heavy_top import lagrange_top_motion, lagrange_top_parts
 from .._closed_form.jacobi import upper_side
-from .._closed_form.torque_free import torque_free_motion, torque_free_omega
+from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.models import FreeBody, HeavyTop
-from .._numerics import safe_norm
 from . import batching
 from .driver import is_differentiated
 from .inputs import checked_inputs
@@ -117,16 +116,16 @@ def _exact_motion(model, omega0, q0, ts, chunk_size, one_side=True):
         """omega ``(bodies, samples, 3)`` and the orientation ``(bodies, samples, 4)`` (or None) at
         the times ``t`` after the first; ``side``: see :func:`.lagrange_top_at`."""
         first_omega = bodies["omega0"]
-        first_q = None if q0 is None else bodies["q0"] / safe_norm(bodies["q0"], keepdims=True)
+        first_q = bodies.get("q0")  # checked and normalised by _exact_inputs
         if n_times == 1:
             return first_omega[:, None], None if q0 is None else first_q[:, None]
         inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
         if heavy:
             omega, q = lagrange_top_motion(*(bodies[name][:, None] for name in _TOP_INPUTS), t, side)
         elif q0 is None:
-            omega, q = torque_free_omega(inertia, omega0, t), None
+            omega, q = _torque_free_omega(inertia, omega0, t, checked=False), None
         else:
-            omega, q = torque_free_motion(inertia, omega0, bodies["q0"][:, None], t)
+            omega, q = _torque_free_motion(inertia, omega0, bodies["q0"][:, None], t, checked=False)
         if n_times == 2:
             # Computed in full before the stacking (see _closed_form.barrier): 10^4 bodies' omega
             # and q 5.5 -> 4.0 ms.
@@ -354,13 +353,19 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
     # Constants of the user's jit stay constants (values to check now).
     body, omega0, q0, ts = evaluated_now(
         lambda: (
-            FreeBody(jnp.asarray(model.inertia, dtype)),
-            state0.omega.astype(dtype),
-            None if state0.orientation is None else jnp.asarray(state0.orientation, dtype),
-            ts.astype(dtype),
+            FreeBody(_cast(model.inertia, dtype)),
+            _cast(state0.omega, dtype),
+            None if state0.orientation is None else _cast(state0.orientation, dtype),
+            _cast(ts, dtype),
         )
     )
     return _run_exact(body, omega0, q0, ts, chunk_size)
+
+
+def _cast(x, dtype):
+    """``x`` as a JAX array of ``dtype``; as it is where it is one (a conversion costs ~10-20 us of
+    Python per call, as much as the closed form of a few hundred bodies)."""
+    return x if isinstance(x, jax.Array) and x.dtype == dtype else jnp.asarray(x, dtype)
 
 
 def _run_exact(model, omega0, q0, ts, chunk_size):
