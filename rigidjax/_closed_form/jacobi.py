@@ -136,6 +136,9 @@ def _jacobi_values(u, m, p, side=None):
     sn = body["sn0"] * odd_sin * odd_s / den
     cn = jnp.where(upper, body["cn0"] * even4, body["cn0"] * odd_c) * odd_cos / den
     dn = jnp.where(upper, body["dn0"] * odd_cos, body["dn0"]) * even3 / den
+    # Held in memory: each of the results below is computed in a kernel of its own, which would
+    # evaluate the series again.
+    sn, cn, dn = _materialised((sn, cn, dn))
     shift = upper & ~near
     sn, cn, dn = (
         jnp.where(shift, cn / dn, sn),

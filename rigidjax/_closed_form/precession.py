@@ -79,7 +79,8 @@ def _precession_parts(m, p, n, nu, start):
         (jnp.where(from_zero, 1 + n, n + m), dn0 * dn0),
         (jnp.where(from_zero, 1 + nu_safe, 1 + n), jnp.where(direct, 1.0, pc)),
     )
-    rf = _carlson_rf(*(jnp.stack(jnp.broadcast_arrays(*a)) for a in args))
+    stacked = [jnp.stack(jnp.broadcast_arrays(*a)) for a in args]
+    rf = _carlson_rf(*(a.reshape(-1) for a in stacked)).reshape(stacked[0].shape)
     shift = jnp.where(from_zero, jnp.sqrt(nu_safe), 1.0) * rf[0]  # beta or K' - beta
     # p = 0: F = atanh(s) = log((1 + s) / c), from c (not 1 - s) where s -> 1; c = 0 is steady.
     c_safe = jnp.where(c > 0, c, 1.0)
@@ -94,6 +95,7 @@ def _precession_parts(m, p, n, nu, start):
     nome2 = nome * nome
 
     b, (_, cos_b, sin_2b, cos_2b), zeta = _upper_zeta(agm, shift, from_zero, nome, factors)
+    b, cos_b, sin_2b, cos_2b, zeta = _materialised((b, cos_b, sin_2b, cos_2b, zeta))
     slope_upper = 1 / (1 + nu) + c_factor * agm * zeta
     _, r_lower, s_lower, gap_lower = _lower_terms(agm, shift, from_zero, nome)
     slope_lower = 1 - c_factor * agm * _im_zeta(r_lower, s_lower, gap_lower, nome2, factors)
@@ -356,6 +358,7 @@ def _general_orientation(frame, parts, t):
     wraps = jnp.round((turned - (_rough_angle(x1, y1) - angle0)) / (2 * jnp.pi))
     flip = jnp.where(_mod(wraps, 2) == 0, 1.0, -1.0).astype(u.dtype)
 
+    (phi,) = _materialised((phi,))  # read by sin and cos, each in a kernel of its own
     sin_p, cos_p = _sin_cos(phi / 2)
     # Every component of q reads all of these: in memory, the products below are cheap.
     sin_p, cos_p, flip, ct, st, cp, sp = _materialised((sin_p, cos_p, flip, *half_angles1))
