@@ -93,6 +93,9 @@ def _frame(inertia, omega0):
     steady = (rate == 0) | (zeros >= 2)
     moments = [jnp.where(steady, float(k + 1), i) for k, i in enumerate(moments)]
     omega = [jnp.where(steady, 1.0, w) for w in omega]
+    # Held in memory: read by many kernels, each of which would sort the axes again.
+    held = _materialised((*moments, *omega, parity))
+    moments, omega, parity = list(held[:3]), list(held[3:6]), held[6]
     return dict(swaps=swaps, index=index, moments=moments, omega=omega, parity=parity, steady=steady)
 
 
