@@ -33,11 +33,22 @@ def short_norm(x, axis=-1, keepdims=False):
     return jnp.sqrt(short_sum(x * x, axis, keepdims))
 
 
+def safe_sqrt(x):
+    """``sqrt(max(x, 0))`` whose derivative is 0 where ``x <= 0`` instead of infinite: the square root
+    sees 1 there, so the unused branch passes no NaN or inf to a derivative."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
+
+
 def safe_norm(v, axis=-1, keepdims=False):
     """Euclidean norm whose gradient at the zero vector is 0 instead of NaN."""
-    sq = short_sum(v * v, axis=axis, keepdims=keepdims)
-    positive = sq > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, jnp.ones_like(sq))), 0.0)
+    return safe_sqrt(short_sum(v * v, axis=axis, keepdims=keepdims))
+
+
+def safe_norm_of(*components):
+    """:func:`safe_norm` of a vector given as separate component arrays: a stacked vector is what XLA
+    on CPU would compute again for each reader of the result."""
+    return safe_sqrt(sum(c * c for c in components))
 
 
 def safe_hypot(a, b):

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rigidjax._numerics import safe_norm, short_norm, short_sum
+from rigidjax._numerics import safe_norm, safe_norm_of, safe_sqrt, short_norm, short_sum
 
 
 @pytest.mark.parametrize(
@@ -26,3 +26,16 @@ def test_safe_norm_gradient_is_zero_at_the_zero_vector_and_exact_elsewhere():
     np.testing.assert_array_equal(jax.grad(safe_norm)(jnp.zeros(4)), np.zeros(4))
     v = jnp.array([3.0, 4.0, 12.0])
     np.testing.assert_allclose(jax.grad(safe_norm)(v), np.asarray(v) / 13.0, rtol=1e-15)
+
+
+def test_safe_sqrt_and_norm_of_components_match_numpy_with_finite_gradients_at_zero():
+    x = np.random.default_rng(1).normal(size=(3, 6))
+    np.testing.assert_allclose(safe_sqrt(jnp.asarray(x)), np.sqrt(np.maximum(x, 0)), rtol=1e-15)
+    np.testing.assert_allclose(safe_norm_of(*jnp.asarray(x)), np.linalg.norm(x, axis=0), rtol=1e-14)
+    # d/dx sqrt(x) = 1 / (2 sqrt(x)) where x > 0; 0 (not inf or NaN) at and below 0.
+    points = jnp.array([4.0, 0.0, -1.0])
+    np.testing.assert_array_equal(jax.vmap(jax.grad(safe_sqrt))(points), [0.25, 0.0, 0.0])
+    np.testing.assert_array_equal(jax.grad(lambda a, b: safe_norm_of(a, b), (0, 1))(0.0, 0.0), (0.0, 0.0))
+    np.testing.assert_allclose(
+        jax.grad(lambda a, b: safe_norm_of(a, b), (0, 1))(3.0, 4.0), (0.6, 0.8), rtol=1e-15
+    )

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import common_float
+from .._numerics import safe_sqrt
 from .._types import Scalar, ScalarOut
 
 # Carlson duplication: the deviations shrink by 4 per step; 11 suffice for R_F(0, 1, 1e-300).
@@ -41,16 +42,6 @@ def _steps(table, dtype) -> int:
 
 # --------------------------------------------------------------------------------------------------
 # Building blocks
-
-
-def _safe_sqrt(x):
-    """``sqrt`` whose derivative at 0 is 0 rather than inf (which would turn zero tangents into NaN).
-
-    First derivatives never differentiate through the duplication (they are closed forms); this only
-    keeps second derivatives finite where an argument of ``R_F``/``R_D`` vanishes.
-    """
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
 
 
 def _rf_series(dev_x, dev_y, a_f, scale):
@@ -93,7 +84,7 @@ def _carlson_rf_rd(x, y, z, with_rd=True):
         # A loop rather than unrolled steps: unrolled, the steps (and their derivatives) are most of
         # the closed forms' compiled programs, and XLA's compile time grows with them.
         x, y, z, a_f, a_d, tail, scale = carry
-        sx, sy, sz = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z)
+        sx, sy, sz = safe_sqrt(x), safe_sqrt(y), safe_sqrt(z)
         lam = sx * (sy + sz) + sy * sz
         if with_rd:
             tail = tail + scale / (sz * (z + lam))
@@ -164,7 +155,7 @@ def _carlson_rf_rj(x, y, z, p, spread_steps=False):
         # A loop rather than unrolled steps: R_C's atan/atanh per step made the unrolled form slow to
         # compile (seconds on CPU).
         x, y, z, p, a_f, a_j, total, scale = carry
-        sx, sy, sz, sp = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z), _safe_sqrt(p)
+        sx, sy, sz, sp = safe_sqrt(x), safe_sqrt(y), safe_sqrt(z), safe_sqrt(p)
         lam = sx * (sy + sz) + sy * sz
         # 1 + e = (d^2 + delta_m) / d^2 with delta_m = (s^2 - a^2)(s^2 - b^2)(s^2 - c^2) = d (s - a)(s - b)
         # (s - c), s = sqrt p, a = sqrt x, ...: = 2 s (p + lam) / d, a sum of positive terms.

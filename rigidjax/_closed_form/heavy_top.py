@@ -48,7 +48,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from .._numerics import safe_norm
+from .._numerics import safe_norm, safe_sqrt
 from .barrier import _materialised
 from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
@@ -58,12 +58,6 @@ from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_pha
 def _safe_div(num, den):
     ok = den != 0
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
-
-
-def _safe_sqrt(x):
-    """``sqrt(max(x, 0))`` with a zero (not infinite) derivative at 0."""
-    ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
 
 def _times(x, z):
@@ -94,7 +88,7 @@ def _largest_root(c2, c1, c0):
     s2, s1, s0 = (jax.lax.stop_gradient(c) for c in (c2 / scale, c1 / scale**2, c0 / scale**3))
     p = s1 - s2 * s2 / 3
     q = 2 * s2**3 / 27 - s2 * s1 / 3 + s0
-    r = _safe_sqrt(-p / 3)
+    r = safe_sqrt(-p / 3)
     angle = jnp.arccos(jnp.clip(_safe_div(-q, 2 * r**3), -1.0, 1.0)) / 3
     roots = [2 * r * jnp.cos(angle - 2 * jnp.pi * k / 3) - s2 / 3 for k in range(3)]
     roots[0] = jnp.where(r > 0, roots[0], jnp.cbrt(-q) - s2 / 3)
@@ -115,7 +109,7 @@ def _largest_root(c2, c1, c0):
     # (G - lone)(G^2 + B G + C): B = s2 + lone, C = -s0 / lone (or s1 + lone B when lone = 0).
     B = s2 + lone
     C = jnp.where(lone != 0, -_safe_div(s0, lone), s1 + lone * B)
-    root_disc = _safe_sqrt(B * B - 4 * C)
+    root_disc = safe_sqrt(B * B - 4 * C)
     big = -(B + jnp.where(B >= 0, root_disc, -root_disc)) / 2
     pair_max = jnp.maximum(big, _safe_div(C, big))
     pair_max = jnp.where(big != 0, pair_max, 0.0)
@@ -147,7 +141,7 @@ def _body(A, C, weight_l, omega0, q0):
     g0 = _largest_root(f2, beta * f1, beta * beta * f0)
     k0 = -_safe_div(f0, g0)
     k1 = -_safe_div(f1 + beta * _safe_div(f0, g0), g0)
-    amp = _safe_sqrt(k1 * k1 - 4 * k0)  # u2 - u1
+    amp = safe_sqrt(k1 * k1 - 4 * k0)  # u2 - u1
     big = -(k1 + jnp.where(k1 >= 0, amp, -amp)) / 2
     small = _safe_div(k0, big)
     x1 = jnp.where(k1 >= 0, big, small)
@@ -159,7 +153,7 @@ def _body(A, C, weight_l, omega0, q0):
     x_o = jnp.where(standing, x2, x1)
     g_s = g0 - beta * x_s
     g_o = g0 - beta * x_o
-    rate = _safe_sqrt(g_s) / 2  # lambda
+    rate = safe_sqrt(g_s) / 2  # lambda
     m = _safe_div(jnp.abs(beta) * amp, g_s)
     p = jnp.where(g_s > 0, jnp.maximum(_safe_div(g_o, g_s), 0.0), 1.0)
     # sn0^2 = |x_s| / amp, cn0^2 = |x_o| / amp, sign(sn0 cn0) = sigma sign(du/dt). The smaller of the
@@ -168,11 +162,11 @@ def _body(A, C, weight_l, omega0, q0):
     moving = amp > 0
     at_start = jnp.abs(x_s) <= jnp.abs(x_o)
     larger = jnp.where(at_start, jnp.abs(x_o), jnp.abs(x_s))
-    root_large = _safe_sqrt(_safe_div(larger, amp))
-    root_small = sigma * _safe_div(udot, _safe_sqrt(g0 * larger * amp))
+    root_large = safe_sqrt(_safe_div(larger, amp))
+    root_small = sigma * _safe_div(udot, safe_sqrt(g0 * larger * amp))
     sn0 = jnp.where(moving, jnp.where(at_start, root_small, root_large), 0.0)
     cn0 = jnp.where(moving, jnp.where(at_start, root_large, root_small), 1.0)
-    dn0 = jnp.where(g_s > 0, _safe_sqrt(_safe_div(g0, g_s)), 1.0)
+    dn0 = jnp.where(g_s > 0, safe_sqrt(_safe_div(g0, g_s)), 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
     rho0 = _start_phase(sn0, cn0, dn0, p, _quarter_period(m, p))
@@ -261,7 +255,7 @@ def _half(half, body, t, now, reduced, side):
     spin = k * (body["w3"] - body["a"])
     dist = near * cn * cn + far * sn * sn  # 1 + k u(t), a sum of nonnegative terms
     udot = 2 * sigma * amp * rate * sn * cn * dn
-    modulus = _safe_sqrt(dist / 2)
+    modulus = safe_sqrt(dist / 2)
     modulus_rate = _safe_div(k * udot, 4 * modulus)
     # The phase: (1/2) [k (w3 - a) t + (b + k a) int_0^t dt / (1 + k u)].
     sn0, cn0, dn0 = body["start"]
@@ -277,12 +271,12 @@ def _half(half, body, t, now, reduced, side):
     k1, udot0, dist0 = body["k1"], body["udot0"], half["dist0"]
 
     def first_order():
-        nu = _safe_sqrt(jnp.where(linear, body["g0"], 1.0))
+        nu = safe_sqrt(jnp.where(linear, body["g0"], 1.0))
         sin_t, cos_t = _sin_cos(nu * t)
         x_lin = -(k1 / 2) * (1 - cos_t) + udot0 * sin_t / nu
         xdot_lin = -(k1 / 2) * nu * sin_t + udot0 * cos_t
         xint_lin = -(k1 / 2) * (t - sin_t / nu) + udot0 * (1 - cos_t) / nu**2
-        modulus = _safe_sqrt((dist0 + k * x_lin) / 2)
+        modulus = safe_sqrt((dist0 + k * x_lin) / 2)
         integral = _safe_div(t, dist0) - k * _safe_div(xint_lin, dist0 * dist0)
         return xdot_lin, modulus, _safe_div(k * xdot_lin, 4 * modulus), integral
 
@@ -297,7 +291,7 @@ def _half(half, body, t, now, reduced, side):
     # A pole on a turning circle: the modulus is sqrt(P_far / 2) J(tau) with J = sn when the start
     # circle is the pole (cn otherwise), and the phase turns uniformly.
     start_is_pole = near <= far
-    scale = _safe_sqrt(jnp.maximum(near, far) / 2)
+    scale = safe_sqrt(jnp.maximum(near, far) / 2)
     j_now = jnp.where(start_is_pole, sn, cn)
     jdot_now = jnp.where(start_is_pole, cn * dn, -sn * dn)
     j0 = jnp.where(start_is_pole, sn0, cn0)
@@ -463,7 +457,7 @@ def _tilt_modes(s, a, beta, tilt0, rate0, t, turn):
     """
     sigma = s * a / 2
     w2 = a * a / 4 - s * beta / 2
-    w = _safe_sqrt(jnp.abs(w2))
+    w = safe_sqrt(jnp.abs(w2))
     w_safe = jnp.where(w > 0, w, 1.0)
     sin_wt, cos_wt = _sin_cos(w * t)
     grow = jnp.expm1(jnp.where(w2 < 0, w * t, 0.0))

@@ -7,8 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kinematics.quaternion import _quat_multiply
+from .._numerics import safe_norm_of, safe_sqrt
 from .barrier import _materialised
-from .carlson import _CARLSON_STEPS, _carlson_rf_rd, _rf_series, _safe_sqrt, _steps
+from .carlson import _CARLSON_STEPS, _carlson_rf_rd, _rf_series, _steps
 from .frame import _clip, _cycle, _safe_div
 from .jacobi import _mod, _nome_parts, _sin_cos
 
@@ -143,7 +144,7 @@ def _rf_steps(state, count):
     """``count`` duplication steps of ``(x, y, z, mean)``, unrolled."""
     x, y, z, a_f = state
     for _ in range(count):
-        sx, sy, sz = _safe_sqrt(x), _safe_sqrt(y), _safe_sqrt(z)
+        sx, sy, sz = safe_sqrt(x), safe_sqrt(y), safe_sqrt(z)
         lam = sx * (sy + sz) + sy * sz
         x, y, z, a_f = (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (a_f + lam) / 4
     return x, y, z, a_f
@@ -254,14 +255,6 @@ def _rough_angle(y, x):
     return jnp.where(y < 0, -a, a)
 
 
-def _norm(*components):
-    """``safe_norm`` of the stacked components, summed elementwise: XLA on CPU hands a reduction
-    over a short last axis to a library call of its own, which costs more than the arithmetic."""
-    sq = sum(c * c for c in components)
-    positive = sq > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, jnp.ones_like(sq))), 0.0)
-
-
 def _half_angles(momentum):
     """Half-angle cosines and sines of the 3-1-3 angles ``theta`` (nutation, in [0, pi]) and ``psi``
     (spin, in (-pi, pi]) with ``momentum / |momentum| = (sin theta sin psi, sin theta cos psi, cos theta)``.
@@ -269,18 +262,18 @@ def _half_angles(momentum):
     Formed from the components without dividing by ``sin theta`` and without cancellation.
     """
     lx, ly, lc = momentum[..., 0], momentum[..., 1], momentum[..., 2]
-    size = _norm(lx, ly, lc)
-    st = _norm(lx, ly)
+    size = safe_norm_of(lx, ly, lc)
+    st = safe_norm_of(lx, ly)
     up = lc >= 0
     t_cos = jnp.where(up, size + lc, st)
     t_sin = jnp.where(up, st, size - lc)
-    t_norm = _norm(t_cos, t_sin)
+    t_norm = safe_norm_of(t_cos, t_sin)
     t_norm = jnp.where(t_norm > 0, t_norm, 1.0)
     right = ly >= 0
     sign_x = jnp.where(lx < 0, -1.0, 1.0).astype(momentum.dtype)
     p_cos = jnp.where(right, st + ly, jnp.abs(lx))
     p_sin = jnp.where(right, lx, sign_x * (st - ly))
-    p_norm = _norm(p_cos, p_sin)
+    p_norm = safe_norm_of(p_cos, p_sin)
     p_cos = jnp.where(p_norm > 0, p_cos, 1.0)
     p_norm = jnp.where(p_norm > 0, p_norm, 1.0)
     return t_cos / t_norm, t_sin / t_norm, p_cos / p_norm, p_sin / p_norm
@@ -306,7 +299,7 @@ def _general_orientation(frame, parts, t):
     # (an identity of the elliptic parameters), so V enters as it is. What depends on the body only
     # (K, g, the initial phase) keeps the body's shape: computed once per body, not per sample time.
     body = _precession_parts(m, p, n, nu, parts["start"])
-    size = _norm(*(i * w for i, w in zip(moments, frame["omega"], strict=True)))
+    size = safe_norm_of(*(i * w for i, w in zip(moments, frame["omega"], strict=True)))
     kappa = jnp.where((I_c > I_a) == (parts["speed"] > 0), 1.0, -1.0).astype(u.dtype)
     rate = (size / I_c) * (1 + (I_c - I_a) / I_a * body["slope"])
     phase0 = _precession_phase(body["rho0"], jnp.zeros_like(body["rho0"]), body)

@@ -32,13 +32,14 @@ from .._checks import (
 )
 from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
+from .._numerics import safe_norm_of
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 from .barrier import _materialised
 from .carlson import _carlson_rf_rd
 from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos, ellipkm1
 from .frame import _safe_div, _solution_parameters, _sorted_frame, _unsort
-from .precession import _general_orientation, _norm
+from .precession import _general_orientation
 
 
 def _checked(inertia, omega0, t, where):
@@ -493,7 +494,7 @@ def _motion_at(inertia, omega0, t):
     omega_g, parts = _motion_parts(frame, t)
     turn_g = _general_orientation(frame, parts, t)
 
-    half = _norm(omega0[..., 0], omega0[..., 1], omega0[..., 2]) * t / 2
+    half = safe_norm_of(omega0[..., 0], omega0[..., 1], omega0[..., 2]) * t / 2
     # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
     # d q/d w0 = q0 (0, t/2 I) (a body at rest turned by a small w0 turns by w0 t). sinc by its series
     # below 1e-3 (the next term is 2e-22).

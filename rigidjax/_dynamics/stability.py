@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .._checks import check_batch_shapes, check_finite, check_last_axis, common_float, error_if
+from .._numerics import safe_sqrt
 from .._types import Inertia, Scalar, Vector
 from .equations import is_full_tensor
 from .inertia import check_inertia
@@ -24,13 +25,6 @@ from .inertia import check_inertia
 # :func:`sleeping_top`: well above the roundoff of moments from ``principal_axes`` (a few eps times
 # the largest moment, float32 included), tight enough to reject a visibly asymmetric top.
 _SYMMETRY_RTOL = 1e-4
-
-
-def _safe_sqrt(x):
-    """``sqrt(max(x, 0))`` with a zero (finite) gradient where ``x <= 0``: the unsafe input is
-    replaced by 1 before the square root, so the unused branch has no NaN/inf cotangent."""
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
 
 
 def _is_plain_number(a) -> bool:
@@ -152,8 +146,8 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
     # The sign of lambda^2 from its factors: Omega^2 underflows to 0 for a slow spin in float32.
     spinning = speed > 0
     return SpinStability(
-        growth_rate=speed * _safe_sqrt(shape),
-        frequency=speed * _safe_sqrt(-shape),
+        growth_rate=speed * safe_sqrt(shape),
+        frequency=speed * safe_sqrt(-shape),
         stable=spinning & (shape < 0),
         marginal=~spinning | (shape == 0),
     )
@@ -275,7 +269,7 @@ def sleeping_top(
     k = mass * gravity * lever  # m g l (N m), signed
     b = I3 * omega3  # axial angular momentum
     disc = b * b - 4.0 * I1 * k  # the margin
-    root = _safe_sqrt(disc)
+    root = safe_sqrt(disc)
     # Roots without cancellation: q = (b + sign(b) sqrt(disc)) / 2, fast = q / I1, slow = k / q.
     sign = jnp.where(b < 0, -1.0, 1.0).astype(b.dtype)
     q = 0.5 * (b + sign * root)
@@ -283,8 +277,8 @@ def sleeping_top(
     stable = disc > 0
     fast = jnp.where(stable, q / I1, b / (2.0 * I1))
     slow = jnp.where(stable, jnp.where(q == 0, jnp.zeros_like(q), k / q_safe), b / (2.0 * I1))
-    growth = _safe_sqrt(-disc) / (2.0 * I1)
-    critical = jnp.broadcast_to(2.0 * _safe_sqrt(I1 * k) / I3, disc.shape)
+    growth = safe_sqrt(-disc) / (2.0 * I1)
+    critical = jnp.broadcast_to(2.0 * safe_sqrt(I1 * k) / I3, disc.shape)
     return SleepingTop(
         margin=disc,
         critical_spin=critical,
