@@ -91,14 +91,17 @@ def test_torque_free_gyrostat_conserves_energy_and_angular_momentum(method, boun
 @pytest.mark.slow
 def test_zero_rotor_momentum_is_the_free_body():
     """Reference: rigidjax's FreeBody. With h = 0 the equations are Euler's: RKMK (fixed steps, no
-    per-scene scales) gives the same numbers bit for bit, the preset agrees to its tolerance."""
+    per-scene scales) takes the same steps and gives the same numbers up to a few roundoffs: the two
+    models are different programs, and where XLA contracts multiply-adds into fused ones (its default
+    emitters on CPU) the last bit differs; the preset agrees to its tolerance."""
     rotors = rj.Gyrostat(INERTIA, np.zeros(3))
     free = rj.FreeBody(INERTIA)
     state = rj.State(OMEGA0, Q0)
     a = rj.simulate(rotors, state, TS, solver=rj.solvers.RKMK(), dt0=0.05)
     b = rj.simulate(free, state, TS, solver=rj.solvers.RKMK(), dt0=0.05)
-    np.testing.assert_array_equal(np.asarray(a.omega), np.asarray(b.omega))
-    np.testing.assert_array_equal(np.asarray(a.orientation), np.asarray(b.orientation))
+    np.testing.assert_array_equal(np.asarray(a.stats["num_steps"]), np.asarray(b.stats["num_steps"]))
+    np.testing.assert_allclose(np.asarray(a.omega), np.asarray(b.omega), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(a.orientation), np.asarray(b.orientation), rtol=0, atol=1e-14)
     a = rj.simulate(rotors, state, TS, accuracy="precise")
     b = rj.simulate(free, state, TS, accuracy="precise")
     assert rel_err(a.omega, np.asarray(b.omega)) < 1e-10

@@ -81,8 +81,12 @@ def _solution_parameters(moments, omega):
     """
     x = [w * w for w in omega]
     D = [_momentum_defect(moments, x, j) for j in range(3)]
-    around_largest = D[1] >= 0  # L^2 >= 2 E I2: omega circles the axis of the largest moment
+    # L^2 >= 2 E I2: omega circles the axis of the largest moment. Decided by comparing D[1]'s two
+    # terms, not by its sign: on the separatrix they cancel exactly, and where XLA contracts the sum
+    # into a fused multiply-add D[1] becomes +-(the roundoff of one product), whose sign differs
+    # between the fusions that each recompute it, so that one body took both sides at once.
     I1, I2, I3 = moments
+    around_largest = I3 * (I3 - I2) * x[2] >= I1 * (I2 - I1) * x[0]
     Ia = jnp.where(around_largest, I1, I3)
     Ic = jnp.where(around_largest, I3, I1)
     Ib = I2
