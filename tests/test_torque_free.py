@@ -155,6 +155,58 @@ def test_hairer_lubich_wanner_period_and_half_period_flip():
     assert np.all(now[:, 2] > 0)
 
 
+def test_flip_timing_against_dop853_events():
+    """References: the period 4 K(m) / lambda of Landau & Lifshitz in 30-digit mpmath, and scipy's
+    DOP853 (rtol 1e-12) with an event at every sign change of the intermediate axis's component for
+    the next flip. motion_timing (simulate orders bodies by it) on both sides of the separatrix, near
+    it, with negative components, axes in every order, from every quarter of the period; inf and 0
+    where the body does not flip. Near the separatrix the integrated crossing times carry the
+    saddle's conditioning (6e-8 relative measured at s = 4e-10), hence their looser tolerance."""
+    from scipy.integrate import solve_ivp
+
+    from rigidjax._closed_form.torque_free import motion_timing
+
+    rng = np.random.default_rng(7)
+    cases = [
+        ([1.0, 2.0, 2.5], [0.05, 4.0, 0.05]),  # the tennis racket, circling the largest axis
+        ([1.0, 2.0, 2.5], [2.0, 0.5, 0.3]),  # circling the smallest axis
+        ([2.5, 1.0, 2.0], [-0.3, 0.7, 1.5]),  # axes relabelled
+        ([2.0, 2.5, 1.0], [0.4, -1.0, 0.2]),
+        ([1.0, 2.0, 3.0], [1e-4, 2.0, 1e-4]),  # s = +1.5e-9 from the separatrix
+        ([3.0, 2.0, 1.0], [-0.5e-4, 2.0, 1e-4]),
+    ]
+    cases += [(rng.uniform(1.0, 3.0, 3), rng.normal(size=3)) for _ in range(10)]
+    inertia = np.array([c[0] for c in cases], float)
+    omega0 = np.array([c[1] for c in cases], float)
+    period, next_flip = (np.asarray(x) for x in motion_timing(jnp.asarray(inertia), jnp.asarray(omega0)))
+    for k, (moments, w0) in enumerate(zip(inertia, omega0, strict=True)):
+        middle = int(np.argsort(moments)[1])
+        c = [(moments[1] - moments[2]) / moments[0], (moments[2] - moments[0]) / moments[1]]
+        c.append((moments[0] - moments[1]) / moments[2])
+
+        def euler(t, w, c=c):
+            return [c[0] * w[1] * w[2], c[1] * w[2] * w[0], c[2] * w[0] * w[1]]
+
+        def crossing(t, w, middle=middle):
+            return w[middle]
+
+        reference = float(_landau_lifshitz_period(moments, w0, with_turn=False))
+        np.testing.assert_allclose(period[k], reference, rtol=1e-13, err_msg=str(k))
+        sol = solve_ivp(
+            euler, (0.0, 1.2 * reference), w0, method="DOP853", rtol=1e-12, atol=1e-14, events=crossing
+        )
+        times = sol.t_events[0]
+        assert len(times) >= 2, (k, times)
+        tolerance = 2e-7 if k in (4, 5) else 1e-9
+        np.testing.assert_allclose(next_flip[k], times[0], rtol=tolerance, err_msg=str(k))
+        np.testing.assert_allclose(next_flip[k] + period[k] / 2, times[1], rtol=tolerance, err_msg=str(k))
+    # A spin about a principal axis, a sphere, the separatrix: no flip.
+    still_i = jnp.array([[1.0, 2.0, 3.0], [2.0, 2.0, 2.0], [1.0, 2.5, 3.0]])
+    still_w = jnp.array([[0.0, 0.0, 1.0], [0.3, 0.2, 0.1], [-1e-8, 1.0, 1e-8]])
+    period, next_flip = motion_timing(still_i, still_w)
+    assert np.all(np.isinf(np.asarray(period))) and np.all(np.asarray(next_flip) == 0.0)
+
+
 def test_conserves_energy_and_momentum_to_roundoff_over_long_times():
     inertia = jnp.array([1.0, 2.0, 2.5])
     omega0 = jnp.array([0.05, 4.0, 0.05])
@@ -360,13 +412,14 @@ def test_symmetric_tops_and_steady_rotations_in_closed_form():
         np.testing.assert_allclose(q[i], expected, atol=2e-14, err_msg=str(i))
 
 
-def _landau_lifshitz_period(inertia, omega0, dps=30):
+def _landau_lifshitz_period(inertia, omega0, dps=30, with_turn=True):
     """The period P of omega and the angle by which the body turns about the space-frame L in one period.
 
     Independent of rigidjax: Landau & Lifshitz's solution in mpmath, with the axes relabelled so that
     omega circles axis 3 (w3 = A3 dn(lambda t | m)), and dphi/dt = |L| (2E - I3 w3^2) / (L^2 - I3^2 w3^2)
     integrated over tau = lambda t in [0, 4K] by mpmath's quadrature (the phase does not matter over a
     whole period). 30 digits: near the separatrix 1 - m loses as many digits as it is small.
+    ``with_turn=False``: the period alone.
     """
     with mp.workdps(dps):
         I = [mp.mpf(float(x)) for x in inertia]
@@ -381,6 +434,8 @@ def _landau_lifshitz_period(inertia, omega0, dps=30):
         m = (I2 - I1) * (E2 * I3 - L2) / ((I3 - I2) * (L2 - E2 * I1))
         A3sq = (L2 - E2 * I1) / (I3 * (I3 - I1))
         K = mp.ellipk(m)
+        if not with_turn:
+            return 4 * K / lam
 
         def rate(tau):
             w3sq = A3sq * mp.ellipfun("dn", tau, m) ** 2

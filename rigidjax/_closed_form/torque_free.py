@@ -258,27 +258,33 @@ def _period_program(inertia, omega0, *, checked):
 def motion_timing(inertia, omega0):
     """When a torque-free body flips: its period (:func:`torque_free_period`) and the time to its
     next half period's start (the intermediate component's next sign change), from principal
-    moments and omega of the same shape ``(..., 3)``, without checks; steady rotations: inf and 0.
+    moments and omega of the same shape ``(..., 3)``, without checks; inf and 0 where the body does
+    not flip (steady rotations, the separatrix).
 
     The phase of the start is ``F(a | m)``, ``a`` its elliptic amplitude forward in time modulo
     ``pi``; the next flip comes after ``(2 K - F) / lambda``, i.e. ``1 - F / (2 K)`` of the half
-    period. For ordering bodies: not differentiable."""
-    period, quarter = _period_and_quarter(inertia, omega0)
+    period. ``K = R_F(0, 1 - m, 1)`` and ``F`` share one Carlson loop, and the amplitude enters only
+    through ``sn`` and ``cn`` of the start (no trigonometric functions): simulate compiles this into
+    every torque-free program to order its bodies. For ordering bodies: not differentiable."""
     frame = _frame(inertia, omega0)
     first = _start(frame)
-    sn0, cn0, _ = first["start"]
-    amplitude = jnp.mod(jnp.where(first["speed"] < 0, -1.0, 1.0) * jnp.arctan2(sn0, cn0), jnp.pi)
-    moving = jnp.isfinite(period) & ~frame["steady"] & (first["p"] > 0)
+    moving = ~frame["steady"] & (first["p"] > 0)
     p = jnp.where(moving, first["p"], 0.5)
-    # F(a | m) = 2 j K + sin r R_F(cos^2 r, 1 - m sin^2 r, 1), a = j pi + r, |r| <= pi / 2.
-    upper = amplitude > jnp.pi / 2
-    reduced = jnp.where(upper, amplitude - jnp.pi, amplitude)
-    sin_r, cos_r = jnp.sin(reduced), jnp.cos(reduced)
-    one = jnp.ones_like(p)
-    rf = _carlson_rf_rd(cos_r * cos_r, cos_r * cos_r + p * sin_r * sin_r, one, with_rd=False)[0]
-    phase = sin_r * rf + jnp.where(upper, 2.0 * quarter, 0.0)
-    half_periods = jnp.where(moving, 1.0 - phase / (2.0 * quarter), 0.0)
-    return period, jnp.where(moving, half_periods * jnp.where(moving, period, 0.0) / 2, 0.0)
+    rate = jnp.where(moving, jnp.abs(first["speed"]), 1.0)
+    sn0, cn0, _ = first["start"]
+    # a = j pi + r with |r| <= pi / 2: cos r = |cn0| and sin r = +-sin a, the sign that makes cos r >= 0;
+    # a lies in (pi / 2, pi) (j = 1) where sin a and cos a differ in sign.
+    sin_a = jnp.where(first["speed"] < 0, -sn0, sn0)
+    sin_r = jnp.where(cn0 < 0, -sin_a, jnp.where(cn0 > 0, sin_a, jnp.abs(sin_a)))
+    cos_r2 = cn0 * cn0
+    upper = sin_a * cn0 < 0
+    x = jnp.stack([jnp.zeros_like(p), cos_r2])
+    y = jnp.stack([p, cos_r2 + p * sin_r * sin_r])
+    rf = _carlson_rf_rd(x, y, jnp.ones_like(x), with_rd=False)[0]
+    quarter, phase = rf[0], sin_r * rf[1] + jnp.where(upper, 2.0 * rf[0], 0.0)
+    period = 4.0 * quarter / rate
+    next_flip = (1.0 - phase / (2.0 * quarter)) * period / 2
+    return jnp.where(moving, period, jnp.inf), jnp.where(moving, next_flip, 0.0)
 
 
 def _period_and_quarter(inertia, omega0):

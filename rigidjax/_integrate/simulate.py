@@ -488,10 +488,28 @@ def _checked_tolerances(rtol, atol, dtype):
                 raise ValueError(f"simulate: {name} {rule}, got {value!r}.")
         if max(values) < eps:
             raise ValueError(f"simulate: {floor}; got rtol={values[0]!r}, atol={values[1]!r}.")
-        return jnp.asarray(values[0], dtype), jnp.asarray(values[1], dtype)
+        return _device_scalar(values[0], dtype), _device_scalar(values[1], dtype)
     rtol, atol = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
     valid = (rtol >= 0) & (rtol < 1) & (atol >= 0) & (atol < 1) & (jnp.maximum(rtol, atol) >= eps)
     return error_if(rtol, ~valid, f"simulate: rtol and atol each {rule}, and {floor}."), atol
+
+
+def _device_scalar(value, dtype):
+    """A Python number as a 0-d array of ``dtype``, converted on the host and put on the device:
+    ``jnp.asarray`` compiles a small program the first time in every process."""
+    return jax.device_put(np.asarray(value, dtype))
+
+
+def _fault_dtmin(ts):
+    """The controller's floor on rejected steps: ``min(1e-12 span, 1e-3 min gap)`` of the sample
+    times; computed with NumPy where their values are known (eager jnp would compile five small
+    programs in each new process, ~0.3 s), in the program otherwise."""
+    values = known_values((ts,))
+    xp, ts = (np, np.asarray(values[0])) if values is not None else (jnp, ts)
+    span = ts[-1] - ts[0]
+    min_gap = xp.min(xp.diff(ts)) if ts.shape[0] > 1 else span
+    floor = xp.minimum(1e-12 * span, 1e-3 * min_gap)
+    return _device_scalar(floor, ts.dtype) if xp is np else floor
 
 
 def _preset_controller(
@@ -502,7 +520,7 @@ def _preset_controller(
     # A preset never asks for less than ten roundoff units (float32: 1.2e-6).
     floor = 10 * float(jnp.finfo(dtype).eps)
     if rtol is None and atol is None:
-        rtol = atol = jnp.asarray(max(preset_rtol, floor), dtype)
+        rtol = atol = _device_scalar(max(preset_rtol, floor), dtype)
     else:
         rtol = max(preset_rtol, floor) if rtol is None else rtol
         rtol, atol = _checked_tolerances(rtol, rtol if atol is None else atol, dtype)
@@ -518,9 +536,7 @@ def _preset_controller(
         dtmax = jnp.where(speed > 0, 0.5 / jnp.where(speed > 0, speed, 1.0), jnp.inf)
     # A body whose torque or state turns NaN makes every trial step fail: with a floor on rejected
     # steps the chunk stops there at once (DT_MIN_REACHED, a fault) instead of after max_steps.
-    span = ts[-1] - ts[0]
-    min_gap = jnp.min(jnp.diff(ts)) if ts.shape[0] > 1 else span
-    fault_dtmin = jnp.minimum(1e-12 * span, 1e-3 * min_gap)
+    fault_dtmin = _fault_dtmin(ts)
     return FaultStopPIDController(
         rtol=rtol, atol=atol, norm=max_norm, step_ts=step_ts, dtmax=dtmax, fault_dtmin=fault_dtmin
     )
