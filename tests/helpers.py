@@ -1,11 +1,12 @@
 """What several test files share: independent references, the finite-difference check, scene builders
 and tolerances.
 
-Everything here is numpy / scipy (no rigidjax), so a reference built from it does not share code with
+Everything here is numpy / scipy / mpmath (no rigidjax), so a reference built from it does not share code with
 what it checks. Import it as ``from helpers import ...`` (pytest puts tests/ on ``sys.path``).
 """
 
 import jax
+import mpmath as mp
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -224,3 +225,42 @@ def box_moments(size, mass=1.0):
     size, mass = np.asarray(size, float), np.asarray(mass, float)
     a2, b2, c2 = size[..., 0] ** 2, size[..., 1] ** 2, size[..., 2] ** 2
     return mass[..., None] / 12 * np.stack([b2 + c2, c2 + a2, a2 + b2], axis=-1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Closed-form references
+
+
+def separatrix(inertia, omega0, ts):
+    """The heteroclinic solution on the separatrix (I1 < I2 < I3, L^2 = 2 E I2), derived from Euler's
+    equations with the ansatz omega1 = s1 a sech, omega3 = s3 c sech, omega2 = sigma W tanh:
+
+        W = |L| / I2, lam = W sqrt((I3 - I2)(I2 - I1) / (I1 I3)),
+        a = W sqrt(I2 (I3 - I2) / (I1 (I3 - I1))), c = W sqrt(I2 (I2 - I1) / (I3 (I3 - I1))),
+        omega2 = sigma W tanh(lam (t - t0)), sigma = s1 s3, sech(lam t0) = |omega1(0)| / a,
+        t0 = -sign(omega2(0) sigma) acosh(a / |omega1(0)|) / lam.
+
+    sigma = -1 leaves the axis (flip at t0 > 0), sigma = +1 approaches it (the stable manifold).
+    Evaluated with 40-digit mpmath from the float inputs. Returns omega (T, 3), t0 and lam.
+    """
+    with mp.workdps(40):
+        I1, I2, I3 = (mp.mpf(float(x)) for x in inertia)
+        w = [mp.mpf(float(x)) for x in omega0]
+        assert I1 < I2 < I3
+        defect = I1 * (I1 - I2) * w[0] ** 2 + I3 * (I3 - I2) * w[2] ** 2
+        assert defect == 0, "not on the separatrix"
+        size = mp.sqrt(sum((i * x) ** 2 for i, x in zip((I1, I2, I3), w, strict=True)))
+        W = size / I2
+        lam = W * mp.sqrt((I3 - I2) * (I2 - I1) / (I1 * I3))
+        a = W * mp.sqrt(I2 * (I3 - I2) / (I1 * (I3 - I1)))
+        c = W * mp.sqrt(I2 * (I2 - I1) / (I3 * (I3 - I1)))
+        s1, s3 = mp.sign(w[0]), mp.sign(w[2])
+        sigma = s1 * s3
+        t0 = -mp.sign(w[1] * sigma) * mp.acosh(a / abs(w[0])) / lam
+        out = []
+        for t in ts:
+            x = lam * (mp.mpf(float(t)) - t0)
+            out.append(
+                [float(s1 * a * mp.sech(x)), float(sigma * W * mp.tanh(x)), float(s3 * c * mp.sech(x))]
+            )
+        return np.array(out), float(t0), float(lam)

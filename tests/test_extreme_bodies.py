@@ -2,8 +2,9 @@
 
 Every case is measured against a reference that does not use the code under test: scipy's DOP853 at
 rtol = atol = 1e-13 on problems rescaled to O(1) (per-component scales for the Earth's wobble),
-the closed-form symmetric-top motion, the heteroclinic (separatrix) solution derived below and
-evaluated with mpmath, and the variational equations integrated by DOP853 for derivatives.
+the closed-form symmetric-top motion, the heteroclinic (separatrix) solution
+(``helpers.separatrix``) evaluated with mpmath, and the variational equations integrated by DOP853
+for derivatives.
 Each measured number is asserted against a bound a few times above it and recorded with the
 ``extreme`` fixture for the published table.
 
@@ -25,6 +26,7 @@ from helpers import (
     quat_axis_angle,
     quat_multiply,
     quat_rotate,
+    separatrix,
 )
 from scipy.integrate import solve_ivp
 
@@ -112,41 +114,6 @@ def symmetric_top(inertia, omega0, q0, ts):
     e3 = np.array([0.0, 0.0, 1.0])
     q = quat_multiply(quat_multiply(q0, quat_axis_angle(axis, speed * ts)), quat_axis_angle(e3, -big * ts))
     return omega, q
-
-
-def separatrix(inertia, omega0, ts):
-    """The heteroclinic solution on the separatrix (I1 < I2 < I3, L^2 = 2 E I2), derived from Euler's
-    equations with the ansatz omega1 = s1 a sech, omega3 = s3 c sech, omega2 = sigma W tanh:
-
-        W = |L| / I2, lam = W sqrt((I3 - I2)(I2 - I1) / (I1 I3)),
-        a = W sqrt(I2 (I3 - I2) / (I1 (I3 - I1))), c = W sqrt(I2 (I2 - I1) / (I3 (I3 - I1))),
-        omega2 = sigma W tanh(lam (t - t0)), sigma = s1 s3, sech(lam t0) = |omega1(0)| / a,
-        t0 = -sign(omega2(0) sigma) acosh(a / |omega1(0)|) / lam.
-
-    sigma = -1 leaves the axis (flip at t0 > 0), sigma = +1 approaches it (the stable manifold).
-    Evaluated with 40-digit mpmath from the float inputs. Returns omega (T, 3) and t0.
-    """
-    with mp.workdps(40):
-        I1, I2, I3 = (mp.mpf(float(x)) for x in inertia)
-        w = [mp.mpf(float(x)) for x in omega0]
-        assert I1 < I2 < I3
-        defect = I1 * (I1 - I2) * w[0] ** 2 + I3 * (I3 - I2) * w[2] ** 2
-        assert defect == 0, "not on the separatrix"
-        size = mp.sqrt(sum((i * x) ** 2 for i, x in zip((I1, I2, I3), w, strict=True)))
-        W = size / I2
-        lam = W * mp.sqrt((I3 - I2) * (I2 - I1) / (I1 * I3))
-        a = W * mp.sqrt(I2 * (I3 - I2) / (I1 * (I3 - I1)))
-        c = W * mp.sqrt(I2 * (I2 - I1) / (I3 * (I3 - I1)))
-        s1, s3 = mp.sign(w[0]), mp.sign(w[2])
-        sigma = s1 * s3
-        t0 = -mp.sign(w[1] * sigma) * mp.acosh(a / abs(w[0])) / lam
-        out = []
-        for t in ts:
-            x = lam * (mp.mpf(float(t)) - t0)
-            out.append(
-                [float(s1 * a * mp.sech(x)), float(sigma * W * mp.tanh(x)), float(s3 * c * mp.sech(x))]
-            )
-        return np.array(out), float(t0)
 
 
 def q_distance(q, ref):

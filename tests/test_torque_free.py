@@ -13,6 +13,7 @@ from helpers import (
     quat_axis_angle,
     quat_multiply,
     random_quaternions,
+    separatrix,
 )
 from scipy.spatial.transform import Rotation
 
@@ -53,31 +54,15 @@ def test_matches_dop853(inertia, omega0):
     np.testing.assert_allclose(exact, dop853(inertia, omega0, ts), atol=1e-11 * np.linalg.norm(omega0))
 
 
-def heteroclinic(inertia, omega0, ts):
-    """The motion exactly on the separatrix (I1 < I2 < I3, L^2 = 2 E I2) from Euler's equations with
-    omega1 = s1 a sech(x), omega2 = sigma W tanh(x), omega3 = s3 c sech(x), x = lam (t - t0)."""
-    I1, I2, I3 = inertia
-    w1, w2, w3 = omega0
-    W = np.linalg.norm(np.asarray(inertia) * omega0) / I2
-    lam = W * np.sqrt((I3 - I2) * (I2 - I1) / (I1 * I3))
-    a = W * np.sqrt(I2 * (I3 - I2) / (I1 * (I3 - I1)))
-    c = W * np.sqrt(I2 * (I2 - I1) / (I3 * (I3 - I1)))
-    sigma = np.sign(w1) * np.sign(w3)
-    t0 = -np.sign(w2 * sigma) * np.arccosh(a / abs(w1)) / lam
-    x = lam * (np.asarray(ts) - t0)
-    omega = np.stack([np.sign(w1) * a / np.cosh(x), sigma * W * np.tanh(x), np.sign(w3) * c / np.cosh(x)], -1)
-    return omega, lam
-
-
 def test_exactly_on_the_separatrix_one_side_per_body():
-    """Reference: the heteroclinic solution (sech, tanh) written out above. I = (1, 2.5, 3) puts
-    omega0 = (d1, w2, d3) with |d1| = |d3| exactly on the separatrix in floating point; where XLA fuses
-    the multiply-adds of L^2 - 2 E I2, its two terms' cancellation leaves the sign of one product's
-    roundoff, and every part of the solution must still take the same side (it once took both: omega3
-    started with the sign of omega1). All sign combinations, perturbations whose squares round, the
-    axes relabelled; omega(0) = omega0, and the motion through the flip. On the stable manifold
-    roundoff grows like cosh(lam t) (the closest approach, then away from the axis; no float method
-    follows it), hence the bound."""
+    """Reference: the heteroclinic solution (sech, tanh; ``helpers.separatrix``, 40-digit mpmath). I = (1,
+    2.5, 3) puts omega0 = (d1, w2, d3) with |d1| = |d3| exactly on the separatrix in floating point;
+    where XLA fuses the multiply-adds of L^2 - 2 E I2, its two terms' cancellation leaves the sign of
+    one product's roundoff, and every part of the solution must still take the same side (it once took
+    both: omega3 started with the sign of omega1). All sign combinations, perturbations whose squares
+    round, the axes relabelled; omega(0) = omega0, and the motion through the flip. On the stable
+    manifold roundoff grows like cosh(lam t) (the closest approach, then away from the axis; no float
+    method follows it), hence the bound."""
     base = np.array([1.0, 2.5, 3.0])
     cases = []
     for d in (1e-8, 1e-3, 0.3, 0.7):
@@ -85,7 +70,7 @@ def test_exactly_on_the_separatrix_one_side_per_body():
             cases.append((s1 * d, s2 * 1.0, s3 * d))
     omega_sorted = np.array(cases)
     ts = np.linspace(0.0, 60.0, 13)
-    lam = np.array([heteroclinic(base, w, ts)[1] for w in omega_sorted])
+    lam = np.array([separatrix(base, w, ts[:1])[2] for w in omega_sorted])
     bound = 1e-14 * np.cosh(lam[:, None, None] * ts[:, None])
     # An odd relabelling of the axes flips the cross product in Euler's equations: in those axes the
     # same numbers move as the sorted body does backwards in time.
@@ -93,7 +78,7 @@ def test_exactly_on_the_separatrix_one_side_per_body():
         order = list(order)
         inertia = np.tile(base[order], (len(cases), 1))
         omega0 = omega_sorted[:, order]
-        expected = np.stack([heteroclinic(base, w, sense * ts)[0] for w in omega_sorted])[..., order]
+        expected = np.stack([separatrix(base, w, sense * ts)[0] for w in omega_sorted])[..., order]
         omega = np.asarray(omega_at(inertia[:, None], omega0[:, None], ts[None, :]))
         np.testing.assert_array_equal(np.sign(omega[:, 0]), np.sign(omega0))
         np.testing.assert_allclose(omega[:, 0], omega0, rtol=1e-15)
