@@ -107,21 +107,35 @@ def estimate(coarse: Trajectory, fine: Trajectory, scale: float, floor: float) -
     """Per body: ``scale`` times the largest difference of ``coarse`` and ``fine`` (omega relative to
     the body's largest |omega|, orientation as a rotation angle), at least ``floor``; NaN where
     ``coarse`` failed, inf where only ``fine`` did."""
-    dtype = coarse.omega.dtype
+    return _estimate_from_arrays(
+        coarse.omega,
+        coarse.orientation,
+        coarse.success,
+        fine.omega,
+        fine.orientation,
+        fine.success,
+        scale,
+        floor,
+    )
+
+
+@jax.jit  # one program: eagerly, its ~25 operations each compiled a program of their own
+def _estimate_from_arrays(omega, q, success, fine_omega, fine_q, fine_success, scale, floor):
+    dtype = omega.dtype
     tiny = jnp.finfo(dtype).tiny
-    fine_omega = fine.omega.astype(dtype)
+    fine_omega = fine_omega.astype(dtype)
     size = jnp.max(jnp.linalg.norm(fine_omega, axis=-1), axis=-1)
-    diff = jnp.max(jnp.linalg.norm(coarse.omega - fine_omega, axis=-1), axis=-1)
+    diff = jnp.max(jnp.linalg.norm(omega - fine_omega, axis=-1), axis=-1)
     out = {"error_estimate_omega": diff / jnp.maximum(size, tiny)}
-    if coarse.orientation is not None:
+    if q is not None:
         # The angle of the rotation between the two: 2 atan2(|v|, |w|) of q_coarse* q_fine.
-        rel = _quat_multiply(_quat_conjugate(coarse.orientation), fine.orientation.astype(dtype))
+        rel = _quat_multiply(_quat_conjugate(q), fine_q.astype(dtype))
         angle = 2 * jnp.arctan2(jnp.linalg.norm(rel[..., 1:], axis=-1), jnp.abs(rel[..., 0]))
         out["error_estimate_orientation"] = jnp.max(angle, axis=-1)
     for name, value in out.items():
         value = jnp.maximum(scale * value, floor)  # NaN stays NaN
-        value = jnp.where(coarse.success & ~fine.success, jnp.inf, value)
-        out[name] = jnp.where(coarse.success, value, jnp.nan)
+        value = jnp.where(success & ~fine_success, jnp.inf, value)
+        out[name] = jnp.where(success, value, jnp.nan)
     return out
 
 
