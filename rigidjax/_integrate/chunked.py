@@ -96,10 +96,11 @@ def plan_bodies(model, omega0, q0, ts, args, formulation, chunk_size, sort):
         sigma = _omega_scales(model, leaves, flat, omega0, q0, ts[-1] - ts[0], args)
     else:
         sigma = jnp.ones_like(omega0)
-    # Without scales there is nothing to sort by.
-    sorted_ = sort and formulation.uses_scale
     n, shardable = math.prod(batch), ts.shape[0] > 1
-    chunk = batching.chunk_layout(n, chunk_size, shardable=shardable)[0]  # the groups hold whole chunks
+    chunk, n_chunks, _ = batching.chunk_layout(n, chunk_size, shardable=shardable)  # groups: whole chunks
+    # Without scales there is nothing to sort by; in one chunk, no order to choose (the keys would
+    # only be traced, to be dropped again).
+    sorted_ = sort and formulation.uses_scale and n_chunks > 1
     sort_keys = _chunk_order_keys(model, leaves, flat, omega0, sigma, chunk) if sorted_ else None
     plan = batching.plan_chunks(n, chunk_size, sort_keys, shardable=shardable)
     return batch, leaves, flat, omega0, q0, sigma, plan
