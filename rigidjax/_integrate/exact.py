@@ -299,8 +299,8 @@ def _lagrange_checked(inertia, com):
     """``inertia`` and ``com`` with the conditions of Lagrange's top checked at run time (values traced
     under jit or vmap; known ones are checked earlier, in :func:`_check_lagrange_top`)."""
     asymmetric, off_axis = _lagrange_failures(inertia, com)
-    inertia = error_if(inertia, jnp.any(asymmetric), _ASYMMETRIC.format(""))
-    com = error_if(com, jnp.any(off_axis), _OFF_AXIS.format(""))
+    inertia = error_if(inertia, asymmetric, _ASYMMETRIC.format(""))
+    com = error_if(com, off_axis, _OFF_AXIS.format(""))
     return inertia, com
 
 

@@ -3,7 +3,6 @@ concrete inputs, ``eqx.error_if`` in the user's program for traced ones."""
 
 import diffrax
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 
 from .._checks import (
@@ -57,7 +56,7 @@ def _checks_in_program(model, omega0, q0, ts, euler_seq, lock_tolerance):
     if euler_seq is not None:
         q0 = error_if(
             q0,
-            jnp.any(lock_distance(_euler_from_quat(q0, euler_seq), euler_seq) < lock_tolerance),
+            lock_distance(_euler_from_quat(q0, euler_seq), euler_seq) < lock_tolerance,
             f"simulate: the initial orientation is within {lock_tolerance:g} of gimbal lock for the "
             f"Euler-angle state (seq={euler_seq!r}); use representation='quaternion'.",
         )

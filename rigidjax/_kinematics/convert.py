@@ -48,7 +48,7 @@ def _check_unit(q, name: str, where: str):
     q = check_finite(q, name, where)
     tol = unit_tolerance(q.dtype)
     off = jnp.abs(jnp.linalg.norm(q, axis=-1) - 1.0)
-    return error_if(q, jnp.any(off > tol), _not_unit_message(name, where, tol))
+    return error_if(q, off > tol, _not_unit_message(name, where, tol))
 
 
 def _unit(q, name: str, where: str):
