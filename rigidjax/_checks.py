@@ -174,24 +174,26 @@ def packed_failures(failures) -> tuple:
     else the index of its message) and the messages. One array is one transfer to the host (each
     array read back is a transfer of its own, ~0.1 ms on CPU).
 
-    The conditions are recorded unreduced and reduced here in one pass, a maximum per condition
-    over one concatenated array: reduced one by one, each was an XLA kernel of its own, and every
-    kernel is compiled code (the checks of a heavy-top scene: 34 kernels, 0.45 s to compile)."""
+    The conditions are recorded unreduced and reduced here, those of one size together: reduced one
+    by one, each was an XLA kernel of its own, and every kernel is compiled code (the checks of a
+    heavy-top scene: 34 kernels, 0.45 s to compile)."""
     if not failures:
         return None, ()
-    codes, segments = [], []
+    # One reduction per size: conditions of the same number of elements are stacked and reduced
+    # together (a reduction each was a kernel each).
+    by_size = {}
     for k, (condition, index, _) in enumerate(failures):
-        code = jnp.where(condition, 0 if index is None else index, -1).astype(jnp.int8)
-        codes.append(jnp.ravel(code))
-        segments.append(np.full(codes[-1].size, k, np.int32))
-    largest = jax.ops.segment_max(
-        jnp.concatenate(codes),
-        jnp.asarray(np.concatenate(segments)),
-        num_segments=len(failures),
-        indices_are_sorted=True,
-    )
-    # A condition with no elements (an empty batch) leaves its segment at the smallest int8.
-    return jnp.maximum(largest, -1).astype(jnp.int32), tuple(messages for _, _, messages in failures)
+        code = jnp.ravel(jnp.where(condition, 0 if index is None else index, -1).astype(jnp.int8))
+        by_size.setdefault(code.size, []).append((k, code))
+    order, largest = [], []
+    for size, group in by_size.items():
+        order += [k for k, _ in group]
+        if size == 0:  # an empty batch: nothing fails
+            largest.append(jnp.full((len(group),), -1, jnp.int8))
+        else:
+            largest.append(jnp.max(jnp.stack([code for _, code in group]), axis=1))
+    codes = jnp.concatenate(largest)[np.argsort(order)].astype(jnp.int32)
+    return codes, tuple(messages for _, _, messages in failures)
 
 
 def raise_collected(packed) -> None:
