@@ -20,6 +20,7 @@ for a non-physical inertia. The shape helpers accept zero sizes (a thin rod has 
 moments are valid parts of a composite, and :func:`check_inertia` rejects them for a whole body.
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
@@ -40,6 +41,11 @@ from .._checks import (  # noqa: F401 (re-exported)
 )
 from .._numerics import _eigh3, _swap
 from .._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
+
+
+@jax.jit  # one program after the checks: eagerly, its operations compiled a program each
+def _symmetric_eigh(tensor):
+    return _eigh3(0.5 * (tensor + _swap(tensor)))
 
 
 def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
@@ -68,8 +74,7 @@ def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
     """
     (tensor,) = common_float(tensor, names=["tensor"])
     check_last_two_axes(tensor, "tensor")
-    tensor = check_finite(tensor, "tensor", "principal_axes")
-    return _eigh3(0.5 * (tensor + _swap(tensor)))
+    return _symmetric_eigh(check_finite(tensor, "tensor", "principal_axes"))
 
 
 def _as_tensor(inertia):

@@ -20,6 +20,7 @@ unchecked private cores (``_quat_multiply``...).
 
 import math
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -228,6 +229,10 @@ def matrix_from_quat(q: Quaternion) -> MatrixOut:
     return _matrix_from_quat(check_rotation_quaternion(q, "q", "matrix_from_quat"))
 
 
+# One compiled program after the checks: eagerly, its operations compiled a program each.
+_compiled_quat_from_matrix = jax.jit(_quat_from_matrix)
+
+
 def quat_from_matrix(R: Matrix) -> QuaternionOut:
     """Unit quaternion of a rotation matrix, with ``w >= 0``.
 
@@ -245,7 +250,7 @@ def quat_from_matrix(R: Matrix) -> QuaternionOut:
     """
     (R,) = common_float(R, names=["R"])
     check_last_two_axes(R, "R")
-    return _quat_from_matrix(check_rotation_matrix(R, "R", "quat_from_matrix"))
+    return _compiled_quat_from_matrix(check_rotation_matrix(R, "R", "quat_from_matrix"))
 
 
 def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
