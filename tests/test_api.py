@@ -191,3 +191,42 @@ def test_simulate_structure_preserving_is_simulate_with_a_solver():
     old = jax.make_jaxpr(lambda m, s: simulate_structure_preserving(m, s, ts, solver, 0.1).omega)
     new = jax.make_jaxpr(lambda m, s: rj.simulate(m, s, ts, solver=solver, dt0=0.1).omega)
     assert str(old(model, state0)) == str(new(model, state0))
+
+
+def _programs_compiled(call) -> int:
+    """How many XLA programs ``call()`` compiles (JAX's compile events)."""
+    durations = []
+
+    def listen(event, duration, **kwargs):
+        if "backend_compile" in event:
+            durations.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        jax.block_until_ready(call())
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return len(durations)
+
+
+def test_eager_calls_compile_one_program_not_one_per_operation():
+    """Called eagerly, Trajectory's quantities are one compiled program each (their ~40 operations
+    one by one were as many programs, each compiled in every new process), on a shape no other test
+    uses. The Euler-angle functions compute in one program specialised on the sequence after their
+    checks: a new sequence on a shape already checked compiles exactly that program (operation by
+    operation it compiled nothing new, and each call dispatched some 30 operations)."""
+    rng = np.random.default_rng(0)
+    q = jnp.asarray(rng.normal(size=(13, 4)))
+    traj = rj.simulate(
+        rj.HeavyTop(jnp.array([1.0, 1.0, 0.5]), 1.0, jnp.array([0.0, 0.0, 0.3])),
+        rj.State(jnp.asarray(rng.normal(size=(13, 3))), q / jnp.linalg.norm(q, axis=-1, keepdims=True)),
+        jnp.linspace(0.0, 1.0, 7),
+        accuracy="exact",
+    )
+    assert _programs_compiled(traj.invariants) == 1
+    assert _programs_compiled(traj.energy) == 1
+    rj.euler_from_quat(q)
+    assert _programs_compiled(lambda: rj.euler_from_quat(q, "xyz")) == 1
+    angles = rj.euler_from_quat(q)
+    rj.euler_rates(angles, traj.omega[:, 0])
+    assert _programs_compiled(lambda: rj.euler_rates(angles, traj.omega[:, 0], "yxz")) == 1

@@ -41,8 +41,8 @@ class Trajectory(eqx.Module):
 
     The quantities along the trajectory (:meth:`euler_angles`, the energies, the angular momenta,
     :meth:`invariants`) are each one compiled program per trajectory shape: in a new process
-    ``invariants()`` of a heavy top compiles in ~0.2 s, where its ~40 operations one by one took
-    ~1.4 s, and a later call takes ~0.4 ms instead of ~10 ms.
+    ``invariants()`` of a batch of heavy tops takes ~0.2 s, where its ~40 operations one by one took
+    ~1.5 s, and a later call ~0.2 ms instead of ~10 ms.
     """
 
     ts: Float[Array, " T"]

@@ -252,8 +252,9 @@ def _raise_if_unreachable(rates, unreachable, seq, throw):
 # --- the public, checked functions -------------------------------------------------------------------
 
 
-# The computations after the checks, each one compiled program: called eagerly, the ~30 operations of
-# euler_from_quat compiled one program each (1.7 s in a new process) and then cost ~14 ms a call.
+# The computations after the checks, each one compiled program: called eagerly, each of their
+# operations was a program of its own (euler_from_matrix: 54 programs compiled, 1.6 s in a new process,
+# then ~8 ms a call; benchmarks/eager_calls.py).
 _compiled_matrix_from_euler = jax.jit(_matrix_from_euler, static_argnames="seq")
 _compiled_quat_from_euler = jax.jit(_quat_from_euler, static_argnames="seq")
 _compiled_euler_from_quat = jax.jit(_euler_from_quat, static_argnames="seq")
