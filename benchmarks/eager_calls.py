@@ -24,14 +24,23 @@ from pathlib import Path
 
 def _cases():
     import jax.numpy as jnp
+    import numpy as np
 
     import rigidjax as rj
 
-    angles = jnp.array([[0.1, 0.7, 0.3]] * 5)
-    q = jnp.array([[0.9, 0.1, 0.3, 0.2]] * 5)
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-    R = rj.matrix_from_quat(q)
-    moments, omega = jnp.array([1.0, 2.0, 3.0]), jnp.array([[0.1, 0.2, 0.3]] * 5)
+    # Inputs made with NumPy and placed on the device as they are: no JAX operation (and so no
+    # compiled program) before the measured call.
+    angles = jnp.asarray(np.array([[0.1, 0.7, 0.3]] * 5))
+    w, x, y, z = np.array([0.9, 0.1, 0.3, 0.2]) / np.linalg.norm([0.9, 0.1, 0.3, 0.2])
+    q = jnp.asarray(np.array([[w, x, y, z]] * 5))
+    matrix = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    R = jnp.asarray(np.array([matrix] * 5))
+    moments, omega = jnp.asarray(np.array([1.0, 2.0, 3.0])), jnp.asarray(np.array([[0.1, 0.2, 0.3]] * 5))
+    tensor = jnp.asarray(np.diag([1.0, 2.0, 3.0]))
     top = rj.HeavyTop(jnp.array([1.0, 1.0, 0.5]), 1.0, jnp.array([0.0, 0.0, 0.3]))
     state = rj.State(jnp.array([[0.3, -0.2, 8.0]] * 4), jnp.array([[1.0, 0.0, 0.0, 0.0]] * 4))
     return {
@@ -43,7 +52,17 @@ def _cases():
         "body_angular_velocity": lambda: rj.body_angular_velocity(angles, angles),
         "euler_rates": lambda: rj.euler_rates(angles, omega),
         "euler_equations": lambda: rj.euler_equations(moments, omega),
-        "principal_axes": lambda: rj.principal_axes(jnp.diag(moments)),
+        "kinetic_energy": lambda: rj.kinetic_energy(moments, omega),
+        "space_angular_momentum": lambda: rj.space_angular_momentum(moments, omega, q),
+        "principal_axes": lambda: rj.principal_axes(tensor),
+        "check_inertia": lambda: rj.check_inertia(tensor),
+        "is_physical_inertia": lambda: rj.is_physical_inertia(tensor),
+        "parallel_axis": lambda: rj.parallel_axis(moments, 2.0, omega[0]),
+        "spin_stability": lambda: rj.spin_stability(moments, 3.0),
+        "quat_multiply": lambda: rj.quat_multiply(q, q),
+        "quat_rotate": lambda: rj.quat_rotate(q, omega),
+        "quat_normalize": lambda: rj.quat_normalize(q),
+        "matrix_from_quat": lambda: rj.matrix_from_quat(q),
         "Trajectory.invariants (heavy top)": (
             lambda: rj.simulate(top, state, jnp.linspace(0.0, 1.0, 5), accuracy="exact"),
             lambda traj: traj.invariants(),

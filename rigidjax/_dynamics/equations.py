@@ -24,6 +24,7 @@ from .._checks import (
     check_last_axis,
     check_rotation_quaternion,
     common_float,
+    compiled_when_eager,
     error_if,
     is_full_tensor,
 )
@@ -186,6 +187,7 @@ def _checked(inertia, omega, where, extra=(), invertible=False):
     return inertia, omega, rest
 
 
+@compiled_when_eager
 def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = None) -> VectorOut:
     """Euler's equations: the angular acceleration ``d(omega)/dt`` in the body frame.
 
@@ -215,6 +217,7 @@ def euler_equations(inertia: Inertia, omega: Vector, torque: Vector | None = Non
     return _euler_equations(inertia, omega, check_finite(torque, "torque", "euler_equations"))
 
 
+@compiled_when_eager
 def angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
     """Angular momentum ``L = I omega`` in body-frame components.
 
@@ -232,6 +235,7 @@ def angular_momentum(inertia: Inertia, omega: Vector) -> VectorOut:
     return _inertia_times(inertia, omega)
 
 
+@compiled_when_eager
 def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quaternion) -> VectorOut:
     """Angular momentum in space-frame components, ``R L_body``; conserved when torque-free.
 
@@ -253,6 +257,7 @@ def space_angular_momentum(inertia: Inertia, omega: Vector, orientation: Quatern
     return _space_angular_momentum(inertia, omega, orientation)
 
 
+@compiled_when_eager
 def kinetic_energy(inertia: Inertia, omega: Vector) -> ScalarOut:
     """Rotational kinetic energy ``omega . (I omega) / 2``.
 
@@ -269,6 +274,7 @@ def kinetic_energy(inertia: Inertia, omega: Vector) -> ScalarOut:
     return _kinetic_energy(inertia, omega)
 
 
+@compiled_when_eager
 def free_precession_rate(I1: Scalar, I3: Scalar, omega3: Scalar) -> ScalarOut:
     """Free precession rate ``Omega = (I3 - I1) / I1 * omega3`` of a torque-free symmetric top.
 

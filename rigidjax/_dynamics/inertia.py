@@ -35,6 +35,7 @@ from .._checks import (  # noqa: F401 (re-exported)
     check_part_inertia,
     check_rotation_matrix,
     common_float,
+    compiled_when_eager,
     error_if,
     is_full_tensor,
     is_physical_inertia,
@@ -92,6 +93,7 @@ def _point_mass_tensor(mass, displacement):
     return mass[..., None, None] * (d2[..., None, None] * eye - outer)
 
 
+@compiled_when_eager
 def parallel_axis(inertia_com: Inertia, mass: Scalar, displacement: Vector) -> MatrixOut:
     """Parallel-axis theorem: the inertia tensor about a point away from the centre of mass.
 

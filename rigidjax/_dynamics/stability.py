@@ -15,7 +15,14 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .._checks import check_batch_shapes, check_finite, check_last_axis, common_float, error_if
+from .._checks import (
+    check_batch_shapes,
+    check_finite,
+    check_last_axis,
+    common_float,
+    compiled_when_eager,
+    error_if,
+)
 from .._numerics import safe_sqrt
 from .._types import Inertia, Scalar, Vector
 from .equations import is_full_tensor
@@ -97,6 +104,7 @@ class SpinStability(eqx.Module):
         return ~(self.stable | self.marginal)
 
 
+@compiled_when_eager
 def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
     """Stability of a torque-free body spinning steadily about each of its principal axes.
 
@@ -185,6 +193,7 @@ class SleepingTop(eqx.Module):
     growth_rate: Float[Array, "*batch"]
 
 
+@compiled_when_eager(static_argnames=("symmetry_rtol",))
 def sleeping_top(
     inertia: Inertia,
     mass: Scalar,

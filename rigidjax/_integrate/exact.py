@@ -5,7 +5,6 @@ loop), no integration."""
 import contextlib
 import functools
 import math
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -14,6 +13,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from .._checks import (
+    StaticValue,
     check_model,
     check_state,
     check_times,
@@ -52,13 +52,6 @@ def _exact(model, omega0, q0, ts, chunk_size: int | None, values_checked: bool, 
     return _exact_motion(*inputs, chunk_size, one_side)
 
 
-class _Static(eqx.Module):
-    """Python values (message texts, ints, None) carried through ``jax.jit``'s output structure
-    rather than as arrays: the structure is fixed when the program is traced."""
-
-    value: Any = eqx.field(static=True)
-
-
 @functools.partial(jax.jit, static_argnums=4)
 def _collected_program(model, omega0, q0, ts, chunk_size: int | None):
     with collected_failures() as failures:
@@ -69,7 +62,7 @@ def _collected_program(model, omega0, q0, ts, chunk_size: int | None):
         motion = _exact_motion(*inputs, chunk_size)
     codes, messages = packed_failures(failures)
     arrays, static = eqx.partition(motion, eqx.is_array)
-    return arrays, codes, _Static((static, messages))
+    return arrays, codes, StaticValue((static, messages))
 
 
 def _exact_collected(model, omega0, q0, ts, chunk_size: int | None):

@@ -31,6 +31,7 @@ from .._checks import (
     check_rotation_matrix,
     check_rotation_quaternion,
     common_float,
+    compiled_when_eager,
     error_if,
 )
 from .._numerics import eps, safe_atan2, safe_hypot
@@ -270,6 +271,7 @@ def _checked_angles(angles, where):
     return check_finite(angles, "angles", where)
 
 
+@compiled_when_eager(static_argnames=("seq",))
 def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
     """Rotation matrix ``R = R_a(phi) R_b(theta) R_c(psi)`` of Euler angles, for ``seq = "abc"``.
 
@@ -288,6 +290,7 @@ def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
     return _compiled_matrix_from_euler(_checked_angles(angles, "matrix_from_euler"), seq=seq)
 
 
+@compiled_when_eager(static_argnames=("seq",))
 def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
     """Unit quaternion of Euler angles: the same rotation as :func:`matrix_from_euler`.
 
@@ -304,6 +307,7 @@ def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
     return _compiled_quat_from_euler(_checked_angles(angles, "quat_from_euler"), seq=seq)
 
 
+@compiled_when_eager(static_argnames=("seq",))
 def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     """Euler angles of a quaternion (Bernardes & Viollet 2022, as in scipy).
 
@@ -328,6 +332,7 @@ def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     return _compiled_euler_from_quat(check_rotation_quaternion(q, "q", "euler_from_quat"), seq=seq)
 
 
+@compiled_when_eager(static_argnames=("seq",))
 def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
     """Euler angles of a rotation matrix.
 
@@ -348,6 +353,7 @@ def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
     return _compiled_euler_from_matrix(check_rotation_matrix(R, "R", "euler_from_matrix"), seq=seq)
 
 
+@compiled_when_eager(static_argnames=("seq",))
 def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
     """Body-frame angular velocity from Euler angles and their time derivatives.
 
@@ -377,6 +383,7 @@ def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> Ve
     )
 
 
+@compiled_when_eager(static_argnames=("seq",))
 def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
     """Space-frame angular velocity from Euler angles and their time derivatives.
 
@@ -405,6 +412,7 @@ def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> V
     )
 
 
+@compiled_when_eager(static_argnames=("seq", "throw"))
 def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool = True) -> VectorOut:
     """Euler-angle rates ``(phi', theta', psi')`` from the body-frame angular velocity.
 

@@ -33,6 +33,7 @@ from .._checks import (
     check_rotation_matrix,
     check_rotation_quaternion,
     common_float,
+    compiled_when_eager,
 )
 from .._numerics import eps
 from .._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
@@ -141,6 +142,7 @@ def _quat_from_matrix(R: Matrix) -> QuaternionOut:
 # --- the public, checked functions -------------------------------------------------------------------
 
 
+@compiled_when_eager
 def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
     """Hamilton product ``p ⊗ q`` of two quaternions.
 
@@ -162,6 +164,7 @@ def quat_multiply(p: Quaternion, q: Quaternion) -> QuaternionOut:
     return _quat_multiply(check_finite(p, "p", "quat_multiply"), check_finite(q, "q", "quat_multiply"))
 
 
+@compiled_when_eager
 def quat_conjugate(q: Quaternion) -> QuaternionOut:
     """Conjugate ``(w, -x, -y, -z)`` of a quaternion: the inverse rotation of a unit quaternion.
 
@@ -176,6 +179,7 @@ def quat_conjugate(q: Quaternion) -> QuaternionOut:
     return _quat_conjugate(check_finite(q, "q", "quat_conjugate"))
 
 
+@compiled_when_eager
 def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
     """Rotate body-frame components ``v`` into space-frame components: ``q ⊗ (0, v) ⊗ q*``.
 
@@ -196,6 +200,7 @@ def quat_rotate(q: Quaternion, v: Vector) -> VectorOut:
     return _quat_rotate(q, check_finite(v, "v", "quat_rotate"))
 
 
+@compiled_when_eager
 def quat_normalize(q: Quaternion) -> QuaternionOut:
     """Scale a quaternion to unit norm.
 
@@ -211,6 +216,7 @@ def quat_normalize(q: Quaternion) -> QuaternionOut:
     return _quat_normalize(check_rotation_quaternion(q, "q", "quat_normalize"))
 
 
+@compiled_when_eager
 def matrix_from_quat(q: Quaternion) -> MatrixOut:
     """Rotation matrix of a quaternion, ``v_space = R @ v_body``.
 
@@ -233,6 +239,7 @@ def matrix_from_quat(q: Quaternion) -> MatrixOut:
 _compiled_quat_from_matrix = jax.jit(_quat_from_matrix)
 
 
+@compiled_when_eager
 def quat_from_matrix(R: Matrix) -> QuaternionOut:
     """Unit quaternion of a rotation matrix, with ``w >= 0``.
 
