@@ -123,7 +123,10 @@ def _kinematics(angles, special_q):
 
 @functools.cache
 def kinematics(dtype):
-    return jax.tree.map(np.asarray, _kinematics(jnp.asarray(ANGLES, dtype), jnp.asarray(SPECIAL_Q, dtype)))
+    # One program: eagerly, each function is a program of its own per sequence (about 110 per
+    # dtype, twice the compile time); test_kinematics covers the eager calls.
+    angles, special_q = jnp.asarray(ANGLES, dtype), jnp.asarray(SPECIAL_Q, dtype)
+    return jax.tree.map(np.asarray, jax.jit(_kinematics)(angles, special_q))
 
 
 def _wrapped(d):
@@ -142,7 +145,7 @@ ANGLE_CASES = {
 }
 
 
-# The float32 sweep (a second eager pass over every operation) runs in the full run only.
+# The float32 sweep (a second program of every operation) runs in the full run only.
 FLOAT32 = pytest.param(np.float32, marks=pytest.mark.slow, id="float32")
 
 
@@ -272,14 +275,19 @@ def test_euler_rates_near_lock_float32(extreme):
 @functools.cache
 def quat_jacobians(dtype, reverse=True):
     """``jacfwd`` (and ``jacrev``) of ``euler_from_quat`` at every sweep point, ``(12, M, 3, 4)``."""
-    q = kinematics(dtype)["q"]
-    fwd, rev = [], []
-    for s, seq in enumerate(SEQS):
-        f = functools.partial(rj.euler_from_quat, seq=seq)
-        fwd.append(jax.vmap(jax.jacfwd(f))(jnp.asarray(q[s])))
-        if reverse:
-            rev.append(jax.vmap(jax.jacrev(f))(jnp.asarray(q[s])))
-    return np.asarray(jnp.stack(fwd)), np.asarray(jnp.stack(rev)) if reverse else None
+
+    @jax.jit  # one program (eagerly, every operation of every sequence was a program of its own)
+    def jacobians(q):
+        fwd, rev = [], []
+        for s, seq in enumerate(SEQS):
+            f = functools.partial(rj.euler_from_quat, seq=seq)
+            fwd.append(jax.vmap(jax.jacfwd(f))(q[s]))
+            if reverse:
+                rev.append(jax.vmap(jax.jacrev(f))(q[s]))
+        return jnp.stack(fwd), jnp.stack(rev) if reverse else None
+
+    fwd, rev = jacobians(jnp.asarray(kinematics(dtype)["q"]))
+    return np.asarray(fwd), None if rev is None else np.asarray(rev)
 
 
 @pytest.mark.slow

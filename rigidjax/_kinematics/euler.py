@@ -253,9 +253,10 @@ def _raise_if_unreachable(rates, unreachable, seq, throw):
 # --- the public, checked functions -------------------------------------------------------------------
 
 
-# The computations after the checks, each one compiled program: called eagerly, each of their
-# operations was a program of its own (euler_from_matrix: 54 programs compiled, 1.6 s in a new process,
-# then ~8 ms a call; benchmarks/eager_calls.py).
+# The computations after the checks, each one compiled program, for the eager calls that
+# `compiled_when_eager` passes through as they are (lists, tuples): op by op, each of their operations
+# was a program of its own (euler_from_matrix: 54 programs, 1.6 s in a new process; eager_calls.py).
+# Called with arrays, the whole checked function is one program and these are inlined into it.
 _compiled_matrix_from_euler = jax.jit(_matrix_from_euler, static_argnames="seq")
 _compiled_quat_from_euler = jax.jit(_quat_from_euler, static_argnames="seq")
 _compiled_euler_from_quat = jax.jit(_euler_from_quat, static_argnames="seq")
