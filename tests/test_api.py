@@ -246,6 +246,8 @@ def test_checked_functions_called_eagerly_are_one_program_with_the_same_errors()
     mass, spin = jnp.asarray(rng.uniform(1.0, 2.0, size=n)), jnp.asarray(rng.normal(size=n))
     top, com = jnp.asarray(np.tile([1.0, 1.0, 0.5], (n, 1))), jnp.asarray(np.tile([0.0, 0.0, 0.3], (n, 1)))
     transverse = jnp.asarray(rng.uniform(1.0, 2.0, size=n))
+    turn = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]  # NumPy: no program compiled before the calls
+    tensor = jnp.asarray(turn @ (np.asarray(moments)[..., None] * np.swapaxes(turn, -1, -2)))
     calls = {
         "check_inertia": lambda: rj.check_inertia(moments, name="I_body"),
         "is_physical_inertia": lambda: rj.is_physical_inertia(moments),
@@ -262,6 +264,7 @@ def test_checked_functions_called_eagerly_are_one_program_with_the_same_errors()
         "quat_rotate": lambda: rj.quat_rotate(q, d),
         "quat_normalize": lambda: rj.quat_normalize(q),
         "matrix_from_quat": lambda: rj.matrix_from_quat(q),
+        "principal_axes": lambda: rj.principal_axes(tensor),
     }
     programs = {name: _programs_compiled(call) for name, call in calls.items()}
     assert programs == dict.fromkeys(calls, 1)
@@ -280,5 +283,13 @@ def test_checked_functions_called_eagerly_are_one_program_with_the_same_errors()
         rj.quat_rotate(q.at[5].set(0.0), d)
     with pytest.raises(ValueError, match="euler_equations: omega contains NaN or inf"):
         rj.euler_equations(moments, omega.at[2, 1].set(jnp.nan))
+    with pytest.raises(ValueError, match="principal_axes: tensor contains NaN or inf"):
+        rj.principal_axes(tensor.at[4, 0, 1].set(jnp.inf))
+    # Independent reference: NumPy's symmetric eigensolver (ascending moments, axes up to sign).
+    moments_out, axes = rj.principal_axes(tensor)
+    np.testing.assert_allclose(moments_out, np.linalg.eigvalsh(np.asarray(tensor)), rtol=1e-13)
+    np.testing.assert_allclose(
+        axes @ (moments_out[..., None] * np.swapaxes(axes, -1, -2)), tensor, atol=1e-13
+    )
     with pytest.raises(Exception, match="I_body violates the triangle inequality"):
         jax.block_until_ready(jax.jit(lambda x: rj.check_inertia(x, name="I_body"))(flat))

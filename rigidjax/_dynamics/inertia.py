@@ -44,11 +44,12 @@ from .._numerics import _eigh3, _swap
 from .._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
 
 
-@jax.jit  # one program after the checks: eagerly, its operations compiled a program each
+@jax.jit  # one program for the eager calls the decorator passes through as they are (lists)
 def _symmetric_eigh(tensor):
     return _eigh3(0.5 * (tensor + _swap(tensor)))
 
 
+@compiled_when_eager
 def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
     """Principal moments and principal axes of an inertia tensor.
 
