@@ -20,6 +20,7 @@ from . import solvers as solvers
 from ._closed_form.torque_free import torque_free_motion as torque_free_motion
 from ._closed_form.torque_free import torque_free_omega as torque_free_omega
 from ._closed_form.torque_free import torque_free_period as torque_free_period
+from ._compilation_cache import use_compilation_cache as use_compilation_cache
 from ._dynamics.equations import angular_momentum as angular_momentum
 from ._dynamics.equations import euler_equations as euler_equations
 from ._dynamics.equations import free_precession_rate as free_precession_rate
@@ -133,6 +134,7 @@ __all__ = [
     "torque_free_motion",
     "torque_free_omega",
     "torque_free_period",
+    "use_compilation_cache",
     "use_cpu_cores",
     # stability
     "SleepingTop",

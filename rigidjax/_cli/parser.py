@@ -47,27 +47,6 @@ def use_cores(requested: int | None) -> None:
             raise UsageError(f"--cpu-devices {requested}: {error}") from None
 
 
-def use_compilation_cache() -> str | None:
-    """Keeps compiled programs on disk between invocations (JAX's persistent compilation cache), so
-    that a second ``rigidjax simulate`` of the same scene shape skips most compiling. The cache is
-    ``$XDG_CACHE_HOME/rigidjax/jax`` (``~/.cache/rigidjax/jax``); a cache directory already chosen
-    (``JAX_COMPILATION_CACHE_DIR`` or jax's config) is kept, and ``RIGIDJAX_NO_COMPILATION_CACHE=1``
-    turns it off. Returns the directory in use, or None."""
-    import jax
-
-    chosen = jax.config.jax_compilation_cache_dir or os.environ.get("JAX_COMPILATION_CACHE_DIR")
-    if chosen or os.environ.get("RIGIDJAX_NO_COMPILATION_CACHE"):
-        return chosen or None
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    path = os.path.join(base, "rigidjax", "jax")
-    jax.config.update("jax_compilation_cache_dir", path)
-    # Every program, however small: the integration takes a second or more to compile, but the many
-    # small programs around it (the summary's checks, eager array operations) add up to as much.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
-    return path
-
-
 def _with_cores(func):
     def run(args):
         use_cores(args.cpu_devices)
@@ -87,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    use_compilation_cache()
+    rj.use_compilation_cache()
     code = run_command(_with_cores(args.func), args)
     if code == INTERRUPTED and argv is None:
         # Ctrl-C in the command itself: a compiled JAX computation may still be running in JAX's
