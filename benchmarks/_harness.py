@@ -26,6 +26,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -889,6 +890,13 @@ def format_table(rows: Sequence[dict]) -> str:
             f"| {_fmt(r['median_angle'])} | {_fmt(r['max_energy'])} | {r['errors_on']} |"
         )
     return "\n".join(lines)
+
+
+def write_markdown(path, caption: str, header: Sequence[str], rows: Sequence[str]) -> None:
+    """``caption``, then a markdown table of ``header`` and the already formatted ``rows``, to ``path``."""
+    table = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header), *rows]
+    Path(path).write_text(caption + "\n\n" + "\n".join(table) + "\n")
+    print(f"wrote {path}")
 
 
 def taylor_reference(scene, index: np.ndarray, h: float = 0.05, order: int = 24):

@@ -117,17 +117,16 @@ def main() -> None:
         cells = [f"`{name}`", f"{r['first_s']:.3f}", str(r["programs"]), f"{r['compile_s']:.3f}"]
         rows.append("| " + " | ".join(cells + [f"{r['later_ms']:.2f}"]) + " |")
         print(rows[-1], flush=True)
+    import _harness as H
     import jax
 
-    head = (
+    caption = (
         f"Eager calls, float64, batch of 5, one new process per row, no persistent compilation cache; "
         f"{platform.processor() or platform.machine()}, jax {jax.__version__} "
-        "(`python benchmarks/eager_calls.py`)\n\n"
-        "| call | first call s | programs compiled | their compile s | later call ms (median of 50) |\n"
-        "| --- | --- | --- | --- | --- |\n"
+        "(`python benchmarks/eager_calls.py`)"
     )
-    Path(args.out).write_text(head + "\n".join(rows) + "\n")
-    print(f"wrote {args.out}")
+    header = ["call", "first call s", "programs compiled", "their compile s", "later call ms (median of 50)"]
+    H.write_markdown(args.out, caption, header, rows)
 
 
 if __name__ == "__main__":

@@ -137,20 +137,24 @@ def main() -> None:
         ]
         rows.append("| " + " | ".join(cells) + " |")
         print(rows[-1], flush=True)
+    import _harness as H
     import jax
 
-    head = (
+    caption = (
         "First call of a job in a new process, float64; each column a new process "
         f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, jax {jax.__version__}, "
         "`python benchmarks/first_calls.py`). Seconds of the first call (tracing, compiling or "
         "loading, running); in brackets the programs JAX compiled and their compile time, or with a "
-        "filled cache their load time.\n\n"
-        "| job | no cache: first call s (programs, compile s) | empty cache: first call s "
-        "| filled cache: first call s (load s) | later call s |\n"
-        "| --- | --- | --- | --- | --- |\n"
+        "filled cache their load time."
     )
-    Path(args.out).write_text(head + "\n".join(rows) + "\n")
-    print(f"wrote {args.out}")
+    header = [
+        "job",
+        "no cache: first call s (programs, compile s)",
+        "empty cache: first call s",
+        "filled cache: first call s (load s)",
+        "later call s",
+    ]
+    H.write_markdown(args.out, caption, header, rows)
 
 
 if __name__ == "__main__":

@@ -312,10 +312,9 @@ def _tops_of_sides(sides):
 @pytest.mark.parametrize("sides", ["both", "m <= 1/2", "m > 1/2"])
 @pytest.mark.parametrize("n_samples", [11, 2])
 def test_blocks_of_tops_match_one_block(sides, n_samples):
-    """60 random tops evaluated in blocks of 7 == in one block. In blocks the tops are grouped by the
-    side of 1/2 their elliptic parameter lies on and each block evaluates that side's theta series
-    only (one block evaluates both); each side's last block is padded. The closed form's rare
-    branches are chosen per block."""
+    """60 random tops evaluated in blocks of 7 == in one block, with tops whose elliptic parameters
+    lie on one side of 1/2 or both (each block masks the two sides' theta series, as one block
+    does); the last block is padded. The closed form's rare branches are chosen per block."""
     inertia, mass, com, omega, q0 = _tops_of_sides(sides)
     top = rj.HeavyTop(*(jnp.asarray(x) for x in (inertia, mass, com)), G)
     state, ts = rj.State(jnp.asarray(omega), jnp.asarray(q0)), jnp.linspace(0.0, 5.0, n_samples)
@@ -334,13 +333,10 @@ def test_blocks_of_tops_match_one_block(sides, n_samples):
     )
 
 
-def test_derivative_through_blocks_of_one_side():
-    """The derivative of a function of the motion along a direction in the tops' masses, against
-    central differences, in blocks of 7 tops both ways ``simulate`` reaches them: in forward mode
-    with ``simulate`` in view (plain blocks that evaluate both sides), and in reverse mode taken
-    outside a ``jit`` around ``simulate``, which cannot see it: through the one-side blocks'
-    (sorted, padded, put back in order) derivative rule, linearised and transposed (the rule
-    evaluates plain blocks, and the values under it equal the one-side blocks' to roundoff)."""
+def test_derivative_through_blocks_in_both_modes():
+    """The derivative of a function of the motion along a direction in the tops' masses, through
+    blocks of 7 tops, against central differences: in forward mode (``jax.jvp``) and in reverse
+    mode taken outside a ``jit`` around ``simulate`` (linearised and transposed)."""
     # The tops, sample times and blocks of the blocks test above: the central differences' values
     # come from its compiled program.
     inertia, mass, com, omega, q0 = _tops_of_sides("both")
@@ -355,14 +351,14 @@ def test_derivative_through_blocks_of_one_side():
     direction = jnp.asarray(np.random.default_rng(4).normal(size=mass.shape))
     _, d_plain = jax.jvp(lambda x: loss(x, 7), (jnp.asarray(mass),), (direction,))
     value, gradient = jax.value_and_grad(jax.jit(lambda x: loss(x, 7)))(jnp.asarray(mass))
-    d_one_side = jnp.sum(gradient * direction)
+    d_reverse = jnp.sum(gradient * direction)
     # The loss is ~6e5: roundoff ~eps 6e5 / h (5e-8 relative here), truncation ~h^2 (1.7e-7 at h = 1e-4).
     h = 3e-5
     plus, minus = (loss(jnp.asarray(mass) + sign * h * direction, 7) for sign in (1, -1))
     central = (plus - minus) / (2 * h)
-    np.testing.assert_allclose(float(d_one_side), float(central), rtol=2e-7)
+    np.testing.assert_allclose(float(d_reverse), float(central), rtol=2e-7)
     np.testing.assert_allclose(float(d_plain), float(central), rtol=2e-7)
-    np.testing.assert_allclose(float(d_plain), float(d_one_side), rtol=1e-12)
+    np.testing.assert_allclose(float(d_plain), float(d_reverse), rtol=1e-12)
     np.testing.assert_allclose(float(value), float(loss(jnp.asarray(mass), 7)), rtol=1e-13)
 
 

@@ -10,7 +10,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.custom_derivatives import SymbolicZero
 
 from .._checks import (
     StaticValue,
@@ -30,12 +29,10 @@ from .._checks import (
     raise_collected,
 )
 from .._closed_form.barrier import _materialised
-from .._closed_form.heavy_top import lagrange_top_motion, lagrange_top_parts
-from .._closed_form.jacobi import upper_side
+from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.models import FreeBody, HeavyTop
 from . import batching
-from .driver import is_differentiated
 from .inputs import checked_inputs
 from .trajectory import Trajectory
 
@@ -43,13 +40,12 @@ __all__ = ["simulate_exact"]
 
 
 @eqx.filter_jit
-def _exact(model, omega0, q0, ts, chunk_size: int | None, values_checked: bool, one_side: bool = True):
+def _exact(model, omega0, q0, ts, chunk_size: int | None, values_checked: bool):
     """The closed forms' program; ``values_checked``: the inputs' values were checked before it (no
-    run-time checks, and so no host callback, in the program); ``one_side``: see
-    :func:`_exact_motion`."""
+    run-time checks, and so no host callback, in the program)."""
     with checks_done() if values_checked else contextlib.nullcontext():
         inputs = _exact_inputs(model, omega0, q0, ts)
-    return _exact_motion(*inputs, chunk_size, one_side)
+    return _exact_motion(*inputs, chunk_size)
 
 
 @functools.partial(jax.jit, static_argnums=4)
@@ -95,16 +91,17 @@ def block_elements() -> int:
     return 2**17 if jax.default_backend() == "cpu" else 2**62
 
 
-def _exact_motion(model, omega0, q0, ts, chunk_size, one_side=True):
+def _exact_motion(model, omega0, q0, ts, chunk_size):
     """The closed form at ``ts``, in blocks of ``chunk_size`` bodies (None: :func:`block_elements`).
 
-    Lagrange's tops in several blocks are sorted into blocks of one side (:func:`_one_side_blocks`)
-    where ``one_side``; otherwise each block evaluates both sides' series: one program instead of
-    two. ``simulate`` asks for that where it sees a derivative taken: 10^4 tops at 50 samples,
-    ``jit(grad)`` of a function of the motion compiled in 24 s instead of 49 s and ran in 0.29 s
-    instead of 0.49 s (``jit`` of a ``jvp``: 19 s against 49 s, 0.33 s against 0.46 s; XLA at
-    -O1), as the sorting's gathers and the branches weigh more in a derivative than the saved
-    series."""
+    Each block of Lagrange's tops evaluates both sides' theta series (``m`` below and above 1/2)
+    with a mask. Sorting the tops into blocks of one side, each evaluating one side's series,
+    compiled 2-3 s longer and ran no faster (2-core CPU, alternating runs):
+    ``benchmarks/heavy_top_exact.py``'s 10^4 tops at 200 samples, compile 9.0-9.9 s against 7.1 s,
+    run 0.224-0.230 s against 0.211-0.242 s; 1000 tops (2 blocks, each side padded to a whole
+    block) 43-45 ms against 20-21 ms; the command's ``--accuracy exact`` heavy-top job 0.85-1.03 s
+    against 0.48-0.50 s. Differentiated, the sorting's gathers and branches cost more still (10^4
+    tops at 50 samples, ``jit(grad)``: 49 s of compile against 24 s)."""
     batch = batching.batch_shape(model, omega0, q0)
     n_bodies, n_times = math.prod(batch), ts.shape[0]
     heavy = isinstance(model, HeavyTop)
@@ -123,16 +120,16 @@ def _exact_motion(model, omega0, q0, ts, chunk_size, one_side=True):
     # 4.4 ms). With more samples, writing the first one over cost up to 1.5x: all are evaluated.
     t = ts[1:] - ts[0] if n_times == 2 else ts - ts[0]
 
-    def motion(bodies, t, side=None):
+    def motion(bodies, t):
         """omega ``(bodies, samples, 3)`` and the orientation ``(bodies, samples, 4)`` (or None) at
-        the times ``t`` after the first; ``side``: see :func:`.lagrange_top_at`."""
+        the times ``t`` after the first."""
         first_omega = bodies["omega0"]
         first_q = bodies.get("q0")  # checked and normalised by _exact_inputs
         if n_times == 1:
             return first_omega[:, None], None if q0 is None else first_q[:, None]
         inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
         if heavy:
-            omega, q = lagrange_top_motion(*(bodies[name][:, None] for name in _TOP_INPUTS), t, side)
+            omega, q = lagrange_top_motion(*(bodies[name][:, None] for name in _TOP_INPUTS), t)
         elif q0 is None:
             omega, q = _torque_free_omega(inertia, omega0, t, checked=False), None
         else:
@@ -149,8 +146,6 @@ def _exact_motion(model, omega0, q0, ts, chunk_size, one_side=True):
     block = min(per_block, n_bodies)
     if n_bodies <= per_block:
         omega, orientation = motion(flat, t)
-    elif heavy and n_times > 1 and one_side:
-        omega, orientation = _one_side_blocks(motion, flat, t, per_block)
     else:
         block = batching.plan_chunks(n_bodies, per_block, shardable=False).chunk
         omega, orientation = _plain_blocks(motion, flat, t, per_block)
@@ -179,11 +174,6 @@ _TOP_INPUTS = ("inertia", "mass", "com", "gravity", "omega0", "q0")
 """Lagrange's top's per-body inputs, in the order of :func:`.lagrange_top_motion`'s arguments."""
 
 
-def _lagrange_parts(bodies):
-    """:func:`.lagrange_top_parts` of flat per-body inputs, with a samples axis to broadcast against."""
-    return lagrange_top_parts(*(bodies[name][:, None] for name in _TOP_INPUTS))
-
-
 def _plain_blocks(motion, flat, t, per_block):
     """``motion`` of the bodies in blocks of ``per_block`` in a loop; the last block is filled up
     with copies of the last body."""
@@ -191,75 +181,6 @@ def _plain_blocks(motion, flat, t, per_block):
     blocks = {name: batching.to_chunks(plan, x) for name, x in flat.items()}
     outputs = jax.lax.map(lambda bodies: motion(bodies, t), blocks)
     return tuple(batching.from_chunks(plan, x) for x in outputs)
-
-
-def _one_side_blocks(motion, flat, t, per_block):
-    """:func:`_sorted_blocks`, whose derivatives are those of :func:`_plain_blocks`: a derivative
-    taken outside a ``jit`` around ``simulate`` (which therefore cannot ask for plain blocks) gets
-    the plain blocks' program too. Differentiated, the values are the plain blocks' (the same to
-    roundoff). 60 random tops in blocks of 7 at 11 samples: ``jax.jvp`` of a ``jit`` around
-    ``simulate`` traced in 7 s instead of 16 s and compiled in 34 s instead of 56 s (XLA at -O1)."""
-
-    @jax.custom_jvp
-    def sorted_blocks(flat, t):
-        return _sorted_blocks(motion, flat, t, per_block)
-
-    @functools.partial(sorted_blocks.defjvp, symbolic_zeros=True)
-    def _(primals, tangents):
-        # Inputs without a tangent enter as constants, so that the closed form's derivative takes
-        # no direction for them (see .derivatives).
-        leaves, tree = jax.tree.flatten(primals)
-        dots = jax.tree.leaves(tangents, is_leaf=lambda x: isinstance(x, SymbolicZero))
-        live = [i for i, dot in enumerate(dots) if not isinstance(dot, SymbolicZero)]
-
-        def plain(*live_leaves):
-            inputs = list(leaves)
-            for i, x in zip(live, live_leaves, strict=True):
-                inputs[i] = x
-            return _plain_blocks(motion, *jax.tree.unflatten(tree, inputs), per_block)
-
-        return jax.jvp(plain, [leaves[i] for i in live], [dots[i] for i in live])
-
-    return sorted_blocks(flat, t)
-
-
-def _sorted_blocks(motion, flat, t, per_block):
-    """Lagrange's tops in blocks whose elliptic parameters ``m`` all lie on one side of 1/2, so that
-    each block evaluates one side's theta series (:func:`.lagrange_top_at`'s ``side``) instead of both.
-
-    The tops with ``m <= 1/2`` fill the first blocks, those above the rest; each side's last block is
-    filled up with copies of its last top, so there is one block more than plain blocks would need.
-    10^4 tops of ``rigidjax simulate``'s heavy-top scene with I1 = I2 (a fifth of them above 1/2),
-    200 samples: see ``benchmarks/heavy_top_exact.py``."""
-    n = flat["mass"].shape[0]
-    parts = _lagrange_parts(flat)
-    upper = upper_side(parts["m"][:, 0])
-    order = jnp.argsort(upper.astype(jnp.int8), stable=True)  # the tops with m <= 1/2 first
-    n_lower = n - jnp.sum(upper, dtype=order.dtype)
-    lower_slots = (n_lower + per_block - 1) // per_block * per_block
-    n_blocks = -(-n // per_block) + 1
-    slot = jnp.arange(n_blocks * per_block, dtype=order.dtype)
-    rank = jnp.where(slot < lower_slots, jnp.minimum(slot, n_lower - 1), n_lower + slot - lower_slots)
-    source = order[jnp.clip(rank, 0, n - 1)]
-
-    # The blocks take the tops' inputs, not their parts (which the side was read from): the closed
-    # form's derivatives are taken from the inputs (see .derivatives).
-    blocked = jax.tree.map(lambda x: x[source].reshape((n_blocks, per_block) + x.shape[1:]), flat)
-    # With no top above 1/2 the last block holds copies of a top below: it runs the lower side too.
-    # Its values are not used, but the upper side's formulas are not finite at such a top (measured),
-    # and no block should compute non-finite numbers that derivatives pass through.
-    block_upper = (jnp.arange(n_blocks, dtype=order.dtype) * per_block >= lower_slots) & (n_lower < n)
-
-    def one_block(inputs):
-        block, is_upper = inputs
-        return jax.lax.cond(is_upper, lambda b: motion(b, t, "upper"), lambda b: motion(b, t, "lower"), block)
-
-    outputs = jax.lax.map(one_block, (blocked, block_upper))
-    # Back to the tops' order: the top of rank r (in ``order``) was evaluated in slot r (lower side)
-    # or lower_slots + r - n_lower (upper side).
-    rank_of_top = batching.inverse_permutation(order)
-    slot_of_top = jnp.where(rank_of_top < n_lower, rank_of_top, lower_slots + rank_of_top - n_lower)
-    return tuple(x.reshape((n_blocks * per_block,) + x.shape[2:])[slot_of_top] for x in outputs)
 
 
 def _lagrange_failures(inertia, com):
@@ -386,7 +307,7 @@ def _run_exact(model, omega0, q0, ts, chunk_size):
             raise_collected(failures)
             return traj
     checked = _raise_on_bad_values(model, omega0, q0, ts)
-    return _exact(model, omega0, q0, ts, chunk_size, checked, not is_differentiated(model, omega0, q0, ts))
+    return _exact(model, omega0, q0, ts, chunk_size, checked)
 
 
 def _raise_on_bad_values(model, omega0, q0, ts) -> bool:
