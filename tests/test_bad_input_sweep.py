@@ -265,6 +265,7 @@ SWEEP = {
 # Public callables whose arguments are not arrays of numbers, with the tests of their bad input.
 ELSEWHERE = {
     "simulate": "test_bad_input.py::test_simulate_rejects_bad_values",
+    "use_compilation_cache": "test_compilation_cache.py::test_bad_paths_are_named",
     "use_cpu_cores": "test_cpu_cores.py::test_count_must_be_a_positive_integer",
     "Trajectory": "test_storage.py::test_damaged_files",
     "fit_inertia": "test_bad_input.py::test_fit_rejects_bad_options_before_any_work",
