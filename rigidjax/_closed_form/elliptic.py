@@ -326,18 +326,17 @@ def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
 # Jacobi elliptic functions
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
-def _ellipj(u, m, p, side):
-    """``(sn, cn, dn, am)`` with ``p = 1 - m``; the derivative uses the tangents of ``u`` and ``m``.
-    ``side``: see :func:`.jacobi._jacobi_values`."""
-    return _jacobi_values(u, m, p, side)
+@jax.custom_jvp
+def _ellipj(u, m, p):
+    """``(sn, cn, dn, am)`` with ``p = 1 - m``; the derivative uses the tangents of ``u`` and ``m``."""
+    return _jacobi_values(u, m, p)
 
 
 @functools.partial(_ellipj.defjvp, symbolic_zeros=True)
-def _ellipj_jvp(side, primals, tangents):
+def _ellipj_jvp(primals, tangents):
     u, m, p = primals
     u_dot, m_dot, _ = tangents
-    sn, cn, dn, am = out = _ellipj(u, m, p, side)
+    sn, cn, dn, am = out = _ellipj(u, m, p)
     terms = [[(d, u_dot)] for d in (cn * dn, -sn * dn, -m * sn * cn, dn)]
     if not _is_zero(m_dot):
         for t, d in zip(terms, _ellipj_dm(u, m, p, sn, cn, dn, am), strict=True):
@@ -414,9 +413,9 @@ def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Sc
     return _ellipj_checked(u, 1 - p, p)
 
 
-def _ellipj_checked(u, m, p, side=None):
+def _ellipj_checked(u, m, p):
     bad = (m < 0) | (p < 0) | jnp.isnan(m) | jnp.isnan(p)
     m_ok = jnp.where(bad, jnp.zeros_like(m), m)
     p_ok = jnp.where(bad, jnp.ones_like(p), p)
-    out = _ellipj(u, m_ok, p_ok, side)
+    out = _ellipj(u, m_ok, p_ok)
     return tuple(jnp.where(bad, jnp.nan, o) for o in out)

@@ -23,7 +23,6 @@ import numpy as np
 
 from .carlson import _carlson_rf_rd, _steps
 from .elliptic import _nome_parts, _sin_cos
-from .jacobi import _side_mask
 from .precession import _THETA_FACTORS, _im_zeta, _lower_terms, _reduce, _upper_zeta
 
 # Cephes' atan: z + z^3 P(z^2) / Q(z^2) on |z| <= 0.66, within 1 ulp.
@@ -151,7 +150,7 @@ def _theta_parts(m, p, n, ratio):
     )
 
 
-def _theta_phase(x, parts, side=None):
+def _theta_phase(x, parts):
     """``V(x)`` of :func:`_theta_parts` (odd in the reduced ``rho``, ``x = rho + 2 j K``, stepping by
     ``2 b`` per period): the phase of :func:`.precession._precession_phase`'s theta product, whose
     factors are taken in conjugate pairs ``(1 + sigma r w)(1 + sigma s conj(w))`` with coefficients per
@@ -164,12 +163,9 @@ def _theta_phase(x, parts, side=None):
     - ``m > 1/2`` (``w = e^(-2 i b)`` per body, ``r = e^(-2y)``, ``s = e^(2y - 2L)``): a pair is
       ``1 + q'^(4k+2) + q'^(2k) (cos 2b X + i sin 2b Y)`` with ``X = r + s``, ``Y = s - r``; the leading
       one as the product of its two factors, whose real parts are formed without cancellation.
-
-    ``side``: ``None``, or ``"upper"`` / ``"lower"`` when every body's ``m`` lies on that side (the
-    other side's terms are then not evaluated).
     """
     turns, rho = _reduce(x, parts["quarter"])
-    upper = _side_mask(parts["upper"], side)
+    upper = parts["upper"]
     sign = jnp.where(rho < 0, -1.0, 1.0).astype(rho.dtype)
     y = parts["agm"] * (sign * rho)
     sin_y, cos_y = _sin_cos(y)

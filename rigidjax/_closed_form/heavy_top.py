@@ -43,8 +43,6 @@ Reverse mode transposes every sample's Jacobian (:mod:`.derivatives`). Only ``co
 of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``, ``com_y`` (zero) and
 ``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
 
-import functools
-
 import jax
 import jax.numpy as jnp
 
@@ -246,7 +244,7 @@ def _quat_times_omega(q, omega):
     )
 
 
-def _half(half, body, t, now, reduced, side):
+def _half(half, body, t, now, reduced):
     """Both Cayley-Klein halves at time ``t`` (on the leading axis of ``half``'s arrays): their unit
     phases, signed moduli and moduli's rates, and ``du/dt``."""
     k, coeff, near, far = half["k"], half["coeff"], half["near"], half["far"]
@@ -260,7 +258,7 @@ def _half(half, body, t, now, reduced, side):
     # The phase: (1/2) [k (w3 - a) t + (b + k a) int_0^t dt / (1 + k u)].
     sn0, cn0, dn0 = body["start"]
     parts, x0, slope, wave, valid = half["phase"]
-    delta_v = _theta_phase(x0 + reduced, parts, side) - _theta_phase(x0, parts, side)
+    delta_v = _theta_phase(x0 + reduced, parts) - _theta_phase(x0, parts)
     rate_safe = jnp.where(valid, rate, 1.0)
     integral = jnp.where(valid, slope * t + wave / rate_safe * delta_v, _safe_div(t, near))
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
@@ -306,7 +304,7 @@ def _half(half, body, t, now, reduced, side):
     return chosen[0] * rotor, chosen[1], chosen[2], udot
 
 
-def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t, side: str | None = None):
+def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     """Body-frame ``omega(t)`` and orientation ``q(t)`` of Lagrange's top, in closed form.
 
     **Arguments:**
@@ -321,20 +319,17 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t, side: str | 
     the unit quaternion ``(w, x, y, z)`` (body to space), shape ``batch + (4,)``; ``batch`` is the
     broadcast of the bodies' batch axes with ``t``'s shape. The inputs are not checked here:
     ``simulate`` checks them (a physical inertia, ``I1 = I2``, ``com`` on the z axis, a unit ``q0``).
-    ``side``: as in :func:`lagrange_top_at`. Derivatives: every sample's Jacobian
-    (:func:`.sample_jacobians`), so that reverse mode costs about what forward mode does.
+    Derivatives: every sample's Jacobian (:func:`.sample_jacobians`), so that reverse mode costs
+    about what forward mode does.
     """
-    return _MOTION_ON_SIDE[side](inertia, mass, com, gravity, omega0, q0, t)
+    return _motion(inertia, mass, com, gravity, omega0, q0, t)
 
 
-def _motion_on_side(side, inertia, mass, com, gravity, omega0, q0, t):
-    return lagrange_top_at(lagrange_top_parts(inertia, mass, com, gravity, omega0, q0), t, side)
+def _motion_of_inputs(inertia, mass, com, gravity, omega0, q0, t):
+    return lagrange_top_at(lagrange_top_parts(inertia, mass, com, gravity, omega0, q0), t)
 
 
-_MOTION_ON_SIDE = {
-    side: sample_jacobians(functools.partial(_motion_on_side, side), (3, 0, 3, 0, 3, 4, 0))
-    for side in (None, "upper", "lower")
-}
+_motion = sample_jacobians(_motion_of_inputs, (3, 0, 3, 0, 3, 4, 0))
 
 
 def lagrange_top_parts(inertia, mass, com, gravity, omega0, q0) -> dict:
@@ -346,14 +341,12 @@ def lagrange_top_parts(inertia, mass, com, gravity, omega0, q0) -> dict:
     return _body(A, C, mass * gravity * com[..., 2], omega0, q0)
 
 
-def lagrange_top_at(body: dict, t, side: str | None = None):
+def lagrange_top_at(body: dict, t):
     """``(omega, q)`` of :func:`lagrange_top_motion` at times ``t`` from the tops' parts
-    (:func:`lagrange_top_parts`). ``side``: ``None``, or ``"upper"`` / ``"lower"`` when every top's
-    ``m`` is above / at most ``1/2``: only that side's theta series are then evaluated (about a third
-    less arithmetic per sample)."""
+    (:func:`lagrange_top_parts`)."""
     sn0, cn0, dn0 = body["start"]
     v = body["rate"] * t
-    sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"], side)
+    sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
     m = body["m"]
     # Addition theorem, written without cancellation where sn and sn0 are both near 1.
     den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
@@ -366,7 +359,7 @@ def lagrange_top_at(body: dict, t, side: str | None = None):
     halves = jax.tree.map(
         lambda x: x.reshape((2,) + (1,) * (samples - x.ndim + 1) + x.shape[1:]), body["halves"]
     )
-    ph, mod, mod_rate, udot = _half(halves, body, t, now, v, side)
+    ph, mod, mod_rate, udot = _half(halves, body, t, now, v)
     # Held in memory: read by every component of omega and q (each would recompute them otherwise).
     ph_re, ph_im, mod, mod_rate, udot = _materialised((jnp.real(ph), jnp.imag(ph), mod, mod_rate, udot))
     (ph_p, ph_m), (mod_p, mod_m), (rate_p, rate_m) = jax.lax.complex(ph_re, ph_im), mod, mod_rate

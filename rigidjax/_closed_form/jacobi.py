@@ -61,23 +61,13 @@ def upper_side(m):
     return m > 0.5
 
 
-def _side_mask(upper, side):
-    """``upper`` (:func:`upper_side` per element), or a constant where every ``m`` is known to lie
-    on ``side``: selects against a constant fold away, and with them the other side's arithmetic."""
-    if side is None:
-        return upper
-    if side not in ("upper", "lower"):
-        raise ValueError(f"side must be None, 'upper' or 'lower', got {side!r}")
-    return jnp.asarray(side == "upper")
-
-
 def _guarded(coefficient, x):
     """``coefficient * x`` where a power of the nome that underflows to 0 meets an ``x`` that
     overflows: the power reaches 0 long before ``x`` reaches inf, and the term is then 0."""
     return jnp.where(coefficient == 0, jnp.zeros_like(x), coefficient * x)
 
 
-def _jacobi_values(u, m, p, side=None):
+def _jacobi_values(u, m, p):
     """``(sn, cn, dn, am)`` for ``0 <= m <= 1``, ``p = 1 - m``, from theta series in a nome of at most
     ``exp(-pi)`` (DLMF 22.2.4-6, 20.2.1-4): three or four terms reach double precision
     (``q^12 < 5e-17``). What depends on ``m`` only (the nome, the quarter period, the values of the
@@ -99,11 +89,8 @@ def _jacobi_values(u, m, p, side=None):
     as their hyperbolic counterparts in ``cosh(y)^2``. ``theta_1``, ``theta_2`` are divided by their
     common ``2 q^(1/4)`` and written as ``sin z``, ``cos z`` times those polynomials, so ``sn`` and ``cn``
     keep their relative accuracy at their zeros.
-
-    ``side``: ``None`` (each ``m`` on its own side), or ``"upper"`` / ``"lower"`` when every ``m`` is
-    known to be above / at most ``1/2``: the other side's series are then not evaluated at all.
     """
-    upper = _side_mask(upper_side(m), side)
+    upper = upper_side(m)
     body = _jacobi_parameters(m, p)
     agm, q, half, period, k_prime = body["agm"], body["q"], body["half"], body["period"], body["k_prime"]
     # m > 1/2: the reduction to a quarter period (K = L K' / pi)
