@@ -8,7 +8,7 @@ programs JAX reports and their compile (or load) time are counted. A later call,
 compiled, is timed too (median of 5).
 
 Usage:
-    python benchmarks/first_calls.py          # ~3 min on 2 cores
+    python benchmarks/first_calls.py          # ~8 min on 2 cores
 Writes benchmarks/results/first_calls.md (``--out`` to change).
 """
 
@@ -28,6 +28,7 @@ from pathlib import Path
 
 def _cases():
     """Each job: a function that makes its inputs and returns the call to time."""
+    import jax
     import jax.numpy as jnp
     import numpy as np
 
@@ -60,12 +61,40 @@ def _cases():
         record = clean + 1e-3 * rng.standard_normal(clean.shape)
         return lambda: rj.fit_inertia(record_ts, record).inertia
 
+    def orientation_fit():
+        record_ts = np.linspace(0.0, 20.0, 240)
+        start = np.asarray(rj.quat_from_euler(np.array([0.3, 1.0, -0.5])))
+        clean = rj.torque_free_motion(
+            np.array([1.0, 2.0, 2.5]), np.array([0.3, 0.05, 1.0]), start, record_ts
+        )[1]
+        noise = rj.kinematics.quat_exp(2e-3 * rng.standard_normal((record_ts.size, 3)))
+        record = np.asarray(rj.quat_multiply(clean, noise))
+        return lambda: rj.fit_inertia_to_orientation(record_ts, record).inertia
+
+    def gradient(accuracy, compiled):
+        # d/d(omega0) of a function of the trajectory: the integrator's adjoint ("balanced"), or
+        # the closed form's per-sample Jacobians ("exact"), both in reverse mode; called as it is
+        # (simulate's own steps then run operation by operation) or inside jax.jit.
+        top = rj.HeavyTop(jnp.asarray(np.tile([1.0, 1.0, 0.5], (n, 1))), 1.0, jnp.array([0.0, 0.0, 0.3]))
+        omega = jnp.asarray(np.array([0.3, -0.2, 8.0]) + 0.1 * rng.standard_normal((n, 3)))
+
+        def loss(w):
+            trajectory = rj.simulate(top, rj.State(w, q0), ts, accuracy=accuracy)
+            return jnp.sum(trajectory.omega[:, -1] ** 2) + jnp.sum(trajectory.orientation[:, -1, 1])
+
+        gradient_of = jax.jit(jax.grad(loss)) if compiled else jax.grad(loss)
+        return lambda: gradient_of(omega)
+
     return {
         "torque_free_motion (5 bodies, 11 times)": closed_form,
         'simulate "balanced", 1000 free bodies, 200 samples': free_bodies,
         'simulate "balanced", 1000 heavy tops, 200 samples': lambda: heavy_tops("balanced"),
         'simulate "exact", 1000 heavy tops, 200 samples': lambda: heavy_tops("exact"),
         "fit_inertia (240 samples)": fit,
+        "fit_inertia_to_orientation (240 samples)": orientation_fit,
+        'jax.grad of simulate "balanced", 1000 heavy tops': lambda: gradient("balanced", False),
+        "the same in jax.jit": lambda: gradient("balanced", True),
+        'jax.grad of simulate "exact", 1000 heavy tops, in jax.jit': lambda: gradient("exact", True),
     }
 
 
