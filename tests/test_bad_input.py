@@ -1348,6 +1348,39 @@ def test_an_empty_batch_of_bodies_is_named(accuracy):
         rj.simulate(model, state, TS, accuracy=accuracy)
 
 
+@pytest.mark.parametrize("scene", ["free body", "heavy top"])
+def test_a_closed_form_beyond_the_float_range_is_a_failure_not_a_success(scene):
+    """An angular velocity of 1e160 rad/s passes the input checks (finite), but the closed form's
+    angular momentum squared overflows: it was NaN with success True. Now the body fails: an error
+    naming it and the first sample time, under jit too; with throw=False success and
+    first_failed_sample agree with NumPy's isfinite of the samples, and the other bodies keep their
+    values (those of a call without the failed body)."""
+    ts = np.linspace(0.0, 1.0, 4)
+    omega = np.array([[0.1, 0.3, 8.0], [0.1, 1e160, 0.2], [0.2, -0.1, 6.0]])
+    q0 = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    if scene == "free body":
+        model = rj.FreeBody(np.array([1.0, 2.0, 2.5]))
+    else:
+        model = rj.HeavyTop(np.array([1.0, 1.0, 0.5]), 1.0, np.array([0.0, 0.0, 0.3]))
+    with pytest.raises(
+        ValueError, match=r"closed form of body 1 is NaN or inf at t = 0 s: its inputs are beyond"
+    ):
+        rj.simulate(model, rj.State(omega, q0), ts, accuracy="exact")
+    traj = rj.simulate(model, rj.State(omega, q0), ts, accuracy="exact", throw=False)
+    finite = np.isfinite(np.asarray(traj.omega)).all(-1) & np.isfinite(np.asarray(traj.orientation)).all(-1)
+    assert not finite[1].all() and finite[[0, 2]].all()
+    np.testing.assert_array_equal(np.asarray(traj.success), finite.all(-1))
+    np.testing.assert_array_equal(np.asarray(traj.stats["first_failed_sample"]), [4, np.argmin(finite[1]), 4])
+    alone = rj.simulate(model, rj.State(omega[[0, 2]], q0[[0, 2]]), ts, accuracy="exact")
+    np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega))
+    jitted = jax.jit(lambda w: rj.simulate(model, rj.State(w, jnp.asarray(q0)), ts, accuracy="exact").omega)
+    with pytest.raises(Exception, match="closed form of a body is NaN or inf"):
+        jitted(jnp.asarray(omega)).block_until_ready()
+    np.testing.assert_array_equal(
+        np.asarray(jitted(jnp.asarray(omega[[0, 0, 2]])))[2], np.asarray(alone.omega)[1]
+    )
+
+
 def test_a_span_too_long_for_the_step_floor_names_the_closed_form():
     """A tumbling body over 1e12 s (3e11 turns) needs steps below the floor that stops a NaN body
     early (1e-12 of the span): the error said only that the state or torque had turned NaN."""

@@ -181,7 +181,8 @@ def simulate(
       (under the user's ``jit``: the cause). With ``throw=False`` a failed body is flagged in
       ``Trajectory.success`` and is NaN from its failure on, while every other body keeps its
       result: bodies share a step size within a chunk, so a chunk stopped by a body whose torque or
-      state turned NaN is run again body by body.
+      state turned NaN is run again body by body. With ``accuracy="exact"`` a body fails where its
+      closed form is NaN or inf (inputs beyond the dtype's range).
     - `args`: passed to user torques as ``fn(t, state, args)``.
     - `representation`: how the orientation is integrated when there is one: ``"quaternion"``
       (default; unit norm kept without drift) or ``"euler"`` (the Euler angles of ``euler_seq`` as
@@ -256,7 +257,7 @@ def simulate(
         traj = simulate_exact(model, state0, ts, chunk_size)
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
-        return traj
+        return _raise_if_not_finite(traj) if throw else traj
     fixed_step = isinstance(solver, STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
@@ -450,6 +451,28 @@ def _error_if_failed(traj, max_steps, formulation):
         "simulate: the integration failed. Pass throw=False for NaN rows and Trajectory.success.",
     )
     return eqx.tree_at(lambda t: t.omega, traj, omega)
+
+
+def _raise_if_not_finite(traj):
+    """The closed form's error for a body whose samples are not all finite, naming the first such
+    body and sample time (under the user's ``jit``: the cause only)."""
+    reason = (
+        f"its inputs are beyond what {traj.omega.dtype} can evaluate (for instance an angular "
+        "momentum whose square overflows). Pass throw=False for these rows and Trajectory.success."
+    )
+    if isinstance(traj.success, jax.core.Tracer):
+        message = f"simulate: the closed form of a body is NaN or inf: {reason}"
+        return eqx.tree_at(lambda t: t.omega, traj, eqx.error_if(traj.omega, ~jnp.all(traj.success), message))
+    success = np.asarray(traj.success)
+    if success.all():
+        return traj
+    failed = np.flatnonzero(~success.ravel())
+    first, batch = int(failed[0]), traj.batch_shape
+    t = float(np.asarray(traj.ts)[int(np.asarray(traj.stats["first_failed_sample"]).ravel()[first])])
+    index = tuple(int(i) for i in np.unravel_index(first, batch))
+    who = "the body" if not batch else f"body {index[0] if len(batch) == 1 else index}"
+    others = f" ({failed.size} of {success.size} bodies; the first is named)" if failed.size > 1 else ""
+    raise ValueError(f"simulate: the closed form of {who} is NaN or inf at t = {t:.6g} s{others}: {reason}")
 
 
 def _check_no_integrator_options(**options):

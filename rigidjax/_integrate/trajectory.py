@@ -29,15 +29,17 @@ class Trajectory(eqx.Module):
     ``ts`` (T,) in s; ``omega`` (*batch, T, 3) body-frame rad/s; ``orientation`` (*batch, T, 4) unit
     quaternions (scalar first, body -> space) or None for an omega-only scene. ``success`` (*batch)
     is False where the integration failed (only with ``throw=False``): such a body keeps the samples
-    before its failure and is NaN from there on.
+    before its failure and is NaN from there on; with ``accuracy="exact"``, where a sample of the
+    closed form is NaN or inf (inputs beyond the dtype's range), each sample as evaluated.
     ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk),
     ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body;
     None for ``accuracy="exact"``, whose quaternions nothing normalises: :meth:`invariants` measures
     their norm from the samples),
     ``result`` (per body: 0 for success, otherwise diffrax's result code, or -1 for a state that turned
     NaN or inf under a fixed-step solver) and ``first_failed_sample`` (per body: the index of its
-    first NaN sample, ``T`` when it has none); with ``simulate(..., error_estimate=True)`` also
-    ``error_estimate_omega`` and ``error_estimate_orientation`` (:meth:`error_estimate`).
+    first NaN sample, ``T`` when it has none; the closed form has this one only); with
+    ``simulate(..., error_estimate=True)`` also ``error_estimate_omega`` and
+    ``error_estimate_orientation`` (:meth:`error_estimate`).
 
     The quantities along the trajectory (:meth:`euler_angles`, the energies, the angular momenta,
     :meth:`invariants`) are each one compiled program per trajectory shape: in a new process
