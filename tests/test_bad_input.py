@@ -1381,6 +1381,30 @@ def test_a_closed_form_beyond_the_float_range_is_a_failure_not_a_success(scene):
     )
 
 
+@pytest.mark.parametrize("function", ["torque_free_omega", "torque_free_motion", "torque_free_period"])
+def test_the_closed_forms_name_an_angular_momentum_beyond_the_float_range(function):
+    """Finite inputs whose |I omega|^2 overflows float64 (|I omega| = 1.04e154 here) gave NaN without
+    an error; one power of ten less (|L|^2 = 1.1e306, finite) is evaluated, ~1e3 rad of motion at
+    t = 1e-150 s: finite, with |I omega|^2 conserved to rounding."""
+    inertia, direction = np.array([1.0, 2.0, 2.5]), np.array([0.1, 1.0, 0.2])
+    q0, t = np.array([1.0, 0.0, 0.0, 0.0]), np.array([1e-150])
+    calls = {
+        "torque_free_omega": lambda w: rj.torque_free_omega(inertia, w, t),
+        "torque_free_motion": lambda w: rj.torque_free_motion(inertia, w, q0, t),
+        "torque_free_period": lambda w: rj.torque_free_period(inertia, w),
+    }
+    with pytest.raises(ValueError, match=rf"{function}: the angular momentum .* beyond the range of float64"):
+        calls[function](direction * 1e154)
+    within = [np.asarray(x) for x in jax.tree.leaves(calls[function](direction * 1e153))]
+    assert all(np.isfinite(x).all() for x in within)
+    if function != "torque_free_period":
+        momentum2 = np.sum((inertia * within[0]) ** 2, axis=-1)
+        np.testing.assert_allclose(momentum2, np.sum((inertia * direction * 1e153) ** 2), rtol=1e-12)
+    jitted = jax.jit(calls[function])
+    with pytest.raises(Exception, match="the angular momentum of inertia and omega0 is beyond the range"):
+        jax.block_until_ready(jitted(jnp.asarray(direction * 1e154)))
+
+
 def test_a_span_too_long_for_the_step_floor_names_the_closed_form():
     """A tumbling body over 1e12 s (3e11 turns) needs steps below the floor that stops a NaN body
     early (1e-12 of the span): the error said only that the state or torque had turned NaN."""

@@ -28,6 +28,7 @@ from .._checks import (
     check_unit_quaternion,
     collected_failures,
     common_float,
+    error_if,
     packed_failures,
 )
 from .._dynamics.inertia import check_inertia
@@ -54,6 +55,17 @@ def _checked(inertia, omega0, t, where):
         )
     inertia = check_inertia(inertia[..., None, :], name=name)[..., 0, :]
     omega0 = check_finite(omega0, "omega0", where)
+    # The closed form is finite exactly where |L|^2 and 2E are (float64: NaN from |I omega| ~ 1.3e154
+    # on, where |L|^2 overflows): beyond, finite inputs gave NaN without an error.
+    momentum2 = jnp.sum((inertia * omega0) ** 2, axis=-1)
+    energy2 = jnp.sum(inertia * omega0 * omega0, axis=-1)
+    omega0 = error_if(
+        omega0,
+        jnp.isfinite(inertia).all(-1) & jnp.isfinite(omega0).all(-1) & ~jnp.isfinite(momentum2 + energy2),
+        f"{where}: the angular momentum of inertia and omega0 is beyond the range of {omega0.dtype} "
+        "(|I omega|^2 overflows), where the closed form cannot be evaluated: express them in units "
+        "that make |I omega| smaller.",
+    )
     t = t if t is None else check_finite(t, "t", where)
     return inertia, omega0, t
 
