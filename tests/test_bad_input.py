@@ -22,6 +22,7 @@ the same shape reuses that program; structural errors raise before anything comp
 """
 
 import functools
+import re
 import warnings
 
 import diffrax
@@ -1403,6 +1404,91 @@ def test_the_closed_forms_name_an_angular_momentum_beyond_the_float_range(functi
     jitted = jax.jit(calls[function])
     with pytest.raises(Exception, match="the angular momentum of inertia and omega0 is beyond the range"):
         jax.block_until_ready(jitted(jnp.asarray(direction * 1e154)))
+
+
+def _elliptic_rate(inertia, omega):
+    """|d tau / dt| of the torque-free body's Jacobi functions from Landau & Lifshitz section 37's
+    formula (sorted moments, L^2 and 2E from the inputs), the rate of the closed form's phase."""
+    order = np.argsort(inertia)
+    i1, i2, i3 = inertia[order]
+    w = omega[order]
+    momentum2, energy2 = np.sum((inertia[order] * w) ** 2), np.sum(inertia[order] * w * w)
+    if momentum2 > energy2 * i2:
+        return np.sqrt((i3 - i2) * (momentum2 - energy2 * i1) / (i1 * i2 * i3))
+    return np.sqrt((i2 - i1) * (energy2 * i3 - momentum2) / (i1 * i2 * i3))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_closed_forms_refuse_a_phase_beyond_what_the_dtype_resolves(dtype, extreme):
+    """The closed forms' absolute error grows as eps x phase (float32 against float64, 1 rad/s:
+    5e-8 at 10 s, 2e-3 at 1e5 s); at t = 1e16 s in float64 the results were noise and at 1e18 s the
+    quaternion had a norm of 3e6, all without an error. Now a phase whose rounding exceeds 1e-3 rad
+    is an error naming the sample: the elliptic argument's rate from Landau & Lifshitz's formula puts
+    the limit of omega alone at t = 1e-3 / (eps lambda): 1 % below it the value is kept (in float32
+    within 2e-3 of float64's), 1 % above it is refused, also under jit. A steady rotation's omega has
+    no phase (it is omega0 at any t); its orientation has one."""
+    inertia, omega = np.array([1.0, 2.0, 3.0]), np.array([1.0, 0.5, 0.2])
+    q0 = np.array([1.0, 0.0, 0.0, 0.0], dtype)
+    limit = 1e-3 / (np.finfo(dtype).eps * _elliptic_rate(inertia, omega))
+    inertia, omega = inertia.astype(dtype), omega.astype(dtype)
+    inside, beyond = np.array([0.0, 0.99 * limit], dtype), np.array([1.0, 1.01 * limit], dtype)
+    kept = rj.torque_free_omega(inertia, omega, inside)
+    assert kept.dtype == dtype
+    if dtype == np.float32:
+        reference = rj.torque_free_omega(
+            inertia.astype(np.float64), omega.astype(np.float64), inside.astype(np.float64)
+        )
+        error = np.max(np.abs(np.asarray(kept) - np.asarray(reference)))
+        assert error <= 2e-3
+        extreme(
+            "long horizon",
+            f"closed form in float32 at 99 % of its phase limit (t = {float(inside[1]):.3g} s at 0.65 rad/s)",
+            "evaluated (1 % further: ValueError naming the sample); omega error against float64",
+            error,
+            2e-3,
+            "float64 (limit 4.5e12 rad) or restart from a later state",
+        )
+    name = np.dtype(dtype).name
+    for function, call in [
+        ("torque_free_omega", lambda t: rj.torque_free_omega(inertia, omega, t)),
+        ("torque_free_motion", lambda t: rj.torque_free_motion(inertia, omega, q0, t)),
+    ]:
+        message = re.escape(
+            f"{function}: at t = {float(beyond[1]):.6g} s (element (1,) of the broadcast batch) the "
+        )
+        with pytest.raises(ValueError, match=message + rf"closed form's phase is .* which {name} holds only"):
+            call(beyond)
+        with pytest.raises(RUNTIME, match=rf"{function}: a phase of the closed form is beyond what {name}"):
+            jax.block_until_ready(jax.jit(call)(jnp.asarray(beyond)))
+    steady = np.array([0.0, 0.0, 1.0], dtype)
+    np.testing.assert_array_equal(np.asarray(rj.torque_free_omega(inertia, steady, beyond))[1], steady)
+    with pytest.raises(ValueError, match="torque_free_motion: at t = "):
+        rj.torque_free_motion(inertia, steady, q0, np.array(4e-3 / np.finfo(dtype).eps, dtype))
+
+
+@pytest.mark.parametrize("scene", ["free body", "heavy top"])
+def test_simulate_exact_fails_a_body_whose_phase_is_beyond_what_the_dtype_resolves(scene):
+    """A body spinning at 1e3 rad/s over 1e10 s (a phase of ~1e13 rad: float64 holds it to more
+    than 1e-3 rad) was evaluated with success True. Now it fails: an error naming it and the sample
+    time, under jit too; with throw=False the other bodies keep their values (those of a call
+    without it)."""
+    ts = np.array([0.0, 1.0, 1e6, 1e10])
+    omega = np.array([[1e-6, 2e-6, 1e-5], [0.1, 1e3, 0.2], [2e-6, -1e-6, 1e-5]])
+    q0 = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    if scene == "free body":
+        model = rj.FreeBody(np.array([1.0, 2.0, 2.5]))
+    else:
+        model = rj.HeavyTop(np.array([1.0, 1.0, 0.5]), 1.0, np.array([0.0, 0.0, 0.3]))
+    with pytest.raises(ValueError, match=r"at t = 1e\+10 s for body 1, the closed form's phase is beyond"):
+        rj.simulate(model, rj.State(omega, q0), ts, accuracy="exact")
+    traj = rj.simulate(model, rj.State(omega, q0), ts, accuracy="exact", throw=False)
+    np.testing.assert_array_equal(np.asarray(traj.success), [True, False, True])
+    np.testing.assert_array_equal(np.asarray(traj.stats["first_failed_sample"]), [4, 3, 4])
+    alone = rj.simulate(model, rj.State(omega[[0, 2]], q0[[0, 2]]), ts, accuracy="exact")
+    np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega))
+    jitted = jax.jit(lambda w: rj.simulate(model, rj.State(w, jnp.asarray(q0)), ts, accuracy="exact").omega)
+    with pytest.raises(Exception, match="NaN or inf, or its phase is beyond what float64 resolves"):
+        jitted(jnp.asarray(omega)).block_until_ready()
 
 
 def test_a_span_too_long_for_the_step_floor_names_the_closed_form():

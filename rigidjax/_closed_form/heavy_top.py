@@ -50,6 +50,7 @@ from .._numerics import safe_norm, safe_sqrt
 from .barrier import _materialised
 from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
+from .frame import largest_phase
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
 
 
@@ -246,7 +247,7 @@ def _quat_times_omega(q, omega):
 
 def _half(half, body, t, now, reduced):
     """Both Cayley-Klein halves at time ``t`` (on the leading axis of ``half``'s arrays): their unit
-    phases, signed moduli and moduli's rates, and ``du/dt``."""
+    phases, signed moduli and moduli's rates, ``du/dt``, and the phases' angles."""
     k, coeff, near, far = half["k"], half["coeff"], half["near"], half["far"]
     sn, cn, dn = now
     rate, amp, sigma = body["rate"], body["amp"], body["sigma"]
@@ -301,10 +302,10 @@ def _half(half, body, t, now, reduced):
     direction = _unit(_times(j0, z0) + _times(_safe_div(1.0, rate) * jdot0, drift))
     pole = (direction, scale * j_now, scale * jdot_now * rate)
     chosen = [jnp.where(half["reached"], x, y) for x, y in zip(pole, regular, strict=True)]
-    return chosen[0] * rotor, chosen[1], chosen[2], udot
+    return chosen[0] * rotor, chosen[1], chosen[2], udot, phase
 
 
-def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
+def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t, *, phases=False):
     """Body-frame ``omega(t)`` and orientation ``q(t)`` of Lagrange's top, in closed form.
 
     **Arguments:**
@@ -320,9 +321,11 @@ def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t):
     broadcast of the bodies' batch axes with ``t``'s shape. The inputs are not checked here:
     ``simulate`` checks them (a physical inertia, ``I1 = I2``, ``com`` on the z axis, a unit ``q0``).
     Derivatives: every sample's Jacobian (:func:`.sample_jacobians`), so that reverse mode costs
-    about what forward mode does.
+    about what forward mode does. ``phases``: also return the size of the phases evaluated at each
+    sample (:func:`.largest_phase`), shape ``batch``.
     """
-    return _motion(inertia, mass, com, gravity, omega0, q0, t)
+    omega, q, phase = _motion(inertia, mass, com, gravity, omega0, q0, t)
+    return (omega, q, phase[..., 0]) if phases else (omega, q)
 
 
 def _motion_of_inputs(inertia, mass, com, gravity, omega0, q0, t):
@@ -343,7 +346,8 @@ def lagrange_top_parts(inertia, mass, com, gravity, omega0, q0) -> dict:
 
 def lagrange_top_at(body: dict, t):
     """``(omega, q)`` of :func:`lagrange_top_motion` at times ``t`` from the tops' parts
-    (:func:`lagrange_top_parts`)."""
+    (:func:`lagrange_top_parts`), and the size of their phases (:func:`.largest_phase`), shape
+    ``batch + (1,)``."""
     sn0, cn0, dn0 = body["start"]
     v = body["rate"] * t
     sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
@@ -359,7 +363,7 @@ def lagrange_top_at(body: dict, t):
     halves = jax.tree.map(
         lambda x: x.reshape((2,) + (1,) * (samples - x.ndim + 1) + x.shape[1:]), body["halves"]
     )
-    ph, mod, mod_rate, udot = _half(halves, body, t, now, v)
+    ph, mod, mod_rate, udot, angle = _half(halves, body, t, now, v)
     # Held in memory: read by every component of omega and q (each would recompute them otherwise).
     ph_re, ph_im, mod, mod_rate, udot = _materialised((jnp.real(ph), jnp.imag(ph), mod, mod_rate, udot))
     (ph_p, ph_m), (mod_p, mod_m), (rate_p, rate_m) = jax.lax.complex(ph_re, ph_im), mod, mod_rate
@@ -405,7 +409,12 @@ def lagrange_top_at(body: dict, t):
     )
     w3 = jnp.broadcast_to(body["w3"], transverse.shape)
     omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
-    return omega, jnp.stack(q, axis=-1)
+    # A sleeping top's modes turn at a t / 2 and |w| t, |w| <= sqrt(a^2 / 4 + |beta| / 2).
+    modes = jnp.where(
+        sleep_up | sleep_down, (jnp.abs(a) / 2 + safe_sqrt(a * a / 4 + jnp.abs(body["beta"]) / 2)) * t, 0.0
+    )
+    phase = largest_phase(v, angle[0], angle[1], modes)
+    return omega, jnp.stack(q, axis=-1), jnp.broadcast_to(phase, transverse.shape)[..., None]
 
 
 def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):

@@ -286,7 +286,8 @@ def _nutation_spin_quat(momentum):
 
 
 def _general_orientation(frame, parts, t):
-    """``q0* q(t)`` for a body that is not in steady rotation (see :func:`torque_free_motion`)."""
+    """``q0* q(t)`` for a body that is not in steady rotation (see :func:`torque_free_motion`) and
+    its precession angle ``phi(t)``."""
     moments, index = frame["moments"], frame["index"]
     around_largest, m, p, nu, u = (parts[k] for k in ("around_largest", "m", "p", "nu", "u"))
     I_a = jnp.where(around_largest, moments[0], moments[2])
@@ -361,4 +362,4 @@ def _general_orientation(frame, parts, t):
     b0_conj = b0 * jnp.array([1.0, -1.0, -1.0, -1.0], u.dtype)
     q = _quat_multiply(b0_conj, _quat_multiply(precession, b1)) * flip[..., None]
     vector = _cycle([q[..., 1], q[..., 2], q[..., 3]], (2 - c_index) % 3)
-    return jnp.stack([q[..., 0], *vector], axis=-1)
+    return jnp.stack([q[..., 0], *vector], axis=-1), phi

@@ -23,7 +23,7 @@ from .._dynamics.inertia import principal_axes
 from .._dynamics.models import State
 from .._numerics import short_norm
 from . import batching, driver
-from .trajectory import Trajectory
+from .trajectory import Trajectory, first_failed_sample
 
 
 def max_norm(x):
@@ -116,7 +116,7 @@ def _kept_samples(omega, q):
     bad = ~jnp.all(jnp.isfinite(omega), axis=-1)
     if q is not None:
         bad = bad | ~jnp.all(jnp.isfinite(q), axis=-1)
-    first_bad = jnp.where(jnp.any(bad, axis=-1), jnp.argmax(bad, axis=-1), n_times)
+    first_bad = first_failed_sample(bad)
     keep = jnp.arange(n_times) < first_bad[:, None]
     omega = jnp.where(keep[..., None], omega, jnp.nan)
     if q is None:

@@ -29,12 +29,13 @@ from .._checks import (
     raise_collected,
 )
 from .._closed_form.barrier import _materialised
+from .._closed_form.frame import phase_unresolved
 from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.models import FreeBody, HeavyTop
 from . import batching
 from .inputs import checked_inputs
-from .trajectory import Trajectory
+from .trajectory import Trajectory, first_failed_sample
 
 __all__ = ["simulate_exact"]
 
@@ -121,42 +122,50 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
     t = ts[1:] - ts[0] if n_times == 2 else ts - ts[0]
 
     def motion(bodies, t):
-        """omega ``(bodies, samples, 3)`` and the orientation ``(bodies, samples, 4)`` (or None) at
-        the times ``t`` after the first."""
+        """omega ``(bodies, samples, 3)``, the orientation ``(bodies, samples, 4)`` (or None) and the
+        size of the closed form's phases ``(bodies, samples)`` at the times ``t`` after the first."""
         first_omega = bodies["omega0"]
         first_q = bodies.get("q0")  # checked and normalised by _exact_inputs
         if n_times == 1:
-            return first_omega[:, None], None if q0 is None else first_q[:, None]
+            return (
+                first_omega[:, None],
+                None if q0 is None else first_q[:, None],
+                jnp.zeros_like(first_omega[:, :1]),
+            )
         inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
         if heavy:
-            omega, q = lagrange_top_motion(*(bodies[name][:, None] for name in _TOP_INPUTS), t)
+            top = (bodies[name][:, None] for name in _TOP_INPUTS)
+            omega, q, phase = lagrange_top_motion(*top, t, phases=True)
         elif q0 is None:
-            omega, q = _torque_free_omega(inertia, omega0, t, checked=False), None
+            (omega, phase), q = _torque_free_omega(inertia, omega0, t, checked=False, phases=True), None
         else:
-            omega, q = _torque_free_motion(inertia, omega0, bodies["q0"][:, None], t, checked=False)
+            omega, q, phase = _torque_free_motion(
+                inertia, omega0, bodies["q0"][:, None], t, checked=False, phases=True
+            )
         if n_times == 2:
             # Computed in full before the stacking (see _closed_form.barrier): 10^4 bodies' omega
             # and q 5.5 -> 4.0 ms.
             omega, q = _materialised((omega, q)) if q is not None else (_materialised((omega,))[0], None)
             omega = jnp.stack([first_omega, omega[:, 0]], axis=1)
-            return omega, None if q is None else jnp.stack([first_q, q[:, 0]], axis=1)
-        return omega, q
+            phase = jnp.stack([jnp.zeros_like(phase[:, 0]), phase[:, 0]], axis=1)
+            return omega, None if q is None else jnp.stack([first_q, q[:, 0]], axis=1), phase
+        return omega, q, phase
 
     per_block = max(1, block_elements() // max(n_times, 1)) if chunk_size is None else chunk_size
     block = min(per_block, n_bodies)
     if n_bodies <= per_block:
-        omega, orientation = motion(flat, t)
+        omega, orientation, phase = motion(flat, t)
     else:
         block = batching.plan_chunks(n_bodies, per_block, shardable=False).chunk
-        omega, orientation = _plain_blocks(motion, flat, t, per_block)
-    # A body whose samples are not all finite (inputs beyond what the dtype can evaluate, such as an
-    # angular momentum whose square overflows) has failed: its success is False, as an integrated
-    # body's would be.
-    finite = jnp.all(jnp.isfinite(omega), axis=-1)
+        omega, orientation, phase = _plain_blocks(motion, flat, t, per_block)
+    # A body has failed (success False, as an integrated body's would be) where a sample is not
+    # finite (inputs beyond what the dtype can evaluate, such as an angular momentum whose square
+    # overflows) or the closed form's phase is beyond what the dtype resolves (the result is noise).
+    bad = ~jnp.all(jnp.isfinite(omega), axis=-1) | phase_unresolved(phase)
     if orientation is not None:
-        finite = finite & jnp.all(jnp.isfinite(orientation), axis=-1)
-    success = jnp.all(finite, axis=-1)
-    first_bad = jnp.where(success, n_times, jnp.argmin(finite, axis=-1))
+        bad = bad | ~jnp.all(jnp.isfinite(orientation), axis=-1)
+    first_bad = first_failed_sample(bad)
+    success = first_bad == n_times
     omega = omega.reshape(batch + omega.shape[1:])
     if orientation is not None:
         orientation = orientation.reshape(batch + orientation.shape[1:])

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_positive_int, check_times_shape, error_if, float_dtype, known_values
+from .._closed_form.frame import PHASE_ROUNDING_LIMIT
 from .._dynamics.models import AbstractModel, HeavyTop, State
 from .._kinematics.euler import is_proper_sequence
 from . import batching, driver
@@ -182,7 +183,9 @@ def simulate(
       ``Trajectory.success`` and is NaN from its failure on, while every other body keeps its
       result: bodies share a step size within a chunk, so a chunk stopped by a body whose torque or
       state turned NaN is run again body by body. With ``accuracy="exact"`` a body fails where its
-      closed form is NaN or inf (inputs beyond the dtype's range).
+      closed form is NaN or inf (inputs beyond the dtype's range) or its phase is rounded by more
+      than 1e-3 rad (float64: a phase of 4.5e12 rad, float32: 8.4e3 rad; the samples would be
+      noise).
     - `args`: passed to user torques as ``fn(t, state, args)``.
     - `representation`: how the orientation is integrated when there is one: ``"quaternion"``
       (default; unit norm kept without drift) or ``"euler"`` (the Euler angles of ``euler_seq`` as
@@ -257,7 +260,7 @@ def simulate(
         traj = simulate_exact(model, state0, ts, chunk_size)
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
-        return _raise_if_not_finite(traj) if throw else traj
+        return _raise_if_exact_failed(traj) if throw else traj
     fixed_step = isinstance(solver, STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
@@ -406,14 +409,11 @@ def _failure_reason(code: int, max_steps: int, formulation) -> str:
 
 def _raise_if_failed(traj, max_steps, formulation):
     """A failed run's error, naming the first failed body, where it failed and why."""
-    success = np.asarray(traj.success)
-    if success.all():
+    failure = _first_failed_body(traj)
+    if failure is None:
         return
-    batch = traj.batch_shape
-    failed = np.flatnonzero(~success.ravel())
-    first = int(failed[0])
+    first, sample, who, others = failure
     code = int(np.asarray(traj.stats["result"]).ravel()[first])
-    sample = int(np.asarray(traj.stats["first_failed_sample"]).ravel()[first])
     ts = np.asarray(traj.ts)
     if sample == 0:  # not even the first step was taken
         when = f"at its first step from t = {ts[0]:.6g} s"
@@ -421,11 +421,6 @@ def _raise_if_failed(traj, max_steps, formulation):
         when = f"between t = {ts[sample - 1]:.6g} s and t = {ts[sample]:.6g} s"
     else:
         when = "before the last sample time"
-    index = tuple(int(i) for i in np.unravel_index(first, batch))
-    who = "the body" if not batch else f"body {index[0] if len(batch) == 1 else index}"
-    others = (
-        f" ({failed.size} of {success.size} bodies failed; the first is named)" if failed.size > 1 else ""
-    )
     raise eqx.EquinoxRuntimeError(
         f"simulate: {who} failed {when}: it {_failure_reason(code, max_steps, formulation)}.{others} "
         "With throw=False the other bodies keep their results, the failed ones are NaN from their "
@@ -453,26 +448,54 @@ def _error_if_failed(traj, max_steps, formulation):
     return eqx.tree_at(lambda t: t.omega, traj, omega)
 
 
-def _raise_if_not_finite(traj):
-    """The closed form's error for a body whose samples are not all finite, naming the first such
-    body and sample time (under the user's ``jit``: the cause only)."""
-    reason = (
-        f"its inputs are beyond what {traj.omega.dtype} can evaluate (for instance an angular "
-        "momentum whose square overflows). Pass throw=False for these rows and Trajectory.success."
-    )
-    if isinstance(traj.success, jax.core.Tracer):
-        message = f"simulate: the closed form of a body is NaN or inf: {reason}"
-        return eqx.tree_at(lambda t: t.omega, traj, eqx.error_if(traj.omega, ~jnp.all(traj.success), message))
+def _first_failed_body(traj):
+    """``(flat index, first failed sample, "body ...", " (n of N bodies ...)")`` of the first body
+    whose ``success`` is False, or None when all succeeded."""
     success = np.asarray(traj.success)
     if success.all():
-        return traj
+        return None
     failed = np.flatnonzero(~success.ravel())
     first, batch = int(failed[0]), traj.batch_shape
-    t = float(np.asarray(traj.ts)[int(np.asarray(traj.stats["first_failed_sample"]).ravel()[first])])
+    sample = int(np.asarray(traj.stats["first_failed_sample"]).ravel()[first])
     index = tuple(int(i) for i in np.unravel_index(first, batch))
     who = "the body" if not batch else f"body {index[0] if len(batch) == 1 else index}"
-    others = f" ({failed.size} of {success.size} bodies; the first is named)" if failed.size > 1 else ""
-    raise ValueError(f"simulate: the closed form of {who} is NaN or inf at t = {t:.6g} s{others}: {reason}")
+    others = (
+        f" ({failed.size} of {success.size} bodies failed; the first is named)" if failed.size > 1 else ""
+    )
+    return first, sample, who, others
+
+
+def _raise_if_exact_failed(traj):
+    """The closed form's error for a body with a sample that is NaN or inf or whose phase is beyond
+    what the dtype resolves, naming the first such body and sample time (under the user's ``jit``:
+    the causes only)."""
+    dtype = traj.omega.dtype
+    rows = "Pass throw=False for these rows and Trajectory.success."
+    beyond = (
+        f"its inputs are beyond what {dtype} can evaluate (for instance an angular momentum whose "
+        f"square overflows). {rows}"
+    )
+    nearer = "times nearer the first sample (restart from the state at a later time)"
+    advice = f"Use {nearer}." if jnp.finfo(dtype).bits >= 64 else f"Use float64, or {nearer}."
+    phase = (
+        f"the closed form's phase is beyond what {dtype} resolves (its rounding exceeds "
+        f"{PHASE_ROUNDING_LIMIT:g} rad): the samples would be noise"
+    )
+    if isinstance(traj.success, jax.core.Tracer):
+        message = (
+            f"simulate: the closed form of a body is NaN or inf, or its phase is beyond what {dtype} "
+            f"resolves (rounded by more than {PHASE_ROUNDING_LIMIT:g} rad). {advice} {rows}"
+        )
+        return eqx.tree_at(lambda t: t.omega, traj, eqx.error_if(traj.omega, ~jnp.all(traj.success), message))
+    failure = _first_failed_body(traj)
+    if failure is None:
+        return traj
+    first, sample, who, others = failure
+    t = float(np.asarray(traj.ts)[sample])
+    samples = [x for x in (traj.omega, traj.orientation) if x is not None]
+    if all(np.isfinite(np.asarray(x).reshape((-1,) + x.shape[-2:])[first, sample]).all() for x in samples):
+        raise ValueError(f"simulate: at t = {t:.6g} s for {who}, {phase}{others}. {advice} {rows}")
+    raise ValueError(f"simulate: the closed form of {who} is NaN or inf at t = {t:.6g} s{others}: {beyond}")
 
 
 def _check_no_integrator_options(**options):

@@ -23,6 +23,12 @@ def _stable_norm(v):
     return big[..., 0] * jnp.linalg.norm(v / safe, axis=-1)
 
 
+def first_failed_sample(bad):
+    """Per body (``bad``: ``(bodies, T)``, True at a failed sample) the index of its first failed
+    sample, ``T`` when it has none: ``Trajectory.stats["first_failed_sample"]``."""
+    return jnp.where(jnp.any(bad, axis=-1), jnp.argmax(bad, axis=-1), bad.shape[-1])
+
+
 class Trajectory(eqx.Module):
     """Sampled motion of one body or a batch.
 
@@ -30,14 +36,16 @@ class Trajectory(eqx.Module):
     quaternions (scalar first, body -> space) or None for an omega-only scene. ``success`` (*batch)
     is False where the integration failed (only with ``throw=False``): such a body keeps the samples
     before its failure and is NaN from there on; with ``accuracy="exact"``, where a sample of the
-    closed form is NaN or inf (inputs beyond the dtype's range), each sample as evaluated.
+    closed form is NaN or inf (inputs beyond the dtype's range) or its phase is rounded by more
+    than 1e-3 rad, each sample as evaluated.
     ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk),
     ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body;
     None for ``accuracy="exact"``, whose quaternions nothing normalises: :meth:`invariants` measures
     their norm from the samples),
     ``result`` (per body: 0 for success, otherwise diffrax's result code, or -1 for a state that turned
     NaN or inf under a fixed-step solver) and ``first_failed_sample`` (per body: the index of its
-    first NaN sample, ``T`` when it has none; the closed form has this one only); with
+    first NaN sample, ``T`` when it has none; the closed form has this one only, its first failed
+    sample); with
     ``simulate(..., error_estimate=True)`` also ``error_estimate_omega`` and
     ``error_estimate_orientation`` (:meth:`error_estimate`).
 
