@@ -132,7 +132,7 @@ def test_long_horizon_drift_per_preset(long_runs, accuracy, extreme):
     extreme(
         "long horizon",
         f"1000 wobble periods ({ts[-1]:.0f} s), accuracy={accuracy!r}",
-        "energy drifts linearly" if accuracy != "exact" else "exact at any time",
+        "energy drifts linearly" if accuracy != "exact" else "roundoff at any time (eps x phase)",
         max(e_first, e_second),
         bound,
         "accuracy='exact' (torque-free) or a splitting solver for conservation over long runs",
