@@ -1426,7 +1426,8 @@ def test_the_closed_forms_refuse_a_phase_beyond_what_the_dtype_resolves(dtype, e
     is an error naming the sample: the elliptic argument's rate from Landau & Lifshitz's formula puts
     the limit of omega alone at t = 1e-3 / (eps lambda): 1 % below it the value is kept (in float32
     within 2e-3 of float64's), 1 % above it is refused, also under jit. A steady rotation's omega has
-    no phase (it is omega0 at any t); its orientation has one."""
+    no phase (it is omega0 at any t); its orientation has one. Inputs that are constants of the
+    user's jit are checked at run time too."""
     inertia, omega = np.array([1.0, 2.0, 3.0]), np.array([1.0, 0.5, 0.2])
     q0 = np.array([1.0, 0.0, 0.0, 0.0], dtype)
     limit = 1e-3 / (np.finfo(dtype).eps * _elliptic_rate(inertia, omega))
@@ -1460,6 +1461,8 @@ def test_the_closed_forms_refuse_a_phase_beyond_what_the_dtype_resolves(dtype, e
             call(beyond)
         with pytest.raises(RUNTIME, match=rf"{function}: a phase of the closed form is beyond what {name}"):
             jax.block_until_ready(jax.jit(call)(jnp.asarray(beyond)))
+        with pytest.raises(RUNTIME, match=rf"{function}: a phase of the closed form is beyond what {name}"):
+            jax.block_until_ready(jax.jit(lambda call=call: call(beyond))())  # constants of the jit
     steady = np.array([0.0, 0.0, 1.0], dtype)
     np.testing.assert_array_equal(np.asarray(rj.torque_free_omega(inertia, steady, beyond))[1], steady)
     with pytest.raises(ValueError, match="torque_free_motion: at t = "):

@@ -210,8 +210,7 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     time.
     """
     omega, phase = call_checked(_omega_program, _omega_failures, inertia, omega0, t)
-    _raise_if_unresolved(phase, "torque_free_omega")
-    return omega
+    return _raise_if_unresolved(omega, phase, "torque_free_omega")
 
 
 # One compiled program per shape (eager calls would dispatch op by op). Inputs with values are checked
@@ -221,28 +220,18 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
 @eqx.filter_jit
 def _omega_program(inertia, omega0, t, *, checked):
     omega, phase = _torque_free_omega(inertia, omega0, t, checked=checked, phases=True)
-    return _phase_checked(omega, phase, t, checked, "torque_free_omega")
+    return _phase_checked(omega, phase, t)
 
 
-def _phase_checked(result, phase, t, checked, where):
-    """``result`` and its largest phase (``phase``: per sample, :func:`.largest_phase`), with the
-    sample's time and index, for :func:`_raise_if_unresolved`; with ``checked``, a run-time error if
-    that phase is beyond what the dtype resolves."""
+def _phase_checked(result, phase, t):
+    """``result`` and its largest phase (``phase``: per sample, :func:`.largest_phase`) with the
+    sample's time and index, for :func:`_raise_if_unresolved`."""
     if phase.size == 0:
         return result, None
     index = jnp.argmax(jnp.ravel(phase))
-    largest = jnp.ravel(phase)[index]
-    if checked:
-        result = error_if(
-            result,
-            phase_unresolved(largest),
-            f"{where}: a phase of the closed form is beyond what {largest.dtype} resolves (its rounding "
-            f"exceeds {PHASE_ROUNDING_LIMIT:g} rad): the result would be noise. "
-            + _phase_advice(largest.dtype),
-        )
     at = jnp.ravel(jnp.broadcast_to(t, phase.shape))[index]
     element = jnp.stack(jnp.unravel_index(index, phase.shape)) if phase.ndim else jnp.zeros(0, jnp.int32)
-    return result, (largest, at, element)
+    return result, (jnp.ravel(phase)[index], at, element)
 
 
 def _phase_advice(dtype) -> str:
@@ -250,16 +239,25 @@ def _phase_advice(dtype) -> str:
     return f"Use {nearer}." if jnp.finfo(dtype).bits >= 64 else f"Use float64, or {nearer}."
 
 
-def _raise_if_unresolved(phase, where):
-    """``ValueError`` naming the sample with the largest phase (``phase`` from
-    :func:`_phase_checked`) if it is beyond what the dtype resolves; nothing where the values are not
-    known (the user's ``jit``: the program checked them)."""
+def _raise_if_unresolved(result, phase, where):
+    """``result``, or a ``ValueError`` naming the sample with the largest phase (``phase`` from
+    :func:`_phase_checked`) if it is beyond what the dtype resolves. Without values (the user's
+    ``jit``, also around a call whose inputs are its constants) a run-time error."""
+    if phase is None:
+        return result
     values = known_values(phase)
-    if values is None or values[0] is None:
-        return
+    if values is None:
+        largest = phase[0]
+        return error_if(
+            result,
+            phase_unresolved(largest),
+            f"{where}: a phase of the closed form is beyond what {largest.dtype} resolves (its rounding "
+            f"exceeds {PHASE_ROUNDING_LIMIT:g} rad): the result would be noise. "
+            + _phase_advice(largest.dtype),
+        )
     largest, at, index = (np.asarray(v) for v in values)
     if not phase_unresolved(largest):
-        return
+        return result
     element = f" (element {tuple(index.tolist())} of the broadcast batch)" if index.size else ""
     raise ValueError(
         f"{where}: at t = {float(at):.6g} s{element} the closed form's phase is {float(largest):.3g} rad, "
@@ -554,14 +552,13 @@ def torque_free_motion(
     :func:`torque_free_omega`.
     """
     motion, phase = call_checked(_motion_program, _motion_failures, inertia, omega0, q0, t)
-    _raise_if_unresolved(phase, "torque_free_motion")
-    return motion
+    return _raise_if_unresolved(motion, phase, "torque_free_motion")
 
 
 @eqx.filter_jit
 def _motion_program(inertia, omega0, q0, t, *, checked):
     *motion, phase = _torque_free_motion(inertia, omega0, q0, t, checked=checked, phases=True)
-    return _phase_checked(tuple(motion), phase, t, checked, "torque_free_motion")
+    return _phase_checked(tuple(motion), phase, t)
 
 
 @eqx.filter_jit
