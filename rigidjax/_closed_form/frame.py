@@ -110,6 +110,13 @@ results carry an absolute error of about that (float32, 1 rad/s: 5e-8 at t = 10 
 phase of 4.5e12 rad, float32 at 8.4e3 rad."""
 
 
+def phase_advice(dtype, start: str) -> str:
+    """What to do about a phase beyond :data:`PHASE_ROUNDING_LIMIT`: times nearer ``start`` (and, below
+    float64, float64)."""
+    nearer = f"times nearer {start} (restart from the state at a later time)"
+    return f"Use {nearer}." if jnp.finfo(dtype).bits >= 64 else f"Use float64, or {nearer}."
+
+
 def largest_phase(*phases):
     """``max |phase|`` over ``phases`` (broadcast together), without derivatives: the size of the
     angles that a closed form evaluates at each sample, whose rounding (``eps |phase|``) bounds the

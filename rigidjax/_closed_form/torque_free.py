@@ -48,6 +48,7 @@ from .frame import (
     _sorted_frame,
     _unsort,
     largest_phase,
+    phase_advice,
     phase_unresolved,
 )
 from .precession import _general_orientation
@@ -234,11 +235,6 @@ def _phase_checked(result, phase, t):
     return result, (jnp.ravel(phase)[index], at, element)
 
 
-def _phase_advice(dtype) -> str:
-    nearer = "times nearer t = 0 (restart from the state at a later time)"
-    return f"Use {nearer}." if jnp.finfo(dtype).bits >= 64 else f"Use float64, or {nearer}."
-
-
 def _raise_if_unresolved(result, phase, where):
     """``result``, or a ``ValueError`` naming the sample with the largest phase (``phase`` from
     :func:`_phase_checked`) if it is beyond what the dtype resolves. Without values (the user's
@@ -253,7 +249,7 @@ def _raise_if_unresolved(result, phase, where):
             phase_unresolved(largest),
             f"{where}: a phase of the closed form is beyond what {largest.dtype} resolves (its rounding "
             f"exceeds {PHASE_ROUNDING_LIMIT:g} rad): the result would be noise. "
-            + _phase_advice(largest.dtype),
+            + phase_advice(largest.dtype, "t = 0"),
         )
     largest, at, index = (np.asarray(v) for v in values)
     if not phase_unresolved(largest):
@@ -263,7 +259,7 @@ def _raise_if_unresolved(result, phase, where):
         f"{where}: at t = {float(at):.6g} s{element} the closed form's phase is {float(largest):.3g} rad, "
         f"which {largest.dtype} holds only to {float(largest) * float(np.finfo(largest.dtype).eps):.3g} "
         f"rad (more than {PHASE_ROUNDING_LIMIT:g} rad): the result would be noise. "
-        + _phase_advice(largest.dtype)
+        + phase_advice(largest.dtype, "t = 0")
     )
 
 

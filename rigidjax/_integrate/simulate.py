@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_positive_int, check_times_shape, error_if, float_dtype, known_values
-from .._closed_form.frame import PHASE_ROUNDING_LIMIT
+from .._closed_form.frame import PHASE_ROUNDING_LIMIT, phase_advice
 from .._dynamics.models import AbstractModel, HeavyTop, State
 from .._kinematics.euler import is_proper_sequence
 from . import batching, driver
@@ -475,8 +475,7 @@ def _raise_if_exact_failed(traj):
         f"its inputs are beyond what {dtype} can evaluate (for instance an angular momentum whose "
         f"square overflows). {rows}"
     )
-    nearer = "times nearer the first sample (restart from the state at a later time)"
-    advice = f"Use {nearer}." if jnp.finfo(dtype).bits >= 64 else f"Use float64, or {nearer}."
+    advice = phase_advice(dtype, "the first sample")
     phase = (
         f"the closed form's phase is beyond what {dtype} resolves (its rounding exceeds "
         f"{PHASE_ROUNDING_LIMIT:g} rad): the samples would be noise"
