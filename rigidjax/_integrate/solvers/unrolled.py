@@ -99,6 +99,9 @@ class UnrolledDopri8(diffrax.Dopri8):
     term_structure: ClassVar = diffrax.ODETerm
     interpolation_cls: ClassVar = _PolynomialInterpolation
     stages: ClassVar[int] = len(_C) + 1
+    fence_stages: bool = True
+    """Fence each stage's field value (``jax.lax.optimization_barrier``). False lets XLA fuse the
+    stages into fewer kernels, recomputing a field evaluation where that is cheaper than storing it."""
 
     def init(self, terms, t0, t1, y0, args):
         return terms.vf(t0, y0, args)
@@ -112,7 +115,8 @@ class UnrolledDopri8(diffrax.Dopri8):
         for row, c in zip(_A, _C, strict=True):
             y_stage = _add(y0, terms.prod(_stage_sum(None, row, stages), h))
             t_stage = t1 if c == 1.0 else t0 + float(c) * h
-            f_stage = _fence(terms.vf(t_stage, y_stage, args))
+            f_stage = terms.vf(t_stage, y_stage, args)
+            f_stage = _fence(f_stage) if self.fence_stages else f_stage
             stages.append(f_stage)
         # The last stage is evaluated at the solution (first same as last): y1 and f(t1, y1).
         y1, f1 = y_stage, f_stage
