@@ -1,23 +1,21 @@
-"""Whether a second CPU core can serve ``simulate`` on one JAX device: calls of the compiled
-integration from several Python threads against one call.
+"""``simulate`` on one CPU device: its chunks from one Python thread per core (the default) against
+one compiled call.
 
-On a single CPU device ``simulate`` solves its chunks one after another on one core, while a
-user-written ``jax.vmap(diffeqsolve(...))`` of the whole batch gets XLA's own threads for its large
-arrays. XLA's CPU runtime runs two independent loops of one program one after the other, but two
-programs called from two Python threads at the same time. This script times, on the work-precision
-scene (tennis-racket bodies, T = 20 s, "balanced", two sample times), alternating rounds of:
+On a single CPU device XLA runs one call of a program on one core (a ``lax.map`` of while loops does
+not spread over XLA's threads), while a user-written ``jax.vmap(diffeqsolve(...))`` of the whole
+batch gets XLA's threads for its large arrays. Calls made from several Python threads do run side by
+side, so ``simulate`` runs its chunks as one block per core, each from its own thread, with the same
+chunks and steps as one call. This script times, on the work-precision scene (tennis-racket bodies,
+T = 20 s, two sample times), alternating rounds of:
 
-- one call on all bodies;
-- the batch split into one part per thread, the parts called one after another;
-- the same parts called from one Python thread each, at the same time.
+- ``simulate`` as it runs by default (one block per core, ``rigidjax`` decides the threads);
+- the same call as one compiled program (the thread count forced to 1);
 
-The split changes which bodies share a chunk (each part is planned on its own), so the parts'
-results agree with the one call to the preset's tolerance, not bitwise; the largest difference is
-printed.
+for each preset in ``--accuracies``, and checks that both give the same trajectories to the bit.
 
 Usage:
-    python benchmarks/threaded_calls.py                # 10^4 bodies, as many threads as cores
-    python benchmarks/threaded_calls.py --n 1000 --threads 2 --rounds 3
+    python benchmarks/threaded_calls.py                # 10^4 bodies, "balanced" and "precise"
+    python benchmarks/threaded_calls.py --n 1000 --rounds 3 --accuracies fast
 Writes benchmarks/results/threaded_calls.md (``--out`` to change).
 """
 
@@ -26,7 +24,6 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import threading
 import time
 from pathlib import Path
 
@@ -38,6 +35,7 @@ import numpy as np  # noqa: E402
 from _harness import reference_scene, run_meta, write_markdown  # noqa: E402
 
 import rigidjax as rj  # noqa: E402
+from rigidjax._integrate import progress  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -45,62 +43,64 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, default=10_000, help="bodies")
-    p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)), help="parts and threads")
+    p.add_argument("--accuracies", default="balanced,precise")
     p.add_argument("--rounds", type=int, default=7, help="alternating timed rounds")
     p.add_argument("--out", default=str(RESULTS / "threaded_calls.md"))
     a = p.parse_args(argv)
     inertia, omega0, q0 = reference_scene(a.n)
     ts = np.array([0.0, 20.0])
-    parts = np.array_split(np.arange(a.n), a.threads)
+    model, state = rj.FreeBody(inertia), rj.State(omega0, q0)
+    default_threads = progress.host_threads
 
-    def call(index):
-        model, state = rj.FreeBody(inertia[index]), rj.State(omega0[index], q0[index])
-        return rj.simulate(model, state, ts, accuracy="balanced").omega.block_until_ready()
+    def call(accuracy, one_program):
+        progress.host_threads = (lambda *args: 1) if one_program else default_threads
+        try:
+            traj = rj.simulate(model, state, ts, accuracy=accuracy)
+            return jax.block_until_ready(traj)
+        finally:
+            progress.host_threads = default_threads
 
-    outputs = [None] * len(parts)
-
-    def run_part(k):
-        outputs[k] = call(parts[k])
-
-    def threaded():
-        workers = [threading.Thread(target=run_part, args=(k,)) for k in range(len(parts))]
-        for w in workers:
-            w.start()
-        for w in workers:
-            w.join()
-
-    whole = call(np.arange(a.n))  # compiles; the parts compile below (one program per part size)
-    threaded()
-    difference = float(np.max(np.abs(np.concatenate(outputs) - np.asarray(whole))))
-    ways = {
-        "one call": lambda: call(np.arange(a.n)),
-        f"{len(parts)} parts, one after another": lambda: [run_part(k) for k in range(len(parts))],
-        f"{len(parts)} parts, one thread each": threaded,
-    }
-    times = {name: [] for name in ways}
-    for _ in range(a.rounds):
-        for name, fn in ways.items():
-            start = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - start)
-    one = statistics.median(times["one call"])
+    threads = default_threads(model, state.omega, state.orientation, ts, None, 256)
     rows = []
-    for name, values in times.items():
-        median = statistics.median(values)
-        rows.append(f"| {name} | {median * 1e3:.1f} | {min(values) * 1e3:.1f} | {one / median:.2f} |")
-        print(
-            f"{name:32s} median {median * 1e3:7.1f} ms  min {min(values) * 1e3:7.1f} ms  "
-            f"speed-up {one / median:.2f}"
+    for accuracy in [s.strip() for s in a.accuracies.split(",") if s.strip()]:
+        first = {}
+        for one_program in (True, False):  # first calls: compile apart
+            start = time.perf_counter()
+            first[one_program] = call(accuracy, one_program)
+            print(f"{accuracy}: first call, {'one program' if one_program else 'threads'} "
+                  f"{time.perf_counter() - start:.2f} s", flush=True)  # fmt: skip
+        same = all(
+            np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
+            for x, y in zip(
+                jax.tree_util.tree_leaves((first[True].omega, first[True].orientation)),
+                jax.tree_util.tree_leaves((first[False].omega, first[False].orientation)),
+                strict=True,
+            )
         )
-    print(f"largest |omega(T)| difference, parts against one call: {difference:.1e}")
-    meta = run_meta("benchmarks/threaded_calls.py", argv, n=a.n, threads=a.threads)
+        times = {True: [], False: []}
+        for _ in range(a.rounds):
+            for one_program in (True, False):
+                start = time.perf_counter()
+                call(accuracy, one_program)
+                times[one_program].append(time.perf_counter() - start)
+        one, many = statistics.median(times[True]), statistics.median(times[False])
+        for label, key in (("one compiled call", True), (f"{threads} threads (default)", False)):
+            median = statistics.median(times[key])
+            rows.append(
+                f"| {accuracy} | {label} | {median * 1e3:.1f} | {min(times[key]) * 1e3:.1f} | "
+                f"{one / median:.2f} | {'yes' if same else 'NO'} |"
+            )
+        print(f"{accuracy}: one call {one * 1e3:.1f} ms, {threads} threads {many * 1e3:.1f} ms "
+              f"({one / many:.2f}x), the same to the bit: {same}", flush=True)  # fmt: skip
+    meta = run_meta("benchmarks/threaded_calls.py", argv, n=a.n, threads=threads)
     caption = (
-        f"`simulate` 'balanced' from {a.threads} Python threads on one CPU device, N = {a.n} tennis-racket "
-        f"bodies, T = 20 s, two sample times; medians of {a.rounds} alternating rounds "
-        f"(`{meta['command']}`, {meta['devices'][0]}, jax {meta['jax']}, "
-        f"{os.cpu_count()} CPUs). Largest difference of omega(T), parts against one call: {difference:.1e}."
+        f"`simulate` on one CPU device, {threads} threads against one compiled call, N = {a.n} "
+        f"tennis-racket bodies, T = 20 s, two sample times; medians of {a.rounds} alternating rounds, "
+        f"compile excluded (`{meta['command']}`, {meta['devices'][0]}, jax {meta['jax']}, "
+        f"{os.cpu_count()} CPUs, load {meta['loadavg_start']})."
     )
-    write_markdown(a.out, caption, ["calls", "median ms", "min ms", "speed-up"], rows)
+    headers = ["accuracy", "calls", "median ms", "min ms", "speed-up", "same trajectories to the bit"]
+    write_markdown(a.out, caption, headers, rows)
 
 
 if __name__ == "__main__":

@@ -162,3 +162,75 @@ def test_fit_progress_bad_value(fit, without_runtime_typecheck):
     data = np.tile([0.3, 0.05, 1.0], (20, 1)) if fit is rj.fit_inertia else np.tile([1.0, 0, 0, 0], (20, 1))
     with pytest.raises(TypeError, match=r"progress must be True .*, False, or a callable"):
         fit(ts, data, progress="verbose")
+
+
+@pytest.fixture
+def threads(monkeypatch):
+    """Sets the number of threads ``simulate`` runs its blocks from (``progress.host_threads``)."""
+    from rigidjax._integrate import progress
+
+    def use(count):
+        monkeypatch.setattr(progress, "host_threads", lambda *args: count)
+
+    return use
+
+
+def test_threads_give_the_one_program_trajectories(threads):
+    """Reference: the same batch as one compiled call. Run from one thread per block (three blocks of
+    one chunk each, three threads, whatever the cores), the trajectories and every statistic are the
+    same to the bit: each chunk holds the same bodies and takes the same steps."""
+    model, state0 = _scene()
+    threads(1)
+    one_program = rj.simulate(model, state0, TS, chunk_size=2)
+    threads(3)
+    _assert_same(one_program, rj.simulate(model, state0, TS, chunk_size=2))
+    threads(2)  # two threads, three blocks: one thread runs two
+    _assert_same(one_program, rj.simulate(model, state0, TS, chunk_size=2))
+
+
+def test_threads_with_progress_and_faults(threads):
+    """Reference: one compiled call. A NaN torque stops its chunk, which is run again body by body;
+    with threads and a progress report the result is the same to the bit, and the reports arrive in
+    order."""
+    omega0 = np.tile([1.0, 0.2, 0.3], (N, 1))
+    omega0[3, 0] = 5.0
+    torque = rj.Torque(
+        lambda t, s, a: jnp.where((t > 1.0) & (s.omega[0] > 3.0), jnp.nan, 0.0) * jnp.ones(3),
+        needs_orientation=False,
+    )
+    model = rj.RigidBody(jnp.asarray(np.tile([1.0, 2.0, 3.0], (N, 1))), torque)
+    state0 = rj.State(jnp.asarray(omega0))
+    threads(1)
+    one_program = rj.simulate(model, state0, TS, chunk_size=2, throw=False)
+    threads(2)
+    calls = []
+    traj = rj.simulate(model, state0, TS, chunk_size=2, throw=False, progress=lambda d, t: calls.append(d))
+    assert calls == [0, 2, 4, 6]
+    assert np.asarray(traj.success).tolist() == [True, True, True, False, True, True]
+    _assert_same(one_program, traj)
+
+
+def test_host_threads_only_where_they_can_help(monkeypatch):
+    """One thread per core up to one per chunk, on a single CPU device with values to run on;
+    one compiled call under jit, for a single sample time and for a trajectory over the size limit."""
+    from rigidjax._integrate import progress
+
+    monkeypatch.setattr(progress, "available_cores", lambda: 4)
+    model, state0 = _scene()
+    w, q = state0.omega, state0.orientation
+    assert progress.host_threads(model, w, q, TS, None, 2) == 3  # three chunks
+    assert progress.host_threads(model, w, q, TS, None, 1) == 4  # six chunks, four cores
+    assert progress.host_threads(model, w, q, TS, None, 6) == 1  # one chunk
+    assert progress.host_threads(model, w, q, TS[:1], None, 2) == 1  # nothing to integrate
+    monkeypatch.setattr(progress, "THREADED_MAX_BYTES", N * TS.shape[0] * 7 * 8 - 1)
+    assert progress.host_threads(model, w, q, TS, None, 2) == 1
+    monkeypatch.setattr(progress, "THREADED_MAX_BYTES", N * TS.shape[0] * 7 * 8)
+    seen = []
+
+    @jax.jit
+    def traced(w):
+        seen.append(progress.host_threads(model, w, q, TS, None, 2))
+        return w
+
+    traced(w)
+    assert seen == [1]

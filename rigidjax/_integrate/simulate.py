@@ -331,11 +331,12 @@ def simulate(
 
         return driver.solve_in_either_mode(call, adjoint, adjoint_chosen)
 
-    if report is None:
+    threads = _progress.host_threads(model, omega0, q0, ts, args, chunk_size)
+    if report is None and threads == 1:
         traj = run(model, omega0, q0, chunk_size, sort_by_speed)
     else:
         traj = _progress.run_in_blocks(
-            run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort_by_speed
+            run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort_by_speed, threads
         )
     if isinstance(traj.success, jax.core.Tracer):  # inside the user's jit: no values to look at
         return _error_if_failed(traj, max_steps, formulation) if throw else traj
