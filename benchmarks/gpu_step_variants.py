@@ -4,9 +4,11 @@ The tennis-racket scene of ``_harness.py`` (N bodies, T = 20 s, float64, one chu
 times): ``simulate`` "balanced" and "precise" with :class:`rigidjax.solvers.UnrolledDopri8` with its
 stages fenced (each stage's field a separate value) and unfenced (XLA free to fuse the stages),
 diffrax's own ``Dopri8`` at the same tolerance, and the user-written vmapped Tsit5 at rtol 1e-6 and
-1e-7. For each: median run time of ``--repeats`` calls after a first (compile) call, shared steps,
-time per step, max relative omega error at T against the float64 closed form, and the number of
-kernels-to-be in the compiled program (fusions, custom calls and copies in the optimised HLO).
+1e-7 (the "precise" preset also lands a step on every sample time, its unfenced variant does not,
+so those two differ by more than the fence). For each: median run time of ``--repeats`` calls
+after a first (compile) call, shared steps, time per step, max relative omega error at T against
+the float64 closed form, and the number of kernels-to-be in the compiled program (fusions, custom
+calls and copies in the optimised HLO).
 
 On a GPU a step of 10^4 bodies costs about its kernel launches and loop bookkeeping, so the variants
 differ by how many kernels XLA makes of a step; on a CPU, by the arithmetic and the cache.

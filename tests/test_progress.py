@@ -5,6 +5,7 @@ the runs without it. The scenes are tiny (six bodies in chunks of two: three chu
 so that the file compiles little."""
 
 import re
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -234,3 +235,30 @@ def test_host_threads_only_where_they_can_help(monkeypatch):
 
     traced(w)
     assert seen == [1]
+
+
+def test_threads_trace_in_the_callers_jax_context(threads):
+    """JAX's context managers hold per thread: inside one (here ``jax.enable_x64(False)``) the
+    blocks run in the calling thread, whose context a worker thread would not see; outside it, in
+    worker threads. Seen through the thread that traces a torque function."""
+    traced_in = set()
+
+    def torque(t, state, args):
+        traced_in.add(threading.get_ident())
+        return jnp.zeros(3)
+
+    def model():  # a new function each time: a new program, traced again
+        return rj.RigidBody(
+            jnp.asarray(np.tile([1.0, 2.0, 3.0], (N, 1))),
+            rj.Torque(lambda t, s, a: torque(t, s, a), needs_orientation=False),
+        )
+
+    state0 = rj.State(jnp.asarray(np.tile([1.0, 0.2, 0.3], (N, 1))))
+    threads(3)
+    with jax.enable_x64(False):
+        traj = rj.simulate(model(), state0, TS, chunk_size=2)
+    assert traj.omega.dtype == jnp.float32
+    assert traced_in == {threading.get_ident()}
+    traced_in.clear()
+    rj.simulate(model(), state0, TS, chunk_size=2)
+    assert traced_in - {threading.get_ident()}, "no block ran in a worker thread"

@@ -1,10 +1,11 @@
 """Every CPU core for :func:`rigidjax.simulate`: JAX's CPU presented as one device per core.
 
-On a CPU, JAX is one device by default, and ``simulate`` runs its chunks one after another as a
-sequence of while loops, each too small for XLA to spread over threads: one core works. With several
-devices, ``simulate`` spreads whole chunks over them (``jax.shard_map``), each device runs on its own
-core, and the results are the same to the bit. JAX fixes its devices at its first computation, so
-this is a choice made once per process, before any array is created.
+On a CPU, JAX is one device by default, and one compiled call of ``simulate``'s chunks (a sequence
+of while loops, each too small for XLA to spread over threads) runs on one core; ``simulate`` then
+runs its chunks in one block per core, each from its own Python thread (:mod:`.progress`). With
+several devices, ``simulate`` spreads whole chunks over them (``jax.shard_map``) in one call, each
+device runs on its own core, and the results are the same to the bit. JAX fixes its devices at its
+first computation, so this is a choice made once per process, before any array is created.
 """
 
 import os
@@ -42,8 +43,11 @@ def use_cpu_cores(count: int | None = None) -> int:
     Call it right after ``import rigidjax``, before anything computes with JAX: JAX fixes its
     devices at its first computation. Afterwards it only confirms a count already in place.
 
-    Measured with ``benchmarks/work_precision.py`` (10^4 tennis-racket bodies, "balanced",
-    float64, 2-core CPU): 2 devices ran 1.3-1.8x faster than one when the second core was free.
+    On one device ``simulate`` already runs its chunks from one Python thread per core, outside
+    ``jax.jit`` (``benchmarks/threaded_calls.py``: 1.56x on 2 cores); several devices spread the
+    chunks in one compiled program, so also inside the user's ``jax.jit``. Measured with
+    ``benchmarks/work_precision.py`` (10^4 tennis-racket bodies, "balanced", float64, 2-core CPU),
+    before the threads: 2 devices ran 1.3-1.8x faster than one when the second core was free.
     When other programs keep every core busy, more devices can be slower (0.64-1.32x on a loaded
     2-core machine); a batch of a single chunk runs on one device whatever the count. Arrays are
     placed on the first device unless sharded, so code that does not shard runs there as before

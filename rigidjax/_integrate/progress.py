@@ -16,6 +16,7 @@ and steps, and so the same trajectories to the bit, as one call.
 
 import math
 import sys
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -24,6 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import config as jax_config
 
 from .._checks import is_traced
 from . import batching
@@ -167,6 +169,15 @@ def host_threads(model, omega0, q0, ts, args, chunk_size: int) -> int:
     return max(1, min(available_cores(), n_chunks))
 
 
+def _same_jax_context(pool) -> bool:
+    """Whether a thread of ``pool`` traces in the same JAX context as this one (JAX's context
+    managers hold per thread); False where this JAX cannot tell."""
+    context = getattr(jax_config, "trace_context", None)
+    if context is None:  # pragma: no cover - a JAX without it
+        return False
+    return pool.submit(context).result() == context()
+
+
 def _ignore(done: int, total: int) -> None:
     pass
 
@@ -220,13 +231,27 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     report(0, n)
     if threads > 1:
         with ThreadPoolExecutor(max_workers=threads) as pool:
-            futures = [
-                pool.submit(lambda b: jax.block_until_ready(solve_block(b)), b) for b in range(n_blocks)
-            ]
-            for b, future in enumerate(futures, start=1):
-                parts.append(future.result())
-                report(min(n, b * size), n)
-        return _assemble(parts, order, batch, n, n_chunks, model, host=True)
+            # JAX's context managers (enable_x64, default_device, ...) hold per thread: where a
+            # worker thread would trace in another context than this one, the blocks run here.
+            if _same_jax_context(pool):
+                compiled = threading.Event()
+
+                def solve_in_thread(b):
+                    # The first block traces and compiles the program; the others wait for its
+                    # dispatch and find the program compiled (one trace, one compile).
+                    if b > 0:
+                        compiled.wait()
+                    try:
+                        block = solve_block(b)
+                    finally:
+                        compiled.set()
+                    return jax.block_until_ready(block)
+
+                futures = [pool.submit(solve_in_thread, b) for b in range(n_blocks)]
+                for b, future in enumerate(futures, start=1):
+                    parts.append(future.result())
+                    report(min(n, b * size), n)
+                return _assemble(parts, order, batch, n, n_chunks, model, host=True)
     for b in range(n_blocks + 1):
         if b < n_blocks:  # dispatched before the previous block is waited for: no idle gap
             parts.append(solve_block(b))

@@ -166,9 +166,11 @@ def simulate(
       (whose loop is sized by the limit). Otherwise the limit costs no memory (reverse mode keeps
       ``log(max_steps)`` checkpoints).
     - `chunk_size`: bodies per shared-step chunk, at most (the chunks are made equal, so the last
-      one is not mostly padding). Default: 256 on CPU (cache-sized chunks run one after another);
-      on accelerators 512 per core (67584 on an H200; ``benchmarks/README.md``), fewer where the
-      samples of one chunk would take over an eighth of the device's memory. With
+      one is not mostly padding). Default: 256 on CPU (cache-sized chunks run one after another,
+      and on a single CPU device, outside ``jax.jit``, in one block per core, each block from its
+      own Python thread: the same trajectories to the bit); on accelerators 512 per core (67584
+      on an H200; ``benchmarks/README.md``), fewer where the samples of one chunk would take over
+      an eighth of the device's memory. With
       ``accuracy="exact"``: bodies evaluated together (default on CPU: 2^17 body-samples per
       block, which keeps the closed form's intermediates in the cache; one block on accelerators).
     - `sort_by_speed`: group bodies of similar angular-velocity scale into the same chunk, and
