@@ -26,6 +26,18 @@ def _scene():
     return rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega), orientation=jnp.asarray(q))
 
 
+def _faulty_scene():
+    """Six bodies whose fourth gets a NaN torque after t = 1 (its chunk stops there)."""
+    omega0 = np.tile([1.0, 0.2, 0.3], (N, 1))
+    omega0[3, 0] = 5.0
+    torque = rj.Torque(
+        lambda t, s, a: jnp.where((t > 1.0) & (s.omega[0] > 3.0), jnp.nan, 0.0) * jnp.ones(3),
+        needs_orientation=False,
+    )
+    model = rj.RigidBody(jnp.asarray(np.tile([1.0, 2.0, 3.0], (N, 1))), torque)
+    return model, rj.State(jnp.asarray(omega0))
+
+
 def _assert_same(a, b):
     for name in ("omega", "orientation", "success"):
         np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)))
@@ -56,24 +68,6 @@ def test_progress_bar_text(capfd):
     # From the second block on, an estimate from the blocks after the first (which compiles).
     assert re.fullmatch(r"simulate \[#{20}\.{10}\] 4/6 bodies, \d+\.\d s, ~\d+\.\d s left", lines[2])
     assert re.fullmatch(r"simulate \[#{30}\] 6/6 bodies, \d+\.\d s", lines[3])
-
-
-def test_progress_with_faults_throw_false():
-    """A NaN torque stops its chunk; the chunk is run again body by body, with progress as without."""
-    omega0 = np.tile([1.0, 0.2, 0.3], (N, 1))
-    omega0[3, 0] = 5.0
-    torque = rj.Torque(
-        lambda t, s, a: jnp.where((t > 1.0) & (s.omega[0] > 3.0), jnp.nan, 0.0) * jnp.ones(3),
-        needs_orientation=False,
-    )
-    model = rj.RigidBody(jnp.asarray(np.tile([1.0, 2.0, 3.0], (N, 1))), torque)
-    state0 = rj.State(jnp.asarray(omega0))
-    plain = rj.simulate(model, state0, TS, chunk_size=2, throw=False)
-    calls = []
-    traj = rj.simulate(model, state0, TS, chunk_size=2, throw=False, progress=lambda d, t: calls.append(d))
-    assert calls == [0, 2, 4, 6]
-    assert np.asarray(traj.success).tolist() == [True, True, True, False, True, True]
-    _assert_same(plain, traj)
 
 
 def test_progress_with_error_estimate_is_one_report_over_both_solves(capfd):
@@ -189,21 +183,15 @@ def test_threads_give_the_one_program_trajectories(threads):
     _assert_same(one_program, rj.simulate(model, state0, TS, chunk_size=2))
 
 
-def test_threads_with_progress_and_faults(threads):
-    """Reference: one compiled call. A NaN torque stops its chunk, which is run again body by body;
-    with threads and a progress report the result is the same to the bit, and the reports arrive in
-    order."""
-    omega0 = np.tile([1.0, 0.2, 0.3], (N, 1))
-    omega0[3, 0] = 5.0
-    torque = rj.Torque(
-        lambda t, s, a: jnp.where((t > 1.0) & (s.omega[0] > 3.0), jnp.nan, 0.0) * jnp.ones(3),
-        needs_orientation=False,
-    )
-    model = rj.RigidBody(jnp.asarray(np.tile([1.0, 2.0, 3.0], (N, 1))), torque)
-    state0 = rj.State(jnp.asarray(omega0))
+@pytest.mark.parametrize("count", [1, 2])
+def test_progress_with_faults_throw_false(threads, count):
+    """Reference: one compiled call without progress. A NaN torque stops its chunk, which is run
+    again body by body; with progress, from one thread or two, the result is the same to the bit,
+    and the reports arrive in order."""
+    model, state0 = _faulty_scene()
     threads(1)
     one_program = rj.simulate(model, state0, TS, chunk_size=2, throw=False)
-    threads(2)
+    threads(count)
     calls = []
     traj = rj.simulate(model, state0, TS, chunk_size=2, throw=False, progress=lambda d, t: calls.append(d))
     assert calls == [0, 2, 4, 6]
@@ -221,6 +209,9 @@ def test_host_threads_only_where_they_can_help(monkeypatch):
     w, q = state0.omega, state0.orientation
     assert progress.host_threads(model, w, q, TS, None, 2) == 3  # three chunks
     assert progress.host_threads(model, w, q, TS, None, 1) == 4  # six chunks, four cores
+    monkeypatch.setattr(progress, "available_cores", lambda: 64)
+    assert progress.host_threads(model, w, q, TS, None, 1) == progress.MAX_HOST_THREADS
+    monkeypatch.setattr(progress, "available_cores", lambda: 4)
     assert progress.host_threads(model, w, q, TS, None, 6) == 1  # one chunk
     assert progress.host_threads(model, w, q, TS[:1], None, 2) == 1  # nothing to integrate
     monkeypatch.setattr(progress, "THREADED_MAX_BYTES", N * TS.shape[0] * 7 * 8 - 1)
@@ -262,3 +253,21 @@ def test_threads_trace_in_the_callers_jax_context(threads):
     traced_in.clear()
     rj.simulate(model(), state0, TS, chunk_size=2)
     assert traced_in - {threading.get_ident()}, "no block ran in a worker thread"
+
+
+def test_the_diffrax_check_switch_is_shared_by_threads():
+    """Solves traced at the same time in two threads: the first in switches equinox's error mode
+    off, the second out (not the first) switches it back, whatever the order they leave in."""
+    import equinox._errors as equinox_errors
+
+    from rigidjax._integrate import driver
+
+    assert equinox_errors.EQX_ON_ERROR == "raise"
+    first, second = (driver._without_diffrax_runtime_checks(True) for _ in range(2))
+    first.__enter__()
+    second.__enter__()
+    assert equinox_errors.EQX_ON_ERROR == "off"
+    first.__exit__(None, None, None)
+    assert equinox_errors.EQX_ON_ERROR == "off"  # the second solve is still being traced
+    second.__exit__(None, None, None)
+    assert equinox_errors.EQX_ON_ERROR == "raise"

@@ -8,6 +8,7 @@ times with a result code. Callers own the state layout, the checks and the batch
 """
 
 import contextlib
+import threading
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -130,16 +131,37 @@ def _without_diffrax_runtime_checks(switch_off: bool):
     would compile every integration again. rigidjax's callers have checked both already (times
     finite and increasing, ``dt0`` positive), so the checks are switched off while the solve is
     traced. A solve asked to raise on failure (``throw=True``) keeps them all. Equinox reads its
-    default mode per call; if that global moves, the checks simply stay."""
-    default = getattr(_equinox_errors, "EQX_ON_ERROR", None)
-    if not switch_off or default != "raise":
+    default mode per call; if that global moves, the checks simply stay. Solves traced at the same
+    time in several threads share the switch: the first one in turns it off, the last one out
+    restores it."""
+    global _switched_off
+    if not switch_off:
         yield
         return
-    _equinox_errors.EQX_ON_ERROR = "off"
+    with _switch_lock:
+        if _switched_off == 0:
+            if getattr(_equinox_errors, "EQX_ON_ERROR", None) != "raise":
+                switch_off = False
+            else:
+                _equinox_errors.EQX_ON_ERROR = "off"
+        elif getattr(_equinox_errors, "EQX_ON_ERROR", None) != "off":
+            switch_off = False  # the global moved meanwhile: leave it
+        if switch_off:
+            _switched_off += 1
+    if not switch_off:
+        yield
+        return
     try:
         yield
     finally:
-        _equinox_errors.EQX_ON_ERROR = default
+        with _switch_lock:
+            _switched_off -= 1
+            if _switched_off == 0:
+                _equinox_errors.EQX_ON_ERROR = "raise"
+
+
+_switch_lock = threading.Lock()
+_switched_off = 0
 
 
 def solve(

@@ -14,6 +14,7 @@ core and chunk, the batch runs as one block per core, each from its own thread, 
 and steps, and so the same trajectories to the bit, as one call.
 """
 
+import itertools
 import math
 import sys
 import threading
@@ -142,6 +143,9 @@ def report_whole(report, traj) -> None:
     report(n, n)
 
 
+MAX_HOST_THREADS = 4
+"""At most this many threads: each compiles its own copy of the program on its first call."""
+
 THREADED_MAX_BYTES = 1 << 30
 """The largest trajectory (omega and orientation at every sample time) that :func:`host_threads`
 runs in threads: the blocks' results are joined and put back in order afterwards, two more copies
@@ -150,12 +154,15 @@ of it."""
 
 def host_threads(model, omega0, q0, ts, args, chunk_size: int) -> int:
     """How many Python threads :func:`rigidjax.simulate` runs its chunks from: one per core of the
-    process (at most one per chunk) where JAX has a single CPU device, the inputs have values and
-    the trajectory has more than one sample time and at most ``THREADED_MAX_BYTES``; else 1 (one
-    compiled call). With several devices the chunks are spread over the devices instead.
+    process (at most one per chunk and ``MAX_HOST_THREADS``) where JAX has a single CPU device, the
+    inputs have values and the trajectory has more than one sample time and at most
+    ``THREADED_MAX_BYTES``; else 1 (one compiled call). With several devices the chunks are spread
+    over the devices instead.
 
     Measured with ``benchmarks/threaded_calls.py`` (10^4 tennis-racket bodies, "balanced", 2-core
-    CPU): two threads 1.72x faster than one call, the trajectories the same to the bit."""
+    CPU): two threads 1.46-1.65x faster than one call, the trajectories the same to the bit. Each
+    thread compiles its own copy of the program (XLA runs one program's calls one at a time): the
+    first call compiles them side by side."""
     if is_traced(model, omega0, q0, ts, args) or ts.shape[0] < 2:
         return 1
     devices = jax.devices()
@@ -166,7 +173,7 @@ def host_threads(model, omega0, q0, ts, args, chunk_size: int) -> int:
     if n * ts.shape[0] * rows * omega0.dtype.itemsize > THREADED_MAX_BYTES:
         return 1
     _, n_chunks, _ = batching.chunk_layout(n, chunk_size)
-    return max(1, min(available_cores(), n_chunks))
+    return max(1, min(available_cores(), n_chunks, MAX_HOST_THREADS))
 
 
 def _same_jax_context(pool) -> bool:
@@ -217,7 +224,7 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     omega_flat = xp.asarray(batching.flatten(omega0, batch))[take]
     q_flat = None if q0 is None else xp.asarray(batching.flatten(q0, batch))[take]
 
-    def solve_block(b):
+    def solve_block(b, lane=0):
         index = slice(b * size, (b + 1) * size)
         return run(
             model.replace_body_leaves(leaves, [v[index] for v in flat]),
@@ -225,29 +232,27 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
             None if q_flat is None else q_flat[index],
             chunk,
             False,
+            lane,
         )
 
     parts = []
     report(0, n)
     if threads > 1:
-        with ThreadPoolExecutor(max_workers=threads) as pool:
+        # XLA runs the calls of one compiled program one at a time: each worker thread runs its
+        # blocks through a copy of its own (its lane), compiled in that thread.
+        lanes, local = itertools.count(), threading.local()
+
+        def take_lane():
+            local.lane = next(lanes)
+
+        with ThreadPoolExecutor(max_workers=threads, initializer=take_lane) as pool:
             # JAX's context managers (enable_x64, default_device, ...) hold per thread: where a
             # worker thread would trace in another context than this one, the blocks run here.
             if _same_jax_context(pool):
-                compiled = threading.Event()
-
-                def solve_in_thread(b):
-                    # The first block traces and compiles the program; the others wait for its
-                    # dispatch and find the program compiled (one trace, one compile).
-                    if b > 0:
-                        compiled.wait()
-                    try:
-                        block = solve_block(b)
-                    finally:
-                        compiled.set()
-                    return jax.block_until_ready(block)
-
-                futures = [pool.submit(solve_in_thread, b) for b in range(n_blocks)]
+                futures = [
+                    pool.submit(lambda b: jax.block_until_ready(solve_block(b, local.lane)), b)
+                    for b in range(n_blocks)
+                ]
                 for b, future in enumerate(futures, start=1):
                     parts.append(future.result())
                     report(min(n, b * size), n)
