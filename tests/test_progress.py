@@ -228,6 +228,7 @@ def test_host_threads_only_where_they_can_help(monkeypatch):
     assert seen == [1]
 
 
+@pytest.mark.filterwarnings("ignore:Explicitly requested dtype float64")  # the float32 context's
 def test_threads_trace_in_the_callers_jax_context(threads):
     """JAX's context managers hold per thread: inside one (here ``jax.enable_x64(False)``) the
     blocks run in the calling thread, whose context a worker thread would not see; outside it, in

@@ -190,7 +190,7 @@ def _ignore(done: int, total: int) -> None:
 
 
 def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort, threads=1):
-    """``run(model, omega0, q0, chunk_size, sort)`` over the batch in blocks of whole chunks, calling
+    """``run(model, omega0, q0, chunk_size, sort, lane)`` over the batch in blocks of whole chunks, calling
     ``report(done_bodies, total_bodies)`` after each (None: no reports, one block per thread); the
     blocks' results assembled into one :class:`Trajectory`, equal to ``run`` over the whole batch.
     With ``threads`` > 1 the blocks run from that many Python threads at once."""
