@@ -118,7 +118,7 @@ def plan_chunks(n: int, chunk_size: int, sort_keys=None, *, shardable: bool = Tr
     devices the chunk count is a multiple of the device count (whole chunks per device)."""
     chunk, n_chunks, shard = chunk_layout(n, chunk_size, shardable=shardable)
     if sort_keys is not None and n_chunks > 1:
-        return ChunkPlan(n, chunk, n_chunks, jnp.lexsort(sort_keys), shard, sorted=True)
+        return ChunkPlan(n, chunk, n_chunks, lexsort(sort_keys), shard, sorted=True)
     return ChunkPlan(n, chunk, n_chunks, jnp.arange(n), shard)
 
 
@@ -142,6 +142,54 @@ def from_chunks(plan: ChunkPlan, x):
     if not plan.sorted:
         return x
     return x[inverse_permutation(plan.order)]
+
+
+def lexsort(keys):
+    """``jnp.lexsort(keys)``: the order by the last key, ties by the one before, ..., then by index
+    (where ``jnp.lexsort`` puts every NaN last, here one with its sign bit set comes first; -0 comes
+    before 0).
+
+    One stable pass per 32-bit word of each key, least significant first, each a sort of single
+    64-bit integers (the word above the position): XLA's sorts of several operands compare through
+    a comparator call each, 5-8x slower on CPU (10^4 bodies: ``jnp.lexsort`` of 3 keys 2.7 ms,
+    ``jnp.argsort`` 1.6 ms, ``jnp.sort`` of int64 0.26 ms). Without 64-bit types (``jax_enable_x64``
+    off) or beyond 2^31 bodies, ``jnp.lexsort`` itself."""
+    n = keys[0].shape[0]
+    if not jax.config.jax_enable_x64 or n >= 2**31:
+        return jnp.lexsort(keys)
+    position = jnp.arange(n, dtype=jnp.uint64)
+    order = None
+    for key in keys:
+        for word in _ordered_words(key):  # each pass stable in the order of the previous ones
+            word = word if order is None else word[order]
+            packed = jnp.sort((word.astype(jnp.uint64) << 32) | position)
+            step = (packed & 0xFFFFFFFF).astype(jnp.int32)
+            order = step if order is None else order[step]
+    return order
+
+
+def _ordered_words(key):
+    """``key`` as uint32 words, least significant first, whose lexicographic order (most
+    significant word first) is the key's order: a float's bits with the sign bit set where it is
+    positive and all bits flipped where it is negative (NaN above inf, -0 below 0), a signed
+    integer's with the sign bit flipped."""
+    if key.dtype == jnp.bool_:
+        key = key.astype(jnp.int32)
+    elif jnp.issubdtype(key.dtype, jnp.floating) and jnp.dtype(key.dtype).itemsize < 4:
+        key = key.astype(jnp.float32)  # exact
+    wide = jnp.dtype(key.dtype).itemsize == 8
+    unsigned = jnp.uint64 if wide else jnp.uint32
+    sign = unsigned(1 << (63 if wide else 31))
+    if jnp.issubdtype(key.dtype, jnp.floating):
+        bits = jax.lax.bitcast_convert_type(key, unsigned)
+        bits = jnp.where((bits & sign) != 0, ~bits, bits | sign)
+    elif jnp.issubdtype(key.dtype, jnp.unsignedinteger):
+        bits = key.astype(unsigned)
+    else:
+        bits = jax.lax.bitcast_convert_type(key.astype(jnp.int64 if wide else jnp.int32), unsigned) ^ sign
+    if not wide:
+        return [bits.astype(jnp.uint32)]
+    return [(bits & 0xFFFFFFFF).astype(jnp.uint32), (bits >> 32).astype(jnp.uint32)]
 
 
 def inverse_permutation(order):

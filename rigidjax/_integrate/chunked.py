@@ -80,7 +80,7 @@ def _chunk_order_keys(model, leaves, flat, omega0, sigma, chunk_size):
     speed_class = -jnp.floor(4 * jnp.log2(speed))
     # Groups of whole chunks in the order by speed class and period (a chunk straddles two groups
     # only where it straddles two speed classes).
-    position = batching.inverse_permutation(jnp.lexsort((period, speed_class)))
+    position = batching.inverse_permutation(batching.lexsort((period, speed_class)))
     return next_flip, position // (PERIOD_GROUP_CHUNKS * chunk_size), speed_class
 
 
