@@ -7,6 +7,7 @@ so that the file compiles little."""
 import re
 import threading
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -173,12 +174,18 @@ def threads(monkeypatch):
 def test_threads_give_the_one_program_trajectories(threads):
     """Reference: the same batch as one compiled call. Run from one thread per block (three blocks of
     one chunk each, three threads, whatever the cores), the trajectories and every statistic are the
-    same to the bit: each chunk holds the same bodies and takes the same steps."""
+    same to the bit: each chunk holds the same bodies and takes the same steps. The threads share
+    one compiled program (their blocks are of one size): it is traced, and so compiled, once."""
+    from rigidjax._integrate.chunked import _integrate_traced
+
     model, state0 = _scene()
     threads(1)
     one_program = rj.simulate(model, state0, TS, chunk_size=2)
     threads(3)
+    jax.clear_caches()  # so that the call below traces its program, whatever ran before in this process
+    traces = eqx.debug.get_num_traces(_integrate_traced)
     _assert_same(one_program, rj.simulate(model, state0, TS, chunk_size=2))
+    assert eqx.debug.get_num_traces(_integrate_traced) == traces + 1
     threads(2)  # two threads, three blocks: one thread runs two
     _assert_same(one_program, rj.simulate(model, state0, TS, chunk_size=2))
 

@@ -142,11 +142,7 @@ def _integrate_traced(
     max_steps,
     chunk_size,
     sort,
-    lane=0,
 ):
-    # ``lane`` only tells copies of the program apart: XLA runs the calls of one compiled program one
-    # at a time, so each thread that runs chunks at the same time as another needs its own copy.
-    del lane
     batch, leaves, flat, omega0, q0, sigma, plan = plan_bodies(
         model, omega0, q0, ts, args, formulation, chunk_size, sort
     )
@@ -222,7 +218,7 @@ def _integrate_traced(
 
 integrate = eqx.filter_jit(_integrate_traced)
 """The compiled batch integration: ``integrate(model, omega0, q0, ts, args, controller, solver,
-adjoint, dt0, *, formulation, max_steps, chunk_size, sort, lane=0) -> Trajectory``.
+adjoint, dt0, *, formulation, max_steps, chunk_size, sort) -> Trajectory``.
 
 It raises nothing: the caller checks the inputs first and reports failures from
 ``stats["result"]``, so the program holds none of rigidjax's error callbacks and a failure can be

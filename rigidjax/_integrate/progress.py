@@ -14,10 +14,8 @@ core and chunk, the batch runs as one block per core, each from its own thread, 
 and steps, and so the same trajectories to the bit, as one call.
 """
 
-import itertools
 import math
 import sys
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -144,7 +142,7 @@ def report_whole(report, traj) -> None:
 
 
 MAX_HOST_THREADS = 4
-"""At most this many threads: each compiles its own copy of the program on its first call."""
+"""At most this many threads, each running its blocks through the one compiled program."""
 
 THREADED_MAX_BYTES = 1 << 30
 """The largest trajectory (omega and orientation at every sample time) that :func:`host_threads`
@@ -160,9 +158,9 @@ def host_threads(model, omega0, q0, ts, args, chunk_size: int) -> int:
     over the devices instead.
 
     Measured with ``benchmarks/threaded_calls.py`` (10^4 tennis-racket bodies, "balanced", 2-core
-    CPU): two threads 1.46-1.65x faster than one call, the trajectories the same to the bit. Each
-    thread compiles its own copy of the program (XLA runs one program's calls one at a time): the
-    first call compiles them side by side."""
+    CPU): two threads 1.46-1.65x faster than one call, the trajectories the same to the bit. The
+    threads call one compiled program (the blocks are of one size), which XLA runs from several
+    threads side by side, so the first call compiles once."""
     if is_traced(model, omega0, q0, ts, args) or ts.shape[0] < 2:
         return 1
     devices = jax.devices()
@@ -190,7 +188,7 @@ def _ignore(done: int, total: int) -> None:
 
 
 def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort, threads=1):
-    """``run(model, omega0, q0, chunk_size, sort, lane)`` over the batch in blocks of whole chunks, calling
+    """``run(model, omega0, q0, chunk_size, sort)`` over the batch in blocks of whole chunks, calling
     ``report(done_bodies, total_bodies)`` after each (None: no reports, one block per thread); the
     blocks' results assembled into one :class:`Trajectory`, equal to ``run`` over the whole batch.
     With ``threads`` > 1 the blocks run from that many Python threads at once."""
@@ -224,7 +222,7 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     omega_flat = xp.asarray(batching.flatten(omega0, batch))[take]
     q_flat = None if q0 is None else xp.asarray(batching.flatten(q0, batch))[take]
 
-    def solve_block(b, lane=0):
+    def solve_block(b):
         index = slice(b * size, (b + 1) * size)
         return run(
             model.replace_body_leaves(leaves, [v[index] for v in flat]),
@@ -232,26 +230,17 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
             None if q_flat is None else q_flat[index],
             chunk,
             False,
-            lane,
         )
 
     parts = []
     report(0, n)
     if threads > 1:
-        # XLA runs the calls of one compiled program one at a time: each worker thread runs its
-        # blocks through a copy of its own (its lane), compiled in that thread.
-        lanes, local = itertools.count(), threading.local()
-
-        def take_lane():
-            local.lane = next(lanes)
-
-        with ThreadPoolExecutor(max_workers=threads, initializer=take_lane) as pool:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
             # JAX's context managers (enable_x64, default_device, ...) hold per thread: where a
             # worker thread would trace in another context than this one, the blocks run here.
             if _same_jax_context(pool):
                 futures = [
-                    pool.submit(lambda b: jax.block_until_ready(solve_block(b, local.lane)), b)
-                    for b in range(n_blocks)
+                    pool.submit(lambda b: jax.block_until_ready(solve_block(b)), b) for b in range(n_blocks)
                 ]
                 for b, future in enumerate(futures, start=1):
                     parts.append(future.result())

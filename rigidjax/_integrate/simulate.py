@@ -324,11 +324,11 @@ def simulate(
     euler = formulation.euler_seq if isinstance(formulation, ScaledODE) else None
     model, omega0, q0, ts = checked_inputs(model, omega0, q0, ts, euler, float(lock_tolerance))
 
-    def run(model, omega0, q0, chunk_size, sort, lane=0):
+    def run(model, omega0, q0, chunk_size, sort):
         def call(adjoint):
             return integrate(
                 model, omega0, q0, ts, args, controller, solver, adjoint, dt0, formulation=formulation,
-                max_steps=int(max_steps), chunk_size=int(chunk_size), sort=bool(sort), lane=int(lane),
+                max_steps=int(max_steps), chunk_size=int(chunk_size), sort=bool(sort),
             )  # fmt: skip
 
         return driver.solve_in_either_mode(call, adjoint, adjoint_chosen)
