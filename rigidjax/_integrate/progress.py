@@ -158,7 +158,7 @@ def host_threads(model, omega0, q0, ts, args, chunk_size: int) -> int:
     over the devices instead.
 
     Measured with ``benchmarks/threaded_calls.py`` (10^4 tennis-racket bodies, "balanced", 2-core
-    CPU): two threads 1.46-1.65x faster than one call, the trajectories the same to the bit. The
+    CPU): two threads 1.46-1.77x faster than one call, the trajectories the same to the bit. The
     threads call one compiled program (the blocks are of one size), which XLA runs from several
     threads side by side, so the first call compiles once."""
     if is_traced(model, omega0, q0, ts, args) or ts.shape[0] < 2:
