@@ -743,6 +743,14 @@ def test_estimate_inertia_shape_error_names_argument():
         rj.estimate_inertia(_TS_FIT, _W_FIT[:, :2])
 
 
+@pytest.mark.parametrize("samples", [0, 1, 4])
+def test_estimate_inertia_on_too_short_a_record_says_so(samples):
+    """Fewer samples than one local quadratic fit spans: a ValueError naming the record and the count,
+    not NumPy's IndexError or a NaN conversion error from an empty fit."""
+    with pytest.raises(ValueError, match=rf"at least 5 samples of omega_observed .*got {samples}\."):
+        rj.estimate_inertia(_TS_FIT[:samples], _W_FIT[:samples])
+
+
 def test_other_structural_errors(without_runtime_typecheck):
     for fn, match in [
         (lambda: rj.torque_free_omega(np.ones(4), W, 0.5), "inertia must have shape"),

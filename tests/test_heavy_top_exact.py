@@ -415,9 +415,20 @@ def test_near_separatrix_and_near_the_poles(theta, w0, com_z, tol):
 # Gradients
 
 
+# Upright tops on an unstable equilibrium (below the sleeping threshold |omega3| C / A >= 2 sqrt(m g l
+# / A), 6.9 rad/s here): not in REGIMES, whose values are checked against DOP853 over 20 s, where the
+# reference's own roundoff grows by e^34 and leaves the equilibrium.
+UNSTABLE_UPRIGHT = {
+    "upright below the sleeping threshold": (TOP, 1.0, 0.3, [0.0, 0.0, 4.0], [0.3, 0.0, 0.2], 3.0, 1.0),
+    "upright at rest": (TOP, 1.0, 0.3, [0.0, 0.0, 0.0], [0.3, 0.0, 0.2], 3.0, 1.0),
+}
+
+
 def _loss_parts(name):
-    inertia, mass, com, w0, _, _, _ = _setup(name)
-    angles = np.asarray(REGIMES[name][4], float)
+    regime = UNSTABLE_UPRIGHT.get(name) or REGIMES[name]
+    inertia, mass, l, w0 = regime[0], regime[1], regime[2], np.asarray(regime[3], float)
+    com = [0.0, 0.0, l]
+    angles = np.asarray(regime[4], float)
     ts = jnp.linspace(0.0, 3.0, 7)
     weights = np.random.default_rng(3).normal(size=(2, 7, 4))
 
@@ -453,10 +464,13 @@ def test_gradients_match_central_differences(name):
 
 
 @pytest.mark.slow
-def test_gradients_at_the_sleeping_equilibrium():
-    """Exactly upright and spinning: the value is the steady spin, the derivatives those of the
-    linearised motion (two circular modes of the tilt), against central differences."""
-    loss, x = _loss_parts("sleeping")
+@pytest.mark.parametrize("name", ["sleeping", *UNSTABLE_UPRIGHT])
+def test_gradients_at_the_sleeping_equilibrium(name):
+    """Exactly upright: the value is the steady spin (or rest), the derivatives those of the
+    linearised motion, against central differences. Above the sleeping threshold the tilt's two
+    modes circle; below it and at rest one grows exponentially (e^5 over the 3 s here), and the
+    derivatives grow with it."""
+    loss, x = _loss_parts(name)
     grad = np.asarray(jax.grad(loss)(jnp.asarray(x)))
     assert np.all(np.isfinite(grad))
     numeric = central_difference(lambda y: loss(jnp.asarray(y)), x, h=1e-6 * np.maximum(np.abs(x), 1.0))
@@ -475,7 +489,14 @@ def test_errors_name_the_condition():
     ts = jnp.linspace(0.0, 1.0, 3)
     state = _state()
     asym = rj.HeavyTop(jnp.array([1.0, 1.1, 0.5]), 1.0, jnp.array([0.0, 0.0, 0.3]))
-    expect_error(lambda: rj.simulate(asym, state, ts, accuracy="exact"), "I1 = I2", "I2 = 1.1")
+    expect_error(lambda: rj.simulate(asym, state, ts, accuracy="exact"), "I1 = I2", "I2 = 1.1,")
+    # Just beyond roundoff: the moments print apart, with the deviation and the tolerance.
+    near = rj.HeavyTop(jnp.array([1e-2, 1e-2 * (1 + 1e-13), 5e-3]), 1.0, jnp.array([0.0, 0.0, 0.3]))
+    expect_error(
+        lambda: rj.simulate(near, state, ts, accuracy="exact"),
+        "I1 = 0.01, I2 = 0.010000000000001,",
+        "differ by 1e-13 of the larger, more than the roundoff of 2.2e-14 (float64)",
+    )
     off = rj.HeavyTop(jnp.array([1.0, 1.0, 0.5]), 1.0, jnp.array([0.1, 0.0, 0.3]))
     expect_error(lambda: rj.simulate(off, state, ts, accuracy="exact"), "body z", "com = (0.1, 0, 0.3)")
     tensor = rj.HeavyTop(jnp.diag(jnp.array([1.0, 1.0, 0.5])), 1.0, jnp.array([0.0, 0.0, 0.3]))

@@ -36,7 +36,8 @@ precession, ``l = 0``); 1.4e-10 for a very slow top over 2e4 s. float32: ``q`` w
 Derivatives (forward and reverse) are those of the motion, including a start on a turning circle
 (a top released with ``theta' = 0``), tops passing close to the vertical and steady precession
 (a nutation below ``eps^(2/3)`` is evaluated in its first-order form, which carries them) and a
-top sleeping exactly at a pole (the linearised tilt, two circular modes). A top started exactly at
+top exactly at a pole without a wobble (the linearised tilt: two circular modes above the sleeping
+threshold, a growing and a decaying one below it and at rest upright). A top started exactly at
 a pole with a finite wobble (``theta0 = 0``, ``omega0`` not along the axis) has exact values and
 finite derivatives, but the derivative with respect to the tilt of ``q0`` is not the motion's.
 Reverse mode transposes every sample's Jacobian (:mod:`.derivatives`). Only ``com_z`` and the mean
@@ -184,9 +185,12 @@ def _body(A, C, weight_l, omega0, q0):
     near = dist0 + k * x_s  # 1 + k u at the start circle (P) and at the other (P')
     far = dist0 + k * x_o
     near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
-    # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root.
+    # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root. A top
+    # that starts on the pole has reached it, also below the sleeping threshold, where G0 (the
+    # largest root of the resolvent) is 0 and says nothing of the third root.
     third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
-    reached = (coeff == 0) & (jnp.minimum(near, far) * jnp.abs(beta) < third)
+    closest = jnp.minimum(near, far)
+    reached = (coeff == 0) & ((closest * jnp.abs(beta) < third) | (closest == 0))
     phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
     halves = dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0,
                   phase=phase)  # fmt: skip

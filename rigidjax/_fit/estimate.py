@@ -84,6 +84,11 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     and the smoothed record ``(T, 3)`` (NaN where too few neighbours were observed).
     """
     ts, omega = _check_data(ts, omega_observed)
+    if ts.shape[0] < 5:
+        raise ValueError(
+            f"estimate_inertia needs at least 5 samples of omega_observed (each local quadratic fit "
+            f"spans 2 half_width + 1 >= 5 of them), got {ts.shape[0]}."
+        )
     if not isinstance(full_tensor, bool | np.bool_):
         raise TypeError(f"full_tensor must be True or False, got {full_tensor!r}.")
     if half_width is not None and (

@@ -261,12 +261,27 @@ def _check_lagrange_top(model, state0):
     dtype = float_dtype(model.inertia, model.com)
     failures = evaluated_now(lambda: _lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype)))
     asymmetric, off_axis = (np.asarray(x) for x in failures)
+    # The tolerance and the relative deviation are printed too: I1 and I2 that differ by 1e-13 read
+    # the same at a few significant digits.
+    tol = 100 * float(jnp.finfo(dtype).eps)
     if np.any(asymmetric):
         bad = np.broadcast_to(inertia, asymmetric.shape + (3,))[asymmetric][0]
-        raise ValueError(_ASYMMETRIC.format(f"; got I1 = {bad[0]:g}, I2 = {bad[1]:g}"))
+        relative = abs(bad[0] - bad[1]) / max(abs(bad[0]), abs(bad[1]))
+        raise ValueError(
+            _ASYMMETRIC.format(
+                f"; got I1 = {float(bad[0])!r}, I2 = {float(bad[1])!r}, which differ by "
+                f"{relative:.2g} of the larger, more than the roundoff of {tol:.2g} ({dtype}) that passes"
+            )
+        )
     if np.any(off_axis):
         bad = np.broadcast_to(com, off_axis.shape + (3,))[off_axis][0]
-        raise ValueError(_OFF_AXIS.format(f"; got com = ({bad[0]:g}, {bad[1]:g}, {bad[2]:g})"))
+        relative = np.hypot(bad[0], bad[1]) / np.linalg.norm(bad)
+        raise ValueError(
+            _OFF_AXIS.format(
+                f"; got com = ({bad[0]:g}, {bad[1]:g}, {bad[2]:g}), off the axis by {relative:.2g} of "
+                f"|com|, more than the roundoff of {tol:.2g} ({dtype}) that passes"
+            )
+        )
 
 
 def simulate_exact(model, state0, ts, chunk_size: int | None = None):

@@ -179,9 +179,11 @@ def simulate(
       the shared step is long in between (10^4 tennis-racket bodies, "balanced": 102 instead of
       126 steps per chunk started in phase, 115 instead of 127 at random phases). ``False``:
       chunks of the bodies in their given order.
-    - `throw`: raise on invalid input or failed integration (default); the error names the first
+    - `throw`: raise when a body fails during the run (default); the error names the first
       failed body (its index in the batch), the sample times around the failure and the cause
-      (under the user's ``jit``: the cause). With ``throw=False`` a failed body is flagged in
+      (under the user's ``jit``: the cause). Invalid inputs (NaN or inf, non-physical inertia, a
+      non-unit quaternion, unsorted times) raise whatever ``throw`` says: a check of the inputs
+      is never a failure of one body. With ``throw=False`` a failed body is flagged in
       ``Trajectory.success`` and is NaN from its failure on, while every other body keeps its
       result: bodies share a step size within a chunk, so a chunk stopped by a body whose torque or
       state turned NaN is run again body by body. With ``accuracy="exact"`` a body fails where its
