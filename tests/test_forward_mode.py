@@ -102,12 +102,36 @@ def test_default_adjoint_by_mode():
     jax.jacrev(record("jacrev"))(x)
     jax.jit(record("jit"))(x)
     record("eager")(x)
+    jax.hessian(record("hessian"))(x)
+    jax.jacrev(jax.jacfwd(record("jacrev_jacfwd")))(x)
+    jax.grad(lambda x: jax.grad(record("grad_grad"))(x)[0])(x)
     forward = diffrax.ForwardMode
     reverse = diffrax.RecursiveCheckpointAdjoint
+    both = diffrax.DirectAdjoint
     assert seen == {
         "jacfwd": forward, "jit_jacfwd": forward, "jacfwd_vmap": forward, "vmap_jacfwd": forward,
         "jvp": forward, "grad": reverse, "jacrev": reverse, "jit": reverse, "eager": reverse,
+        "hessian": both, "jacrev_jacfwd": both, "grad_grad": reverse,
     }  # fmt: skip
+
+
+@pytest.mark.slow
+def test_hessian_on_default_settings_matches_the_closed_form():
+    """jax.hessian (forward over reverse) of a function of simulate's omega, without an adjoint
+    given: the direct adjoint is picked for the nested modes. Against the hessian of the closed form
+    (torque_free_omega, differentiated as it is computed, no integrator)."""
+
+    def integrated(w):
+        omega = rj.simulate(rj.FreeBody(INERTIA), rj.State(w), TS).omega[-1]
+        return jnp.sum(omega**2 * jnp.arange(1.0, 4.0))
+
+    def closed_form(w):
+        return jnp.sum(rj.torque_free_omega(INERTIA, w, TS[-1]) ** 2 * jnp.arange(1.0, 4.0))
+
+    hessian = np.asarray(jax.hessian(integrated)(W0))
+    reference = np.asarray(jax.hessian(closed_form)(W0))
+    assert np.max(np.abs(reference)) > 0.1
+    np.testing.assert_allclose(hessian, reference, rtol=0, atol=1e-6 * np.max(np.abs(reference)))
 
 
 def test_explicit_adjoint_is_respected():

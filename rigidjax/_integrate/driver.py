@@ -65,26 +65,23 @@ except ImportError:  # pragma: no cover
     _JVP_TRACER = None
 
 
-def _traced_by(x, names: tuple[str, ...]) -> bool:
-    """Whether ``x`` is, at any depth of nesting, a tracer whose class is named in ``names``: under
-    ``jacfwd(vmap(f))`` a forward-mode tracer is wrapped in a batching tracer, under
-    ``jit(jacfwd(f))`` it wraps a jit tracer."""
+def _tracer_kinds(x) -> set[str]:
+    """The class names of the tracers ``x`` is made of, at every depth of nesting (``JVPTracer``
+    for one of forward mode): under ``jacfwd(vmap(f))`` a forward-mode tracer is wrapped in a
+    batching tracer, under ``jit(jacfwd(f))`` it wraps a jit tracer."""
+    kinds = set()
     for _ in range(64):  # tracers nest once per transformation
         if not isinstance(x, jax.core.Tracer):
-            return False
-        if type(x).__name__ in names or (
-            "JVPTracer" in names and _JVP_TRACER is not None and isinstance(x, _JVP_TRACER)
-        ):
-            return True
+            break
+        kinds.add("JVPTracer" if _JVP_TRACER is not None and isinstance(x, _JVP_TRACER) else type(x).__name__)
         inner = [getattr(x, name, None) for name in ("primal", "val")]
         x = next((v for v in inner if isinstance(v, jax.core.Tracer)), None)
-    return False
+    return kinds
 
 
-def _carries_tangents(x) -> bool:
-    """Whether ``x`` is a tracer of forward-mode autodiff (``jax.jvp``, ``jax.jacfwd``). Reverse mode
-    (``grad``, ``vjp``, ``jacrev``) uses linearize tracers."""
-    return _traced_by(x, ("JVPTracer",))
+def _traced_by(x, names: tuple[str, ...]) -> bool:
+    """Whether ``x`` is, at any depth of nesting, a tracer whose class is named in ``names``."""
+    return not _tracer_kinds(x).isdisjoint(names)
 
 
 def is_differentiated(*inputs) -> bool:
@@ -96,13 +93,21 @@ def is_differentiated(*inputs) -> bool:
 
 def default_adjoint(*inputs) -> diffrax.AbstractAdjoint:
     """The adjoint when the caller names none: ``diffrax.ForwardMode()`` when any array among
-    ``inputs`` (pytrees) carries forward-mode tangents, else ``diffrax.RecursiveCheckpointAdjoint()``.
+    ``inputs`` (pytrees) carries forward-mode tangents, ``diffrax.DirectAdjoint()`` when they carry
+    both forward-mode tangents and reverse mode's linearize tracers (a second derivative such as
+    ``jax.hessian``), else ``diffrax.RecursiveCheckpointAdjoint()``.
 
     The checkpointed adjoint is a ``custom_vjp``, which JAX cannot push tangents through;
-    ``ForwardMode`` is a plain loop, which JAX cannot transpose. Each mode gets the one that works.
+    ``ForwardMode`` is a plain loop, which JAX cannot transpose; the direct adjoint's bounded loop
+    allows both, at a cost in time and memory that grows with ``max_steps``. Each mode gets the
+    cheapest one that works.
     """
     leaves = jax.tree_util.tree_leaves(inputs)
-    if any(_carries_tangents(x) for x in leaves):
+    kinds = set().union(*(_tracer_kinds(x) for x in leaves))
+    if "JVPTracer" in kinds and "LinearizeTracer" in kinds:
+        # Both modes nested (jax.hessian, jacrev of jacfwd): only the direct adjoint does both.
+        return diffrax.DirectAdjoint()
+    if "JVPTracer" in kinds:
         return diffrax.ForwardMode()
     return diffrax.RecursiveCheckpointAdjoint()
 

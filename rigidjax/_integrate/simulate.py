@@ -157,8 +157,10 @@ def simulate(
       when ``model``, ``state0``, ``ts`` or ``args`` carry forward-mode tangents (``jax.jvp``,
       ``jax.jacfwd``, also under ``jit`` or ``vmap``), else diffrax's checkpointed reverse mode
       (``RecursiveCheckpointAdjoint``: ``jax.grad``, ``jax.jacrev``, ``jax.vjp``), so both modes work
-      without choosing. A ``jax.jit`` between ``jacfwd`` and ``simulate`` (``jacfwd(jit(f))``) hides
-      the tangents: pass ``adjoint=diffrax.ForwardMode()`` there, or jit outside the ``jacfwd``.
+      without choosing; with both modes nested (``jax.hessian``, ``jacrev(jacfwd(f))``)
+      ``diffrax.DirectAdjoint()``. A ``jax.jit`` between ``jacfwd`` and ``simulate``
+      (``jacfwd(jit(f))``) hides the tangents: pass ``adjoint=diffrax.ForwardMode()`` there, or jit
+      outside the ``jacfwd``.
     - `max_steps`: step limit per chunk; reaching it is an error (or NaN rows with
       ``throw=False``). Default: 100 steps per turn of the fastest body over the span of ``ts``
       (``max|omega0| (ts[-1] - ts[0]) / 2 pi`` turns), at least 1e5, rounded up to a power of two;
@@ -299,13 +301,13 @@ def simulate(
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
     if chunk_size is None:
         chunk_size = default_chunk_size(ts.shape[0], jnp.dtype(dtype).itemsize)
+    # The user's adjoint, or the one that works in the mode of differentiation (driver.default_adjoint).
+    adjoint_chosen = adjoint is None
+    adjoint = driver.default_adjoint(model, state0, ts, args) if adjoint_chosen else adjoint
     if max_steps is None:
         # DirectAdjoint runs nested scans sized by max_steps: its cost grows with the limit.
         direct = isinstance(adjoint, diffrax.DirectAdjoint)
         max_steps = MIN_MAX_STEPS if direct else default_max_steps(omega0, ts)
-    # The user's adjoint, or the one that works in the mode of differentiation (driver.default_adjoint).
-    adjoint_chosen = adjoint is None
-    adjoint = driver.default_adjoint(model, state0, ts, args) if adjoint_chosen else adjoint
     if fixed_step:
         controller = diffrax.StepTo(ts=jnp.asarray(grid, dtype)) if n_steps else diffrax.ConstantStepSize()
         dt0 = None
