@@ -17,7 +17,6 @@ nearly symmetric bodies (m -> 0). Steady rotations (spin about a principal axis,
 """
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -35,12 +34,11 @@ from .._checks import (
 )
 from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
-from .._numerics import safe_norm_of
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
 from .barrier import _materialised
 from .carlson import _carlson_rf_rd
 from .derivatives import sample_jacobians
-from .elliptic import _ellipj_checked, _sin_cos, ellipkm1
+from .elliptic import _ellipj_checked, ellipkm1
 from .frame import (
     PHASE_ROUNDING_LIMIT,
     _safe_div,
@@ -52,6 +50,7 @@ from .frame import (
     phase_unresolved,
 )
 from .precession import _general_orientation
+from .steady import _steady_omega, _steady_turn
 
 
 def _checked(inertia, omega0, t, where):
@@ -382,101 +381,6 @@ def _period_and_quarter(inertia, omega0):
 # Steady rotations and the motion (the precession angle: .precession)
 
 
-def _series_or(y, terms, closed):
-    """``sum_n y^n / (2n + k)!`` (the first coefficients given in ``terms``) for small ``|y|``, else
-    ``closed(y)`` evaluated at a harmless point where unused."""
-    small = jnp.abs(y) < 1e-2
-    series = jnp.zeros_like(y)
-    for coefficient in reversed(terms):
-        series = series * y + coefficient
-    return jnp.where(small, series, closed(jnp.where(small, jnp.ones_like(y), y)))
-
-
-def _steady_omega(inertia, omega0, t, steady):
-    """``omega0`` (the motion of a steady rotation) carrying the derivatives of the flow there.
-
-    Along the constant solution the variational equations have constant coefficients:
-    ``d omega(t) / d omega0 = exp(J t)`` and ``d omega(t) / d inertia = int_0^t exp(J s) ds B`` with
-    ``J = df/d omega``, ``B = df/d inertia`` of Euler's equations at ``omega0`` (any labelling of the
-    axes: the cyclic form is symmetric). Every steady rotation (a principal axis, a sphere, a symmetric
-    body about an axis of its degenerate plane) has ``J^3 = c J`` with ``c = tr(J^2) / 2``
-    (``lambda^2`` of :func:`rigidjax.spin_stability`), so ``exp(J t) = 1 + g1 J + g2 J^2`` with
-    ``g1 = sinh(x) / sqrt(c)``, ``g2 = (cosh(x) - 1) / c``, ``x = sqrt(c) t`` (circular for ``c < 0``),
-    which is exact: growth about the intermediate axis, oscillation about the others, linear drift
-    in a degenerate plane. The value is ``omega0`` exactly; unused entries get harmless inputs. The
-    flow matrices are only formed for derivatives (a custom JVP): the value costs nothing.
-    """
-    safe_w = jnp.where(steady[..., None], omega0, jnp.zeros_like(omega0))
-    safe_i = jnp.where(steady[..., None], inertia, jnp.ones_like(inertia))
-    return _linearised_flow(
-        safe_i, safe_w, jnp.broadcast_to(t, jnp.broadcast_shapes(omega0.shape[:-1], jnp.shape(t)))
-    )
-
-
-@jax.custom_jvp
-def _linearised_flow(inertia, omega, t):
-    """``omega`` at every time ``t`` (a steady rotation), whose tangent is the linearised flow."""
-    return jnp.broadcast_to(omega, t.shape + (3,))
-
-
-@_linearised_flow.defjvp
-def _linearised_flow_jvp(primals, tangents):
-    # The tangent of t does not enter: a steady rotation does not change with time. The primals are
-    # constants of the tangent map (second derivatives along the steady rotation are not provided).
-    d_inertia, d_omega, _ = tangents
-    flow, drive = _flow_matrices(*(jax.lax.stop_gradient(x) for x in primals))
-    tangent = (flow @ d_omega[..., None])[..., 0] + (drive @ d_inertia[..., None])[..., 0]
-    return _linearised_flow(*primals), tangent
-
-
-def _flow_matrices(i_sg, w_sg, t_sg):
-    """``exp(J t)`` and ``int_0^t exp(J s) ds B`` of :func:`_steady_omega`."""
-    dtype = w_sg.dtype
-    I1, I2, I3 = i_sg[..., 0], i_sg[..., 1], i_sg[..., 2]
-    w1, w2, w3 = w_sg[..., 0], w_sg[..., 1], w_sg[..., 2]
-    k1, k2, k3 = (I2 - I3) / I1, (I3 - I1) / I2, (I1 - I2) / I3
-    zero = jnp.zeros_like(w1)
-    J = jnp.stack(
-        [
-            jnp.stack([zero, k1 * w3, k1 * w2], -1),
-            jnp.stack([k2 * w3, zero, k2 * w1], -1),
-            jnp.stack([k3 * w2, k3 * w1, zero], -1),
-        ],
-        -2,
-    )
-    a, b, c = w2 * w3, w3 * w1, w1 * w2
-    B = jnp.stack(
-        [
-            jnp.stack([-k1 * a / I1, a / I1, -a / I1], -1),
-            jnp.stack([-b / I2, -k2 * b / I2, b / I2], -1),
-            jnp.stack([c / I3, -c / I3, -k3 * c / I3], -1),
-        ],
-        -2,
-    )
-    J2 = J @ J
-    y = 0.5 * jnp.trace(J2, axis1=-2, axis2=-1) * t_sg * t_sg  # c t^2 = x^2 (negative: circular)
-
-    def sh(y):  # sinh(x) / x
-        r = jnp.sqrt(jnp.abs(y))
-        return jnp.where(y > 0, jnp.sinh(r), jnp.sin(r)) / r
-
-    def ch(y):  # (cosh(x) - 1) / x^2 = 2 sinh(x / 2)^2 / x^2
-        r = jnp.sqrt(jnp.abs(y))
-        return 2 * jnp.where(y > 0, jnp.sinh(r / 2), jnp.sin(r / 2)) ** 2 / jnp.abs(y)
-
-    def sx(y):  # (sinh(x) - x) / x^3
-        r = jnp.sqrt(jnp.abs(y))
-        return jnp.where(y > 0, (jnp.sinh(r) - r) / (y * r), (r - jnp.sin(r)) / (-y * r))
-
-    g1 = t_sg * _series_or(y, [1.0, 1 / 6, 1 / 120, 1 / 5040, 1 / 362880], sh)
-    g2 = t_sg**2 * _series_or(y, [1 / 2, 1 / 24, 1 / 720, 1 / 40320, 1 / 3628800], ch)
-    g3 = t_sg**3 * _series_or(y, [1 / 6, 1 / 120, 1 / 5040, 1 / 362880, 1 / 39916800], sx)
-    eye = jnp.eye(3, dtype=dtype)
-    flow = eye + g1[..., None, None] * J + g2[..., None, None] * J2
-    drive = (t_sg[..., None, None] * eye + g2[..., None, None] * J + g3[..., None, None] * J2) @ B
-    return flow, drive
-
-
 def _broadcast_motion_inputs(inertia, omega0, q0, t, checked=True):
     inertia, omega0, q0, t = common_float(inertia, omega0, q0, t, names=["inertia", "omega0", "q0", "t"])
     check_last_axis(inertia, 3, "inertia")
@@ -525,10 +429,10 @@ def torque_free_motion(
     familiar rotation about ``L`` at ``|L| / I_1`` composed with the body spin, with no NaN as two moments
     meet (the derivative there is the one-sided, analytic one). Steady rotations (about a principal axis,
     the intermediate one included; any axis of a sphere; ``omega0 = 0``) return
-    ``q0 (cos(|w| t/2), sin(|w| t/2) w/|w|)``; there the gradient of ``q`` is that of the steady rotation
-    (finite, but not the sensitivity to a perturbation that starts a wobble), while that of ``omega`` is
-    the flow's, as in :func:`torque_free_omega`.
-    Elsewhere values and gradients (forward and reverse) are finite.
+    ``q0 (cos(|w| t/2), sin(|w| t/2) w/|w|)``; there the derivatives of ``omega`` and ``q`` are those
+    of the linearised motion (the flow ``exp(J t)`` of Euler's equations and the orientation error it
+    drives), the sensitivity to a perturbation that starts a wobble, as an integrator's derivative
+    gives it. Elsewhere values and gradients (forward and reverse) are finite.
 
     **Arguments:**
 
@@ -582,15 +486,7 @@ def _motion_at(inertia, omega0, t):
     omega_g, parts = _motion_parts(frame, t)
     turn_g, precession = _general_orientation(frame, parts, t)
 
-    half = safe_norm_of(omega0[..., 0], omega0[..., 1], omega0[..., 2]) * t / 2
-    # sin(|w| t/2) w/|w| as (t/2) sinc(|w| t/2) w: right value AND gradient at w = 0, where
-    # d q/d w0 = q0 (0, t/2 I) (a body at rest turned by a small w0 turns by w0 t). sinc by its series
-    # below 1e-3 (the next term is 2e-22).
-    sin_h, cos_h = _sin_cos(half)
-    small = jnp.abs(half) < 1e-3
-    sinc = jnp.where(small, 1 - half * half / 6, sin_h / jnp.where(small, 1.0, half))
-    vector = (t / 2 * sinc)[..., None] * omega0
-    turn_s = jnp.concatenate([cos_h[..., None], vector], -1)
+    turn_s, half = _steady_turn(inertia, omega0, t, steady)
     omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
     phase = jnp.where(steady, largest_phase(half), largest_phase(parts["u"], precession))
     return omega, jnp.where(steady[..., None], turn_s, turn_g), phase[..., None]
