@@ -16,6 +16,7 @@ import scipy.optimize
 
 import rigidjax as rj
 from rigidjax import estimate_inertia, fit_inertia, fit_inertia_to_orientation
+from rigidjax._fit.estimate import _estimate
 from rigidjax._fit.problem import LOSSES, _Problem
 
 I_TRUE = np.array([1.0, 2.0, 2.5])
@@ -292,6 +293,19 @@ def test_estimate_is_a_good_start():
     assert np.all(rj.is_physical_inertia(jnp.asarray(moments)))
     exact = np.asarray(rj.torque_free_omega(I_TRUE, W0_TRUE, ts))
     assert np.nanmax(np.abs(smoothed - exact)) < 0.05
+
+
+@pytest.mark.parametrize("duration, samples", [(20.0, 800), (20.0, 200), (60.0, 2400)])
+def test_noise_estimate_is_the_noise_added(duration, samples):
+    """The noise per component estimated from a record is the Gaussian noise added to it (1e-3 of a
+    unit angular velocity), also on a record shorter than two wobble periods, where the fits that
+    smooth the record span a large part of a period and their residuals hold model error."""
+    inertia, omega0 = np.array([1.0, 2.0, 2.5]) / 5.5, np.array([0.3, 1.0, -0.5])
+    ts = np.linspace(0.0, duration, samples)
+    clean = np.asarray(rj.torque_free_omega(jnp.asarray(inertia), jnp.asarray(omega0), jnp.asarray(ts)))
+    noisy = clean + 1e-3 * np.random.default_rng(0).normal(size=clean.shape)
+    noise = _estimate(ts, noisy).noise
+    np.testing.assert_allclose(noise, 1e-3, rtol=0.2)
 
 
 @pytest.mark.slow

@@ -152,9 +152,18 @@ def _estimate_quietly(ts, omega_observed, full_tensor, half_width):
     if np.any(outlier):
         omega = np.where(outlier, np.nan, omega)
         value, slope, leverage = _local_derivatives(ts, omega, half_width)
-    # Noise per component: a residual about the local fit that includes the sample has variance
-    # sigma^2 (1 - h), h the sample's leverage (0.49 for 5 equally spaced samples): undo that.
-    scaled = np.abs(omega - value) / np.sqrt(np.clip(1.0 - leverage, 0.05, 1.0))
+    # Noise per component, from the scatter about local fits of at most 7 samples: over the fits
+    # above (1/16 of the wobble period, or of the record when that is shorter) a quadratic leaves
+    # about 1e-2 of the amplitude unexplained, which reads as noise (a record of 800 samples with
+    # noise 1e-3 of a unit amplitude gave 1.4-1.7e-3; 7 samples: 0.94-1.0e-3). A residual about
+    # the local fit that includes the sample has variance sigma^2 (1 - h), h the sample's leverage
+    # (0.49 for 5 equally spaced samples): undo that.
+    noise_width = min(half_width, 3)
+    if noise_width != half_width:
+        near_value, _, near_leverage = _local_derivatives(ts, omega, noise_width)
+    else:
+        near_value, near_leverage = value, leverage
+    scaled = np.abs(omega - near_value) / np.sqrt(np.clip(1.0 - near_leverage, 0.05, 1.0))
     noise = 1.4826 * np.nanmedian(scaled, axis=0) if np.isfinite(scaled).any() else np.full(3, np.nan)
     ok = np.all(np.isfinite(value) & np.isfinite(slope), axis=1)
     w, wd = value[ok], slope[ok]
