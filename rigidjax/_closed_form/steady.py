@@ -191,6 +191,31 @@ def _error_maps(inertia, omega, t):
         ],
         -2,
     )
-    # Squarings enough for any span whose phase the closed form resolves (|omega| t < 1e13).
-    flow = jax.scipy.linalg.expm(system * t[..., None, None], max_squarings=64)
+    flow = _expm(system * t[..., None, None])
     return flow[..., 6:, :3], flow[..., 6:, 3:6]
+
+
+TAYLOR_DEGREE = 18
+"""Terms of the series of :func:`_expm` after scaling to a 1-norm of at most 1: the remainder is
+below ``1 / 19! = 8e-18``."""
+
+
+def _expm(matrix):
+    """``exp(matrix)`` of ``(..., n, n)`` matrices: scaled by ``2^-s`` to a 1-norm of at most 1, the
+    Taylor series by Horner's rule, squared ``s`` times. Two loops of small bodies: the derivative
+    program of the free body's motion compiled no slower with it (within the 0.5 s run-to-run
+    spread), where ``jax.scipy.linalg.expm`` (Pade approximants of five orders) added 1.1 s to 5.3 s."""
+    norm = jnp.max(jnp.sum(jnp.abs(matrix), axis=-2), axis=-1)
+    squarings = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300))), 0.0, 64.0)
+    scaled = matrix * jnp.exp2(-squarings)[..., None, None]
+    eye = jnp.broadcast_to(jnp.eye(matrix.shape[-1], dtype=matrix.dtype), matrix.shape)
+
+    def horner(k, series):
+        return eye + scaled @ series / (TAYLOR_DEGREE - k).astype(matrix.dtype)
+
+    series = jax.lax.fori_loop(0, TAYLOR_DEGREE, horner, eye)
+
+    def square(k, power):
+        return jnp.where((k.astype(squarings.dtype) < squarings)[..., None, None], power @ power, power)
+
+    return jax.lax.fori_loop(0, jnp.max(squarings).astype(jnp.int32), square, series)
