@@ -39,18 +39,26 @@ def _steady_omega(inertia, omega0, t, steady):
     (``lambda^2`` of :func:`rigidjax.spin_stability`), so ``exp(J t) = 1 + g1 J + g2 J^2`` with
     ``g1 = sinh(x) / sqrt(c)``, ``g2 = (cosh(x) - 1) / c``, ``x = sqrt(c) t`` (circular for ``c < 0``),
     which is exact: growth about the intermediate axis, oscillation about the others, linear drift
-    in a degenerate plane. The value is ``omega0`` exactly; unused entries get harmless inputs. The
-    flow matrices are only formed for derivatives (a custom JVP): the value costs nothing.
+    in a degenerate plane. The value is ``omega0`` exactly. The flow matrices are only formed for
+    derivatives (a custom JVP), for the steady bodies and those :func:`near_stable_axis`; other
+    entries get harmless inputs there. The value costs nothing.
     """
-    safe_w = jnp.where(steady[..., None], omega0, jnp.zeros_like(omega0))
-    safe_i = jnp.where(steady[..., None], inertia, jnp.ones_like(inertia))
-    return _linearised_flow(
-        safe_i, safe_w, jnp.broadcast_to(t, jnp.broadcast_shapes(omega0.shape[:-1], jnp.shape(t)))
-    )
+    t = jnp.broadcast_to(t, jnp.broadcast_shapes(omega0.shape[:-1], jnp.shape(t)))
+    return _linearised_flow(inertia, omega0, t, steady)
+
+
+def _safe_inputs(inertia, omega0, steady):
+    """``(inertia, omega0, mask)`` for the tangent maps, without their derivatives: the values of
+    the steady bodies and of those near a stable axis (``mask``), a body at rest elsewhere."""
+    inertia, omega0 = jax.lax.stop_gradient(inertia), jax.lax.stop_gradient(omega0)
+    mask = steady | near_stable_axis(inertia, omega0)
+    safe_w = jnp.where(mask[..., None], omega0, jnp.zeros_like(omega0))
+    safe_i = jnp.where(mask[..., None], inertia, jnp.ones_like(inertia))
+    return safe_i, safe_w, mask
 
 
 @jax.custom_jvp
-def _linearised_flow(inertia, omega, t):
+def _linearised_flow(inertia, omega, t, steady):
     """``omega`` at every time ``t`` (a steady rotation), whose tangent is the linearised flow."""
     return jnp.broadcast_to(omega, t.shape + (3,))
 
@@ -59,8 +67,10 @@ def _linearised_flow(inertia, omega, t):
 def _linearised_flow_jvp(primals, tangents):
     # The tangent of t does not enter: a steady rotation does not change with time. The primals are
     # constants of the tangent map (second derivatives along the steady rotation are not provided).
-    d_inertia, d_omega, _ = tangents
-    flow, drive = _flow_matrices(*(jax.lax.stop_gradient(x) for x in primals))
+    inertia, omega, t, steady = primals
+    d_inertia, d_omega, _, _ = tangents
+    safe_i, safe_w, _ = _safe_inputs(inertia, omega, steady)
+    flow, drive = _flow_matrices(safe_i, safe_w, jax.lax.stop_gradient(t))
     tangent = (flow @ d_omega[..., None])[..., 0] + (drive @ d_inertia[..., None])[..., 0]
     return _linearised_flow(*primals), tangent
 
@@ -120,15 +130,48 @@ def _euler_jacobians(inertia, omega):
     return J, B
 
 
+def near_stable_axis(inertia, omega0):
+    """Bodies spinning within ``sqrt(eps)`` (relative) of the axis of their largest or smallest
+    moment, but not exactly about it. Their elliptic form is exact in value, but its derivatives
+    lose ``eps / offset`` of their size (the wobble's amplitude is the offset): 2.4e-4 at an offset
+    of 1e-12, 32 times their size at 1e-17. The linearised motion's derivatives are within the
+    offset of the motion's; the two errors meet near ``sqrt(eps)``. (About the intermediate axis the
+    elliptic form's derivatives stay accurate: its motion is the separatrix's.)"""
+    # Elementwise on the three components (no argmax and gather): it fuses with its neighbours.
+    i1, i2, i3 = (inertia[..., k] for k in range(3))
+    s1, s2, s3 = (omega0[..., k] * omega0[..., k] for k in range(3))
+    total = s1 + s2 + s3
+    off1, off2, off3 = s2 + s3, s1 + s3, s1 + s2
+    off_largest = jnp.where((i1 >= i2) & (i1 >= i3), off1, jnp.where(i2 >= i3, off2, off3))
+    off_smallest = jnp.where((i1 <= i2) & (i1 <= i3), off1, jnp.where(i2 <= i3, off2, off3))
+    limit = jnp.finfo(omega0.dtype).eps * total
+    return (total > 0) & (jnp.minimum(off_largest, off_smallest) < limit)
+
+
+@jax.custom_jvp
+def select_motion(general, steady_value, steady, inertia, omega0):
+    """``where(steady, steady_value, general)`` (along the last axis), whose tangent is
+    ``steady_value``'s for the steady bodies and those :func:`near_stable_axis`, ``general``'s
+    elsewhere. The value is the plain selection, and the near-axis test is made only when
+    derivatives are taken: the motion costs what it did without it."""
+    return jnp.where(steady[..., None], steady_value, general)
+
+
+@select_motion.defjvp
+def _select_motion_jvp(primals, tangents):
+    general, steady_value, steady, inertia, omega0 = primals
+    d_general, d_steady = tangents[:2]
+    mask = _safe_inputs(inertia, omega0, steady)[2]
+    return select_motion(*primals), jnp.where(mask[..., None], d_steady, d_general)
+
+
 def _steady_turn(inertia, omega0, t, steady):
     """The turn ``q0* q(t)`` of a steady rotation, ``(cos(|w| t/2), sin(|w| t/2) w/|w|)``, carrying the
     derivatives of the linearised motion (the module's docstring), and the half angle ``|w| t / 2``.
     Entries that are not ``steady`` get harmless inputs (a body at rest)."""
     t = jnp.broadcast_to(t, jnp.broadcast_shapes(omega0.shape[:-1], jnp.shape(t)))
     half = safe_norm_of(omega0[..., 0], omega0[..., 1], omega0[..., 2]) * t / 2
-    safe_w = jnp.where(steady[..., None], omega0, jnp.zeros_like(omega0))
-    safe_i = jnp.where(steady[..., None], inertia, jnp.ones_like(inertia))
-    return _linearised_turn(safe_i, safe_w, t, steady), half
+    return _linearised_turn(inertia, omega0, t, steady), half
 
 
 def _uniform_turn(omega, t):
@@ -154,14 +197,15 @@ def _linearised_turn_jvp(primals, tangents):
     d_inertia, d_omega, d_t, _ = tangents
     turn = _uniform_turn(omega, t)
     shape = t.shape + (3, 3)
+    safe_i, safe_w, mask = _safe_inputs(inertia, omega, steady)
 
     def maps():
-        return _error_maps(*(jax.lax.stop_gradient(x) for x in (inertia, omega, t)))
+        return _error_maps(safe_i, safe_w, jax.lax.stop_gradient(t))
 
-    # Formed only where a batch holds a steady rotation (the common batch holds none): a 9 x 9
-    # matrix exponential per sample.
+    # Formed only where a batch holds a steady rotation or one near a stable axis (the common batch
+    # holds none): a 9 x 9 matrix exponential per sample.
     m_omega, m_inertia = jax.lax.cond(
-        jnp.any(steady), maps, lambda: (jnp.zeros(shape, t.dtype), jnp.zeros(shape, t.dtype))
+        jnp.any(mask), maps, lambda: (jnp.zeros(shape, t.dtype), jnp.zeros(shape, t.dtype))
     )
     # The body-frame error e of q = q_steady exp(e / 2), and the turn's own rate along t.
     error = (m_omega @ d_omega[..., None])[..., 0] + (m_inertia @ d_inertia[..., None])[..., 0]

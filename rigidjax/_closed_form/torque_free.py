@@ -50,7 +50,7 @@ from .frame import (
     phase_unresolved,
 )
 from .precession import _general_orientation
-from .steady import _steady_omega, _steady_turn
+from .steady import _steady_omega, _steady_turn, select_motion
 
 
 def _checked(inertia, omega0, t, where):
@@ -279,8 +279,8 @@ def _torque_free_omega(inertia, omega0, t, *, checked, phases=False):
     frame = _frame(inertia, omega0)
     steady = frame["steady"]
     omega_g, parts = _motion_parts(frame, t, held=True)
-    omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
-    omega = jnp.broadcast_to(omega, batch + (3,))
+    omega_s = _steady_omega(inertia, omega0, t, steady)
+    omega = jnp.broadcast_to(select_motion(omega_g, omega_s, steady, inertia, omega0), batch + (3,))
     if not phases:
         return omega
     return omega, jnp.broadcast_to(jnp.where(steady, 0.0, largest_phase(parts["u"])), batch)
@@ -487,9 +487,10 @@ def _motion_at(inertia, omega0, t):
     turn_g, precession = _general_orientation(frame, parts, t)
 
     turn_s, half = _steady_turn(inertia, omega0, t, steady)
-    omega = jnp.where(steady[..., None], _steady_omega(inertia, omega0, t, steady), omega_g)
+    omega = select_motion(omega_g, _steady_omega(inertia, omega0, t, steady), steady, inertia, omega0)
+    turn = select_motion(turn_g, turn_s, steady, inertia, omega0)
     phase = jnp.where(steady, largest_phase(half), largest_phase(parts["u"], precession))
-    return omega, jnp.where(steady[..., None], turn_s, turn_g), phase[..., None]
+    return omega, turn, phase[..., None]
 
 
 # With the orientation, reverse mode transposes the contraction of every sample's Jacobian (see
