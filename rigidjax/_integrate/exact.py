@@ -201,13 +201,18 @@ def _plain_blocks(motion, flat, t, per_block):
     return tuple(batching.from_chunks(plan, x) for x in outputs)
 
 
+def _lagrange_tolerance(dtype) -> float:
+    """The relative deviation from Lagrange's top that passes as roundoff: ``100 eps``."""
+    return 100 * float(jnp.finfo(dtype).eps)
+
+
 def _lagrange_failures(inertia, com):
     """The conditions of Lagrange's top that ``inertia`` and ``com`` violate (elementwise masks).
 
     ``|I1 - I2| <= 100 eps max(I1, I2)`` and ``|(com_x, com_y)| <= 100 eps |com|``: roundoff in moments
     or positions computed by the user passes, a physical asymmetry does not.
     """
-    tol = 100 * float(jnp.finfo(inertia.dtype).eps)
+    tol = _lagrange_tolerance(inertia.dtype)
     asymmetric = jnp.abs(inertia[..., 0] - inertia[..., 1]) > tol * jnp.maximum(
         jnp.abs(inertia[..., 0]), jnp.abs(inertia[..., 1])
     )
@@ -263,7 +268,7 @@ def _check_lagrange_top(model, state0):
     asymmetric, off_axis = (np.asarray(x) for x in failures)
     # The tolerance and the relative deviation are printed too: I1 and I2 that differ by 1e-13 read
     # the same at a few significant digits.
-    tol = 100 * float(jnp.finfo(dtype).eps)
+    tol = _lagrange_tolerance(dtype)
     if np.any(asymmetric):
         bad = np.broadcast_to(inertia, asymmetric.shape + (3,))[asymmetric][0]
         relative = abs(bad[0] - bad[1]) / max(abs(bad[0]), abs(bad[1]))
