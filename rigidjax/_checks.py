@@ -613,4 +613,22 @@ def check_model(model, where: str):
             bad, rule = rules[leaf.label]
             value = error_if(value, bad(value), f"{where}: model field {leaf.label!r} {rule}.")
         checked.append(value)
-    return model.replace_body_leaves(leaves, checked)
+    return _checked_torque_params(model.replace_body_leaves(leaves, checked), where)
+
+
+def _checked_torque_params(model, where: str):
+    """``model`` with the numbers each ``Torque(fn, params=...)`` hands its function checked to be
+    finite: a NaN there would surface only as a step size that collapsed at the first step."""
+    for i, torque in enumerate(getattr(model, "torques", ())):
+        params = getattr(torque, "params", None)
+        if params is None:
+            continue
+        message = f"{where}: model field 'torques[{i}].params' contains NaN or inf."
+
+        def check(x, message=message):
+            if isinstance(x, float) and not np.isfinite(x):
+                raise ValueError(message)
+            return error_if(x, ~jnp.isfinite(x), message) if eqx.is_inexact_array(x) else x
+
+        model = eqx.tree_at(lambda m, i=i: m.torques[i].params, model, jax.tree.map(check, params))
+    return model

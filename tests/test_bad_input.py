@@ -1504,9 +1504,48 @@ def test_simulate_exact_fails_a_body_whose_phase_is_beyond_what_the_dtype_resolv
 
 def test_a_span_too_long_for_the_step_floor_names_the_closed_form():
     """A tumbling body over 1e12 s (3e11 turns) needs steps below the floor that stops a NaN body
-    early (1e-12 of the span): the error said only that the state or torque had turned NaN."""
+    early (1e-12 of the span): the error said only that the state or torque had turned NaN. On the
+    default step limit the span is refused before any step (a span of 1e15 s once ran for hours,
+    up to the limit of 2^30 steps); with a limit given, the run stops at the floor."""
+    model, state, ts = rj.FreeBody(I3), rj.State(W, None), np.array([0.0, 1e12])
+    turns = np.linalg.norm(W) * 1e12 / (2 * np.pi)
+    with pytest.raises(
+        ValueError, match=rf"ts spans {re.escape(f'{turns:.3g}')} turns.*accuracy='exact'.*max_steps"
+    ):
+        rj.simulate(model, state, ts, accuracy="fast")
     with pytest.raises(RUNTIME, match=r"step size collapsed.*more turns than steps of that size.*'exact'"):
-        rj.simulate(rj.FreeBody(I3), rj.State(W, None), np.array([0.0, 1e12]), accuracy="fast")
+        rj.simulate(model, state, ts, accuracy="fast", max_steps=100_000)
+
+
+def test_a_span_of_ten_million_turns_is_the_most_the_default_step_limit_takes():
+    """The refusal sits at 2^30 / 100 turns of the fastest body (100 steps per turn, the default
+    limit's budget): just below it, the limit is 2^30 (checked without running)."""
+    from rigidjax._integrate.presets import LARGEST_DEFAULT_MAX_STEPS, STEPS_PER_TURN, default_max_steps
+
+    omega0 = np.array([[0.0, 0.0, 2 * np.pi], [0.0, 1.0, 0.0]])  # the fastest: one turn per second
+    most = LARGEST_DEFAULT_MAX_STEPS / STEPS_PER_TURN
+    assert default_max_steps(omega0, np.array([0.0, 0.999 * most])) == 2**30
+    with pytest.raises(ValueError, match="more than an integrator steps through"):
+        default_max_steps(omega0, np.array([0.0, 1.001 * most]))
+
+
+def test_nan_in_the_params_of_a_torque_function_is_named_also_under_jit():
+    """NaN in ``Torque(fn, params=...)`` ran and failed with a step size that collapsed at t = 0."""
+    message = r"simulate: model field 'torques\[0\].params' contains NaN or inf"
+
+    def final_omega(k):
+        torque = rj.Torque(lambda t, s, p: -p["k"] * s.omega, params={"k": k}, needs_orientation=False)
+        return rj.simulate(rj.RigidBody(I3, torque), rj.State(W, None), TS, accuracy="fast").omega[-1]
+
+    with pytest.raises(ValueError, match=message):
+        final_omega(np.nan)  # a Python float
+    with pytest.raises(ValueError, match=message):
+        final_omega(jnp.array(jnp.inf))
+    with pytest.raises(RUNTIME, match=message):
+        jax.block_until_ready(jax.jit(final_omega)(jnp.array(jnp.nan)))
+    # finite parameters run: the torque -k omega takes energy out (dE/dt = -k |omega|^2)
+    slowed = np.asarray(final_omega(jnp.array(0.1)))
+    assert np.sum(I3 * slowed**2) < np.exp(-0.1 / I3.max()) * np.sum(I3 * W**2)
 
 
 @pytest.mark.parametrize("shape", [(2,), (4,), (5, 2)])

@@ -283,14 +283,15 @@ def _bench_table_row(out, accuracy):
 
 @pytest.mark.slow
 def test_bench_small_run(tmp_path):
-    """A preset and the closed form on 8 bodies: the progress line, the JSON, the table, the physics."""
+    """A preset and the closed form on 3 bodies: the progress line, the JSON, the table, the physics.
+    (Three bodies' moments, a (3, 3) array, were once read as one inertia tensor and refused.)"""
     path = tmp_path / "bench.json"
-    argv = ["bench", "-n", "8", "--methods", "fast,exact", "--repeats", "1", "--json", str(path)]
+    argv = ["bench", "-n", "3", "--methods", "fast,exact", "--repeats", "1", "--json", str(path)]
     code, out, err = _run(argv)
     assert code == 0, err
     assert "bench [" in err and "4/4 calls" in err  # 2 settings x (first call + 1 repeat)
     data = json.loads(path.read_text())
-    assert data["bodies"] == 8 and data["dtype"] == "float64" and data["repeats"] == 1
+    assert data["bodies"] == 3 and data["dtype"] == "float64" and data["repeats"] == 1
     rows = {r["accuracy"]: r for r in data["rows"]}
     assert list(rows) == ["fast", "exact"]
     fast, exact = rows["fast"], rows["exact"]
@@ -308,7 +309,7 @@ def test_bench_small_run(tmp_path):
     cells = _bench_table_row(out, "fast")
     assert float(cells[5]) == pytest.approx(fast["max_rel_omega"], rel=0.06)
     assert int(cells[4].replace(",", "")) == fast["steps"]
-    assert "8 torque-free bodies" in out and "T = 20 s" in out
+    assert "3 torque-free bodies" in out and "T = 20 s" in out
 
 
 @pytest.mark.slow
@@ -603,3 +604,163 @@ def test_compiled_programs_are_kept_between_invocations(tmp_path):
     assert any("integrate_traced" in p.name for p in cache.iterdir()), sorted(p.name for p in cache.iterdir())
     _, second = run()
     assert "Persistent compilation cache hit for 'jit__integrate_traced'" in second
+
+
+def _three_free_bodies(tmp_path, *extra):
+    argv = [
+        "simulate",
+        "--scene",
+        "free",
+        "-n",
+        "3",
+        "--duration",
+        "1",
+        "--samples",
+        "10",
+        "--no-error-estimate",
+    ]
+    return _run([*argv, "--out", str(tmp_path / "three.npz"), *extra])
+
+
+def test_three_bodies_run_in_a_block_of_four_and_are_drawn_as_themselves(tmp_path, monkeypatch):
+    """Three bodies' principal moments, a (3, 3) array, read as ONE inertia tensor: ``-n 3`` (or any
+    block of three) was refused with a traceback, and ``--animate`` drew the first three bodies as
+    boxes of that matrix's eigenvalues. Reference: each body integrated alone by rigidjax.simulate."""
+    import jax.numpy as jnp
+
+    import rigidjax.plot
+    from rigidjax._plot import data as plot_data
+
+    drawn = {}
+
+    def record(trajectory, path, bodies):
+        drawn["moments"] = [np.linalg.eigvalsh(plot_data.inertia(trajectory, i)) for i in bodies]
+        with open(path, "wb") as f:
+            f.write(b"GIF89a")
+
+    monkeypatch.setattr(rigidjax.plot, "animate", record)
+    code, out, err = _three_free_bodies(tmp_path, "--no-plot", "--animate", str(tmp_path / "three.gif"))
+    assert code == 0, err
+    assert _field(out, "bodies") == "3 (1 block of 4, last padded with 1 copy)"
+    with np.load(tmp_path / "three.npz") as data:
+        inertia, omega0, q0, ts = data["inertia"], data["omega0"], data["orientation0"], data["ts"]
+        assert data["omega"].shape == (3, 10, 3) and bool(np.all(data["success"]))
+        stored = data["omega"]
+    for i in range(3):
+        np.testing.assert_allclose(np.sort(drawn["moments"][i]), np.sort(inertia[i]), rtol=1e-6)
+        alone = rigidjax.simulate(
+            rigidjax.FreeBody(jnp.asarray(inertia[i])),
+            rigidjax.State(jnp.asarray(omega0[i]), jnp.asarray(q0[i])),
+            jnp.asarray(ts),
+        )
+        np.testing.assert_allclose(
+            stored[i], np.asarray(alone.omega), rtol=0, atol=1e-5 * np.abs(omega0[i]).max()
+        )
+
+
+def test_results_are_rescued_when_the_output_directory_goes_away_during_the_run(tmp_path, monkeypatch):
+    """The output directory existed when the run started and was removed during it: the run ended
+    in a raw FileNotFoundError, without its summary, and nothing was saved."""
+    import shutil
+    import tempfile
+
+    from rigidjax._cli import simulate as cli_simulate
+
+    outputs, rescue = tmp_path / "outputs", tmp_path / "temporary"
+    outputs.mkdir()
+    rescue.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(rescue))
+    original = cli_simulate.simulate_blocks
+
+    def run_then_remove(*args, **kwargs):
+        batch = original(*args, **kwargs)
+        shutil.rmtree(outputs)
+        return batch
+
+    monkeypatch.setattr(cli_simulate, "simulate_blocks", run_then_remove)
+    argv = [
+        "simulate",
+        "--scene",
+        "free",
+        "-n",
+        "3",
+        "--duration",
+        "1",
+        "--samples",
+        "10",
+        "--no-error-estimate",
+    ]
+    code, out, err = _run([*argv, "--out", str(outputs / "r.npz"), "--plot", str(outputs / "r.png")])
+    assert code == 1
+    assert "Traceback" not in err
+    saved = sorted(rescue.iterdir())
+    assert [p.suffix for p in saved] == [".npz", ".png"]
+    for option, path in zip(("--out", "--plot"), saved, strict=True):
+        assert f"error: {option} '{outputs / ('r' + path.suffix)}': could not write" in err
+        assert f"written to '{path}' instead" in err
+        assert "wrote:" in out and str(path) in out  # the summary is printed, with where the files are
+    with np.load(saved[0]) as data:
+        assert data["omega"].shape == (3, 10, 3)
+
+
+def test_a_file_system_that_refuses_files_is_found_before_the_run(tmp_path, monkeypatch):
+    """Permission bits allow the write (as for the superuser on /proc): creating a file is the test."""
+    from rigidjax._cli import simulate as cli_simulate
+    from rigidjax._integrate import storage
+
+    def refuse(directory, name):
+        raise OSError(30, "Read-only file system")
+
+    monkeypatch.setattr(storage, "_open_temporary", refuse)
+    monkeypatch.setattr(cli_simulate, "plan_run", _fail_if_run)
+    code, out, err = _run(["simulate", "--out", str(tmp_path / "r.npz")])
+    _assert_one_line_error(code, out, err, "simulate", "a file cannot be created in")
+    assert "Read-only file system" in err
+
+
+def test_a_duration_beyond_the_step_limit_is_one_line(tmp_path):
+    """``--duration 1e20`` compiled on a span of 1e11 s (the span shrunk by 1e-9) for hours;
+    ``--duration 1e-300`` shrunk to zero and stopped with a traceback. The compiling call now covers
+    a milliradian of the fastest body's rotation (or the whole span if shorter)."""
+    code, out, err = _three_free_bodies(tmp_path, "--duration", "1e20", "--no-plot", "-q")
+    assert code == 2 and out == "" and "Traceback" not in err
+    assert err.startswith("rigidjax simulate: error: --duration 1e+20: simulate: ts spans")
+    assert "accuracy='exact'" in err
+    code, out, err = _three_free_bodies(tmp_path, "--duration", "1e-300", "--no-plot", "-q")
+    assert code == 0, err
+    with np.load(tmp_path / "three.npz") as data:
+        np.testing.assert_allclose(data["omega"][:, -1], data["omega0"], rtol=1e-6)  # no time to move
+
+
+@pytest.mark.parametrize("duration", [1e-300, 1.0, 1e20])
+def test_the_compiling_call_is_short_and_its_times_distinct(duration):
+    import argparse
+
+    from rigidjax._cli.batch import plan_run
+    from rigidjax._cli.simulate import _warm_up_times
+
+    args = argparse.Namespace(
+        scene="free",
+        bodies=3,
+        duration=duration,
+        samples=10,
+        seed=0,
+        accuracy="balanced",
+        blocks=None,
+        save_every=None,
+        save_dtype="float32",
+        dtype="float64",
+    )
+    plan = plan_run(args)
+    ts = _warm_up_times(plan)
+    fastest = np.max(np.linalg.norm(plan.scene.omega0, axis=-1))
+    assert ts.shape == (10,) and np.all(np.diff(ts) > 0) and ts[0] == 0.0
+    assert ts[-1] == min(duration, 1e-3 / fastest)
+
+
+def test_earth_in_float32_with_the_closed_form_is_refused_before_the_run(monkeypatch):
+    from rigidjax._cli import simulate as cli_simulate
+
+    monkeypatch.setattr(cli_simulate, "plan_run", _fail_if_run)
+    code, out, err = _run(["simulate", "--scene", "earth", "--accuracy", "exact", "--dtype", "float32"])
+    _assert_one_line_error(code, out, err, "simulate", "--scene earth --accuracy exact needs --dtype float64")

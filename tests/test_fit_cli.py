@@ -55,6 +55,57 @@ def test_fit_command_recovers_inertia(tmp_path, capsys):
     )
 
 
+@pytest.mark.slow
+def test_a_result_whose_directory_went_away_is_printed_and_rescued(tmp_path, capsys, monkeypatch):
+    """The output directory was removed during the fit: the write ended in a raw traceback. The fit
+    of test_fit_command_recovers_inertia's second call (same record and options: no new compile)."""
+    import shutil
+    import tempfile
+
+    inertia, omega0, ts = np.array([1.0, 2.0, 2.5]), np.array([0.3, 0.05, 1.0]), np.linspace(0.0, 40.0, 240)
+    w = np.asarray(rj.torque_free_omega(inertia, omega0, ts))
+    obs = w + 0.01 * np.std(w, axis=0) * np.random.default_rng(0).standard_normal(w.shape)
+    obs[5, 1] = np.nan
+    data, outputs, rescue = tmp_path / "gyro.csv", tmp_path / "outputs", tmp_path / "temporary"
+    write_csv(data, ts, obs)
+    outputs.mkdir()
+    rescue.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(rescue))
+    fit_inertia = rj.fit_inertia
+
+    def fit_then_remove(*args, **kwargs):
+        result = fit_inertia(*args, **kwargs)
+        shutil.rmtree(outputs)
+        return result
+
+    monkeypatch.setattr(rj, "fit_inertia", fit_then_remove)
+    options = ["--quiet", "--no-plot", "--known-moment", "z", "2.5", "--out", str(outputs / "abs")]
+    assert run_fit([str(data), *options]) == 1
+    captured = capsys.readouterr()
+    (saved,) = rescue.iterdir()
+    assert f"--out '{outputs / 'abs.json'}': could not write" in captured.err
+    assert f"written to '{saved}' instead" in captured.err and "Traceback" not in captured.err
+    result = json.loads(saved.read_text())
+    assert result["normalised_to_trace_1"] is False and "I_x = " in captured.out
+    # With the temporary directory gone too, the results are printed (JSON on stdout).
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "missing"))
+    outputs.mkdir()
+    assert run_fit([str(data), *options]) == 1
+    captured = capsys.readouterr()
+    assert "nor" in captured.err
+    printed = json.loads(captured.out[captured.out.index("{") :])
+    assert printed["inertia"] == result["inertia"]
+
+
+def test_a_directory_as_the_output_stem_is_named(tmp_path, capsys, no_fit):
+    """``--out .`` said "--out '..json': the file name must end in .json"."""
+    data = tmp_path / "gyro.csv"
+    write_csv(data, np.arange(12.0), np.ones((12, 3)))
+    for out in (str(tmp_path), str(tmp_path) + "/"):
+        assert run_fit([str(data), "-q", "--out", out]) == 2
+        _one_line_error(capsys.readouterr(), "is a directory; --out is a file stem")
+
+
 @pytest.mark.parametrize(
     "text, message",
     [

@@ -28,7 +28,17 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import StatusLine, bar, check_output, plain, positive_float, positive_int, rng_seed, write_text
+from .common import (
+    StatusLine,
+    bar,
+    check_output,
+    plain,
+    positive_float,
+    positive_int,
+    rng_seed,
+    write_or_rescue,
+    write_text,
+)
 
 METHODS = ("fast", "balanced", "precise", "exact")
 
@@ -44,13 +54,15 @@ def tennis_racket_scene(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def _final_state(accuracy: str, inertia, omega0, duration: float):
     """A zero-argument call: ``rigidjax.simulate`` of every body over [0, T]; (omega(T), q(T), steps)."""
     dtype = inertia.dtype
+    # A batch axis of one per body: three bodies' moments, a (3, 3) array, would read as one tensor.
+    inertia, omega0 = inertia[:, None], omega0[:, None]
     q0 = jnp.zeros(omega0.shape[:-1] + (4,), dtype).at[..., 0].set(1.0)
     ts = jnp.asarray([0.0, duration], dtype)
     model, state0 = rj.FreeBody(inertia), rj.State(omega0, q0)
 
     def call():
         traj = rj.simulate(model, state0, ts, accuracy=accuracy)
-        return traj.omega[:, -1], traj.orientation[:, -1], traj.stats.get("num_steps")
+        return traj.omega[:, 0, -1], traj.orientation[:, 0, -1], traj.stats.get("num_steps")
 
     return call
 
@@ -181,10 +193,9 @@ def run(args) -> int:
     print("The full comparison with other integrators: benchmarks/work_precision.py in the source tree.")
     if args.json:
         meta = {k: getattr(args, k) for k in ("bodies", "duration", "dtype", "seed", "repeats")}
-        write_text(
-            args.json,
-            json.dumps({**meta, "devices": [str(d) for d in jax.devices()], "rows": rows}, indent=1),
-        )
+        text = json.dumps({**meta, "devices": [str(d) for d in jax.devices()], "rows": rows}, indent=1)
+        if write_or_rescue("bench", "--json", args.json, lambda path: write_text(path, text)) != args.json:
+            return 1
     return 0
 
 

@@ -8,6 +8,7 @@ import math
 import os
 import re
 import sys
+import tempfile
 from collections.abc import Callable
 
 from .._integrate.progress import StatusLine as StatusLine
@@ -49,6 +50,26 @@ def check_output(path: str, option: str, extensions: tuple[str, ...]) -> str:
         return check_writable(path, where=option)
     except OSError as error:
         raise UsageError(str(error)) from None
+
+
+def write_or_rescue(command: str, option: str, path: str, write: Callable[[str], object]) -> str | None:
+    """``write(path)``; if that fails (the directory was removed during the run, a full disk, a file
+    system that refuses the write), ``write`` to a file in the system's temporary directory instead,
+    and say so on stderr naming ``option``: the results of a long run are not lost to the output
+    path. Returns the path written, or None when neither write succeeded."""
+    try:
+        write(path)
+        return path
+    except OSError as error:
+        problem = f"rigidjax {command}: error: {option} {path!r}: could not write ({error.strerror or error})"
+    rescue = os.path.join(tempfile.gettempdir(), f"rigidjax-{command}-{os.getpid()}-{os.path.basename(path)}")
+    try:
+        write(rescue)
+    except OSError as error:
+        print(f"{problem}; nor {rescue!r} ({error.strerror or error}).", file=sys.stderr, flush=True)
+        return None
+    print(f"{problem}; written to {rescue!r} instead.", file=sys.stderr, flush=True)
+    return rescue
 
 
 def write_npz(path: str, arrays: dict) -> None:

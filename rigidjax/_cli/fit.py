@@ -21,7 +21,16 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import UsageError, bar, check_output, plain, positive_int, write_figure, write_text
+from .common import (
+    UsageError,
+    bar,
+    check_output,
+    plain,
+    positive_int,
+    write_figure,
+    write_or_rescue,
+    write_text,
+)
 
 OMEGA_COLUMNS = ("t", "wx", "wy", "wz")
 QUATERNION_COLUMNS = ("t", "qw", "qx", "qy", "qz")
@@ -155,7 +164,7 @@ def _format(value: float, error: float) -> str:
     return f"{value:.6g} ± {error:.2g}"
 
 
-def _plot(path: str, ts, omega, fit) -> None:
+def _plot(path: str, ts, omega, fit) -> str | None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -179,7 +188,7 @@ def _plot(path: str, ts, omega, fit) -> None:
     fig.suptitle("rigidjax fit: observed and fitted body-frame angular velocity")
     fig.tight_layout()
     try:
-        write_figure(path, fig)
+        return write_or_rescue("fit", "--out", path, lambda where: write_figure(where, fig))
     finally:
         plt.close(fig)
 
@@ -258,6 +267,11 @@ def _options(args) -> tuple[int | str, tuple[int, float] | None]:
 def _outputs(args) -> tuple[str, str | None]:
     """The JSON and figure paths (None with ``--no-plot``), checked before the fit."""
     stem = args.out or os.path.splitext(args.data)[0] + "_fit"
+    if os.path.isdir(stem) or not os.path.basename(stem):
+        raise UsageError(
+            f"--out {stem!r} is a directory; --out is a file stem (STEM.json and STEM.png are written), "
+            f"such as {os.path.join(stem, 'fit')!r}."
+        )
     if os.path.splitext(stem)[1].lower() in (".json", ".png"):
         stem = os.path.splitext(stem)[0]
     json_path = check_output(stem + ".json", "--out", (".json",))
@@ -352,13 +366,19 @@ def run(args) -> int:
         "seconds": seconds,
     }
     result = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
-    write_text(json_path, json.dumps(result, indent=2))
-    written = [json_path]
+    text = json.dumps(result, indent=2)
+    json_written = write_or_rescue("fit", "--out", json_path, lambda path: write_text(path, text))
+    written = [json_written] if json_written else []
+    misplaced = json_written != json_path
     if png_path is not None:
         try:
-            _plot(png_path, ts, omega, fit)
-            written.append(png_path)
+            png_written = _plot(png_path, ts, omega, fit)
+            written += [png_written] if png_written else []
+            misplaced |= png_written != png_path
         except ImportError:
             print("(matplotlib is not installed: no figure; pip install 'rigidjax[plot]')", file=sys.stderr)
-    print("wrote " + ", ".join(written))
-    return 0 if bool(fit.converged) else 1
+    if written:
+        print("wrote " + ", ".join(written))
+    if json_written is None:
+        print(text)  # the results, where nothing else holds them
+    return 0 if bool(fit.converged) and not misplaced else 1

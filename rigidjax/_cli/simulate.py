@@ -60,6 +60,7 @@ from .common import (
     rng_seed,
     write_figure,
     write_npz,
+    write_or_rescue,
 )
 from .scenes import DAY, SCENE_BUILDERS, block_params
 
@@ -77,7 +78,10 @@ def _summary(plan: Plan, batch: Batch, args, compile_time: float) -> tuple[dict,
     success = batch.results["success"]
     # Over the bodies that integrated (failed ones are NaN and counted apart); a NaN drift stays NaN.
     worst = {k: float(np.max(v[success])) if success.any() else float("nan") for k, v in drifts.items()}
-    scene_rows, scene_extra = plan.scene.summarize(batch.results, plan.ts, args)
+    if success.any():
+        scene_rows, scene_extra = plan.scene.summarize(batch.results, plan.ts, args)
+    else:
+        scene_rows, scene_extra = [("scene checks", "none: no body integrated")], {}
     # The body to distrust most, per quantity: its index in the scene and its estimate.
     worst_estimate = {}
     for key, value in batch.results.items():
@@ -118,7 +122,7 @@ def _per_body_worst(plan: Plan, batch: Batch) -> np.ndarray:
     return np.max(np.stack(drifts, -1), axis=-1) if drifts else np.zeros(plan.n)
 
 
-def _write_npz(plan: Plan, batch: Batch, args, summary: dict) -> None:
+def _write_npz(plan: Plan, batch: Batch, args, summary: dict, path: str) -> None:
     arrays = {
         "ts": plan.ts[plan.keep],
         **batch.store,
@@ -138,13 +142,13 @@ def _write_npz(plan: Plan, batch: Batch, args, summary: dict) -> None:
         save_every=np.array(plan.save_every),
         summary_json=np.array(json.dumps(summary)),
     )
-    write_npz(args.out, arrays)
+    write_npz(path, arrays)
 
 
-def _plot(plan: Plan, batch: Batch, args) -> bool:
-    """The scene's two panels and a histogram of the per-body drift; False without matplotlib."""
+def _matplotlib_or_say_why() -> bool:
+    """Whether matplotlib can be imported; says on stderr that the plot is skipped when it cannot."""
     try:
-        import matplotlib
+        import matplotlib  # noqa: F401
     except ImportError:
         print(
             "rigidjax simulate: matplotlib is not installed; skipping the plot "
@@ -152,6 +156,14 @@ def _plot(plan: Plan, batch: Batch, args) -> bool:
             file=sys.stderr,
         )
         return False
+    return True
+
+
+def _plot(plan: Plan, batch: Batch, args) -> str | None:
+    """The scene's two panels and a histogram of the per-body drift; the path written (None when
+    no file could be written)."""
+    import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -171,10 +183,9 @@ def _plot(plan: Plan, batch: Batch, args) -> bool:
     fig.suptitle(f"rigidjax simulate --scene {args.scene}: {plan.scene.description}", fontsize=10)
     fig.tight_layout()
     try:
-        write_figure(args.plot, fig)
+        return write_or_rescue("simulate", "--plot", args.plot, lambda path: write_figure(path, fig))
     finally:
         plt.close(fig)
-    return True
 
 
 def _check_animate(args) -> None:
@@ -198,7 +209,7 @@ def _check_animate(args) -> None:
         )
 
 
-def _animate(plan: Plan, batch: Batch, args) -> None:
+def _animate(plan: Plan, batch: Batch, args) -> str | None:
     """The first bodies of the scene, from the stored samples, animated to ``args.animate``."""
     import matplotlib
 
@@ -206,15 +217,21 @@ def _animate(plan: Plan, batch: Batch, args) -> None:
     plot = importlib.import_module("rigidjax.plot")
     count = min(ANIMATED_BODIES, plan.n)
     index = np.arange(count)
+    params = block_params(plan.scene.params, index, plan.n)
+    # Diagonal tensors: three bodies' principal moments, a (3, 3) array, would read as one tensor.
+    params["inertia"] = np.asarray(params["inertia"])[..., None] * np.eye(3)
     trajectory = rj.Trajectory(
         ts=jnp.asarray(plan.ts[plan.keep], plan.dtype),
         omega=jnp.asarray(batch.store["omega"][:count], plan.dtype),
         orientation=jnp.asarray(batch.store["orientation"][:count], plan.dtype),
-        model=plan.scene.make_model(block_params(plan.scene.params, index, plan.n), plan.dtype),
+        model=plan.scene.make_model(params, plan.dtype),
         success=jnp.asarray(batch.results["success"][:count]),
         stats={},
     )
-    plot.animate(trajectory, args.animate, bodies=tuple(range(count)))
+    bodies = tuple(range(count))
+    return write_or_rescue(
+        "simulate", "--animate", args.animate, lambda path: plot.animate(trajectory, path, bodies=bodies)
+    )
 
 
 def _devices_text(count: int) -> str:
@@ -234,7 +251,8 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
     else:
         solver, rtol = rj.solvers.PRESETS[args.accuracy]
         method = f"{args.accuracy} ({solver.__name__}, rtol {rtol:g})"
-    padding = f", last padded with {padded - plan.n} copies" if padded > plan.n else ""
+    copies = padded - plan.n
+    padding = f", last padded with {copies} cop{'y' if copies == 1 else 'ies'}" if copies else ""
     lines = [
         ("scene", f"{args.scene}: {plan.scene.description}"),
         ("bodies", f"{plan.n:,} ({blocks} block{'s' if blocks > 1 else ''} of {block_size:,}{padding})"),
@@ -251,7 +269,7 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
         ("wall time", f"{batch.sim_time:.2f} s (all blocks, excluding compile)"),
         (
             "compile time",
-            f"{summary['compile_time_s']:.2f} s (first call: block 0 over a 1e-9-shrunk time span)",
+            f"{summary['compile_time_s']:.2f} s (first call: block 0 over a milliradian of rotation)",
         ),
         ("analysis time", f"{summary['analysis_time_s']:.2f} s (Euler angles, invariants, scene checks)"),
         ("body-steps/s", f"{summary['body_steps_per_s']:.3e}"),
@@ -282,6 +300,15 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
         print(f"  {key + ':':<{width}} {value}")
 
 
+def _warm_up_times(plan: Plan) -> np.ndarray:
+    """Sample times of the compiling call: as many as the run's (one compiled program serves both),
+    over the run's span or the time the fastest body takes to turn a milliradian if that is
+    shorter, so that the call costs few steps at any duration and its times stay distinct."""
+    fastest = float(np.max(np.linalg.norm(plan.scene.omega0, axis=-1)))
+    span = min(plan.duration, 1e-3 / fastest) if fastest > 0 else plan.duration
+    return np.linspace(0.0, span, plan.samples)
+
+
 def run(args) -> int:
     """The ``simulate`` command: plan, compile, simulate block by block, write, summarise."""
     if args.dtype == "float64" and not jax.config.read("jax_enable_x64"):
@@ -293,6 +320,11 @@ def run(args) -> int:
         check_output(args.plot, "--plot", FIGURE_EXTENSIONS)
     if args.animate:
         _check_animate(args)
+    if args.scene == "earth" and args.accuracy == "exact" and args.dtype == "float32":
+        raise UsageError(
+            "--scene earth --accuracy exact needs --dtype float64: the closed form uses the squared "
+            "angular momentum, about 3e67 in SI units for the Earth, beyond float32's 3.4e38."
+        )
     t_start = time.perf_counter()
     plan = plan_run(args)
     if args.out and plan.save_every >= plan.samples:
@@ -305,25 +337,35 @@ def run(args) -> int:
         f"rigidjax simulate: {plan.scene.description}; {plan.blocks} block(s) of {plan.block_size:,} bodies, "
         f"{args.dtype}, accuracy {args.accuracy}",
     )
-    info(args, "compiling (first call on block 0 with the time span shrunk by 1e-9)...")
+    info(args, "compiling (first call: block 0 over a time span of a milliradian of rotation)...")
     t0 = time.perf_counter()
-    run_block(plan, args, 0, jnp.asarray(plan.ts * 1e-9, plan.dtype))
+    run_block(plan, args, 0, jnp.asarray(_warm_up_times(plan), plan.dtype))
     compile_time = time.perf_counter() - t0
     info(args, f"compiled in {compile_time:.2f} s")
 
-    batch = simulate_blocks(plan, args)
+    try:
+        batch = simulate_blocks(plan, args)
+    except ValueError as error:  # the scene is valid: what simulate refuses is the span (--duration)
+        raise UsageError(f"--duration {plan.duration:g}: {error}") from None
     summary, scene_rows = _summary(plan, batch, args, compile_time)
-    out_files = []
+    # A write that fails after the run goes to the temporary directory instead (and exit status 1).
+    out_files, misplaced = [], False
     if args.out:
-        _write_npz(plan, batch, args, summary)
-        out_files.append(args.out)
-    if args.plot and not args.no_plot and _plot(plan, batch, args):
-        out_files.append(args.plot)
+        written = write_or_rescue(
+            "simulate", "--out", args.out, lambda path: _write_npz(plan, batch, args, summary, path)
+        )
+        out_files += [written] if written else []
+        misplaced |= written != args.out
+    if args.plot and not args.no_plot and _matplotlib_or_say_why():
+        written = _plot(plan, batch, args)
+        out_files += [written] if written else []
+        misplaced |= written != args.plot
     if args.animate:
         count = min(ANIMATED_BODIES, plan.n)
         info(args, "animating body 0..." if count == 1 else f"animating the first {count} bodies...")
-        _animate(plan, batch, args)
-        out_files.append(args.animate)
+        written = _animate(plan, batch, args)
+        out_files += [written] if written else []
+        misplaced |= written != args.animate
     if not args.quiet:
         _print_summary(plan, batch, args, summary, scene_rows, out_files, t_start)
     if summary["failed_bodies"]:
@@ -333,7 +375,7 @@ def run(args) -> int:
             file=sys.stderr,
         )
         return 1
-    return 0
+    return 1 if misplaced else 0
 
 
 # ---------------------------------------------------------------------------------------------

@@ -85,6 +85,9 @@ def default_chunk_size(n_samples: int = 2, itemsize: int = 8) -> int:
 MIN_MAX_STEPS = 100_000
 """The smallest default step limit per chunk, and the limit when the inputs' values are unknown."""
 
+LARGEST_DEFAULT_MAX_STEPS = 2**30
+"""The largest default step limit: a span that needs more raises rather than runs for hours."""
+
 STEPS_PER_TURN = 100
 """Default step budget per turn of the fastest body: ``"precise"`` (Dopri8, rtol 1e-11) took 22 steps
 per turn of a body spinning at 2000 rad/s, so this leaves about 4x headroom (also for the error
@@ -117,7 +120,8 @@ def default_max_steps(omega0, ts) -> int:
     """The step limit per chunk when the caller names none: ``STEPS_PER_TURN`` steps per turn of the
     fastest body over the span of ``ts`` (``max|omega0| (ts[-1] - ts[0]) / 2 pi`` turns), at least
     ``MIN_MAX_STEPS``, rounded up to a power of two (the limit is compiled into the program: few
-    distinct values, few compilations). Inside ``jit`` the values are unknown: ``MIN_MAX_STEPS``.
+    distinct values, few compilations); a span that needs more than ``LARGEST_DEFAULT_MAX_STEPS`` is a
+    ``ValueError``. Inside ``jit`` the values are unknown: ``MIN_MAX_STEPS``.
 
     The limit only bounds the solver's loop: it costs no memory or time when forward, and the
     checkpointed reverse mode keeps ``log(max_steps)`` checkpoints."""
@@ -127,11 +131,21 @@ def default_max_steps(omega0, ts) -> int:
     omega0, ts = values
     if omega0.size == 0 or ts.shape[0] < 2:
         return MIN_MAX_STEPS
-    turns = _largest_norm(omega0) * _span(ts) / (2 * np.pi)
+    fastest, span = _largest_norm(omega0), _span(ts)
+    turns = fastest * span / (2 * np.pi)
     need = STEPS_PER_TURN * turns
     if not np.isfinite(need) or need <= MIN_MAX_STEPS:  # non-finite input is reported by the checks
         return MIN_MAX_STEPS
-    return int(2 ** min(int(np.ceil(np.log2(need))), 30))
+    if need > LARGEST_DEFAULT_MAX_STEPS:
+        # Hours of stepping that would end at the limit anyway: say so now.
+        raise ValueError(
+            f"simulate: ts spans {turns:.3g} turns of the fastest body (|omega0| = {fastest:.3g} rad/s "
+            f"over {span:.3g} s), more than an integrator steps through within the default limit of "
+            f"{LARGEST_DEFAULT_MAX_STEPS:,} steps ({LARGEST_DEFAULT_MAX_STEPS // STEPS_PER_TURN:,} turns). "
+            "A torque-free body or a Lagrange top has a closed form at any time: accuracy='exact'; "
+            "otherwise shorten ts, or pass max_steps to integrate anyway (hours per chunk)."
+        )
+    return int(2 ** int(np.ceil(np.log2(need))))
 
 
 class FaultStopPIDController(diffrax.PIDController):

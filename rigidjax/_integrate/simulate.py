@@ -164,6 +164,8 @@ def simulate(
     - `max_steps`: step limit per chunk; reaching it is an error (or NaN rows with
       ``throw=False``). Default: 100 steps per turn of the fastest body over the span of ``ts``
       (``max|omega0| (ts[-1] - ts[0]) / 2 pi`` turns), at least 1e5, rounded up to a power of two;
+      a span of more than 2^30 / 100 (about 1e7) turns is an error that says so (hours of steps,
+      ``accuracy="exact"`` where a closed form exists, or ``max_steps`` to integrate anyway);
       1e5 inside ``jit``, where the values are unknown, and with ``adjoint=diffrax.DirectAdjoint()``
       (whose loop is sized by the limit). Otherwise the limit costs no memory (reverse mode keeps
       ``log(max_steps)`` checkpoints).

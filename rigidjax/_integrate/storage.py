@@ -210,6 +210,18 @@ def check_writable(path, where: str = "Trajectory.save") -> str:
         )
     if not os.access(directory, os.W_OK | os.X_OK):
         raise PermissionError(f"{where}: cannot write {path!r}: the directory {directory!r} is not writable.")
+    # Permission bits do not tell everything (a read-only or virtual file system, a superuser):
+    # create and remove a file where the write will create its temporary file.
+    try:
+        fd, probe = _open_temporary(directory, os.path.basename(path))
+    except OSError as error:
+        raise PermissionError(
+            f"{where}: cannot write {path!r}: a file cannot be created in {directory!r} "
+            f"({error.strerror or error})."
+        ) from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
     return path
 
 
