@@ -764,3 +764,18 @@ def test_earth_in_float32_with_the_closed_form_is_refused_before_the_run(monkeyp
     monkeypatch.setattr(cli_simulate, "plan_run", _fail_if_run)
     code, out, err = _run(["simulate", "--scene", "earth", "--accuracy", "exact", "--dtype", "float32"])
     _assert_one_line_error(code, out, err, "simulate", "--scene earth --accuracy exact needs --dtype float64")
+
+
+def test_failed_closed_form_rows_are_nan_from_the_first_failed_sample(tmp_path):
+    """Over 1e20 s the closed form's phase is beyond what float64 resolves: the bodies fail, and
+    the stored rows were the values evaluated there (up to 1e56 for a unit quaternion), though the
+    message said NaN rows. The first sample (t = 0) is the initial state itself."""
+    code, out, err = _three_free_bodies(
+        tmp_path, "--duration", "1e20", "--accuracy", "exact", "--no-plot", "-q"
+    )
+    assert code == 1 and "closed form failed for 3 bodies" in err and "--dtype float64" in err
+    with np.load(tmp_path / "three.npz") as data:
+        assert not data["success"].any()
+        np.testing.assert_allclose(data["omega"][:, 0], data["omega0"], rtol=1e-7)
+        for key in ("omega", "orientation", "euler_angles"):
+            assert np.isnan(data[key][:, 1:]).all(), key

@@ -369,9 +369,13 @@ def run(args) -> int:
     if not args.quiet:
         _print_summary(plan, batch, args, summary, scene_rows, out_files, t_start)
     if summary["failed_bodies"]:
+        if args.accuracy == "exact":
+            what, advice = "the closed form failed", "a shorter --duration or --dtype float64"
+        else:
+            what, advice = "the integration failed", "--accuracy fast or a shorter --duration"
         print(
-            f"rigidjax simulate: the integration failed for {summary['failed_bodies']} bodies (NaN rows, "
-            "success=False in the npz); try --accuracy fast or a shorter --duration.",
+            f"rigidjax simulate: {what} for {summary['failed_bodies']} bodies (NaN rows from the first "
+            f"failed sample on, success=False in the npz); try {advice}.",
             file=sys.stderr,
         )
         return 1
