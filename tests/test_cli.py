@@ -779,3 +779,20 @@ def test_failed_closed_form_rows_are_nan_from_the_first_failed_sample(tmp_path):
         np.testing.assert_allclose(data["omega"][:, 0], data["omega0"], rtol=1e-7)
         for key in ("omega", "orientation", "euler_angles"):
             assert np.isnan(data[key][:, 1:]).all(), key
+
+
+def test_the_free_scene_says_when_its_samples_are_too_sparse_to_see_flips():
+    """With three samples over 5 s the summary said "0 flipped (unstable: flips expected)" with no
+    hint that flips fall between samples: the reversal lasts about half a wobble period
+    (rigidjax.torque_free_period)."""
+    import argparse
+
+    from rigidjax._cli.scenes import SCENE_BUILDERS
+
+    scene = SCENE_BUILDERS["free"](30, np.random.default_rng(0))
+    res = {"flipped": np.zeros(30, bool), "success": np.ones(30, bool)}
+    args = argparse.Namespace()
+    sparse, _ = scene.summarize(res, np.linspace(0.0, 5.0, 3), args)
+    dense, _ = scene.summarize(res, np.linspace(0.0, 5.0, 200), args)
+    assert "flips can fall between samples" in dict(sparse)["flip detection"]
+    assert "flip detection" not in dict(dense)

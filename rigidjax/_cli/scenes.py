@@ -228,7 +228,21 @@ def _free_scene(n: int, rng: np.random.Generator) -> Scene:
                     f"{int(sel.sum()):,} bodies, {int(flipped[sel].sum()):,} flipped ({note})",
                 )
             )
-        inter = flipped & (axis == 1)
+        intermediate = axis == 1
+        if intermediate.any() and len(ts) > 1:
+            # The main component is reversed for about half of each period: sparser samples miss flips.
+            with jax.enable_x64(True):
+                period = np.asarray(rj.torque_free_period(inertia[intermediate], omega0[intermediate]))
+            spacing = float(ts[1] - ts[0])
+            if spacing > 0.25 * np.median(period):
+                rows.append(
+                    (
+                        "flip detection",
+                        f"samples {spacing:.3g} s apart, over a quarter of the median wobble period of "
+                        f"{np.median(period):.3g} s: flips can fall between samples (more --samples)",
+                    )
+                )
+        inter = flipped & intermediate
         if inter.any():
             rows.append(
                 (
