@@ -264,3 +264,24 @@ def separatrix(inertia, omega0, ts):
                 [float(s1 * a * mp.sech(x)), float(sigma * W * mp.tanh(x)), float(s3 * c * mp.sech(x))]
             )
         return np.array(out), float(t0), float(lam)
+
+
+def removed_after(monkeypatch, module, name, directory):
+    """``module.name`` replaced by a call that removes ``directory`` once the original returns (an
+    output directory that goes away during a run), and the system's temporary directory pointed at
+    a new ``directory.parent / "temporary"``, which the function returns: where outputs are rescued."""
+    import shutil
+    import tempfile
+
+    original = getattr(module, name)
+
+    def call_then_remove(*args, **kwargs):
+        result = original(*args, **kwargs)
+        shutil.rmtree(directory)
+        return result
+
+    monkeypatch.setattr(module, name, call_then_remove)
+    rescue = directory.parent / "temporary"
+    rescue.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(rescue))
+    return rescue

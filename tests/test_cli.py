@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from helpers import cli_in_fresh_cache
+from helpers import cli_in_fresh_cache, removed_after
 
 import rigidjax
 from rigidjax._cli import main
@@ -661,36 +661,14 @@ def test_three_bodies_run_in_a_block_of_four_and_are_drawn_as_themselves(tmp_pat
 def test_results_are_rescued_when_the_output_directory_goes_away_during_the_run(tmp_path, monkeypatch):
     """The output directory existed when the run started and was removed during it: the run ended
     in a raw FileNotFoundError, without its summary, and nothing was saved."""
-    import shutil
-    import tempfile
-
     from rigidjax._cli import simulate as cli_simulate
 
-    outputs, rescue = tmp_path / "outputs", tmp_path / "temporary"
+    outputs = tmp_path / "outputs"
     outputs.mkdir()
-    rescue.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(rescue))
-    original = cli_simulate.simulate_blocks
-
-    def run_then_remove(*args, **kwargs):
-        batch = original(*args, **kwargs)
-        shutil.rmtree(outputs)
-        return batch
-
-    monkeypatch.setattr(cli_simulate, "simulate_blocks", run_then_remove)
-    argv = [
-        "simulate",
-        "--scene",
-        "free",
-        "-n",
-        "3",
-        "--duration",
-        "1",
-        "--samples",
-        "10",
-        "--no-error-estimate",
-    ]
-    code, out, err = _run([*argv, "--out", str(outputs / "r.npz"), "--plot", str(outputs / "r.png")])
+    rescue = removed_after(monkeypatch, cli_simulate, "simulate_blocks", outputs)
+    code, out, err = _three_free_bodies(
+        tmp_path, "--out", str(outputs / "r.npz"), "--plot", str(outputs / "r.png")
+    )
     assert code == 1
     assert "Traceback" not in err
     saved = sorted(rescue.iterdir())

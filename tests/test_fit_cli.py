@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import cli_in_fresh_cache
+from helpers import cli_in_fresh_cache, removed_after
 
 import rigidjax as rj
 from rigidjax._cli import main
@@ -59,26 +59,16 @@ def test_fit_command_recovers_inertia(tmp_path, capsys):
 def test_a_result_whose_directory_went_away_is_printed_and_rescued(tmp_path, capsys, monkeypatch):
     """The output directory was removed during the fit: the write ended in a raw traceback. The fit
     of test_fit_command_recovers_inertia's second call (same record and options: no new compile)."""
-    import shutil
     import tempfile
 
     inertia, omega0, ts = np.array([1.0, 2.0, 2.5]), np.array([0.3, 0.05, 1.0]), np.linspace(0.0, 40.0, 240)
     w = np.asarray(rj.torque_free_omega(inertia, omega0, ts))
     obs = w + 0.01 * np.std(w, axis=0) * np.random.default_rng(0).standard_normal(w.shape)
     obs[5, 1] = np.nan
-    data, outputs, rescue = tmp_path / "gyro.csv", tmp_path / "outputs", tmp_path / "temporary"
+    data, outputs = tmp_path / "gyro.csv", tmp_path / "outputs"
     write_csv(data, ts, obs)
     outputs.mkdir()
-    rescue.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(rescue))
-    fit_inertia = rj.fit_inertia
-
-    def fit_then_remove(*args, **kwargs):
-        result = fit_inertia(*args, **kwargs)
-        shutil.rmtree(outputs)
-        return result
-
-    monkeypatch.setattr(rj, "fit_inertia", fit_then_remove)
+    rescue = removed_after(monkeypatch, rj, "fit_inertia", outputs)
     options = ["--quiet", "--no-plot", "--known-moment", "z", "2.5", "--out", str(outputs / "abs")]
     assert run_fit([str(data), *options]) == 1
     captured = capsys.readouterr()

@@ -233,6 +233,12 @@ def test_bad_bodies_and_missing_orientations(free, top):
             function(omega_only)
     with pytest.raises(ValueError, match="torque-free"):
         rplot.poinsot(top)
+    # A body at rest has no invariable plane: the figure's title read "2E/|L| = nan".
+    at_rest = rj.Trajectory(
+        free.ts, jnp.zeros_like(free.omega), free.orientation, free.model, free.success, {}
+    )
+    with pytest.raises(ValueError, match="body 1 does not rotate.*no invariable plane"):
+        rplot.poinsot(at_rest, body=1)
     with pytest.raises(ValueError, match="sequence"):
         rplot.euler_angles(top, sequence="abc")
 

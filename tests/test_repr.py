@@ -164,3 +164,20 @@ def test_inertia_fit_repr_under_jit():
     f(_fit(np.array([0.2, 0.3, 0.5]), np.full(3, 1e-5)))
     assert "inertia=f64[3] (normalised to trace 1)" in seen[0] and "converged=bool[]" in seen[0]
     _no_dump(seen[0])
+
+
+def test_stability_results_print_their_values():
+    """``print(rj.spin_stability(...))`` showed only ``f64[3]`` for each field, though the guide's
+    example prints it to show the growth rate. Values against the closed forms: growth rate
+    omega sqrt((I2 - I1)(I3 - I2) / (I1 I3)) about the intermediate axis, and the sleeping top's
+    critical spin 2 sqrt(I1 m g l) / I3."""
+    racket = rj.spin_stability(np.array([1.0, 2.0, 2.5]), 4.0)
+    growth = 4.0 * np.sqrt(1.0 * 0.5 / 2.5)
+    assert f"growth_rate=f64[3] (0, {growth:.6g}, 0)" in repr(racket)
+    assert "stable=bool[3] (True, False, True)" in repr(racket)
+    top = rj.sleeping_top(np.array([1e-4, 1e-4, 5e-5]), 0.1, np.array([0.0, 0.0, 0.03]), 200.0)
+    critical = 2 * np.sqrt(1e-4 * 0.1 * 9.81 * 0.03) / 5e-5
+    assert f"critical_spin={critical:.6g}," in repr(top) and "stable=True" in repr(top)
+    assert repr(rj.spin_stability(np.ones((5, 3)) * np.array([1.0, 2.0, 2.5]), 4.0)).startswith(
+        "SpinStability(growth_rate=f64[5,3], frequency=f64[5,3]"
+    )

@@ -24,6 +24,7 @@ from .._checks import (
     error_if,
 )
 from .._numerics import safe_sqrt
+from .._repr import dataclass_fields, fields_repr, summarizing
 from .._types import Inertia, Scalar, Vector
 from .equations import is_full_tensor
 from .inertia import check_inertia
@@ -102,6 +103,11 @@ class SpinStability(eqx.Module):
     def unstable(self) -> Bool[Array, "*batch 3"]:
         """``lambda^2 > 0``: an exponentially growing perturbation (``growth_rate > 0``)."""
         return ~(self.stable | self.marginal)
+
+    @summarizing
+    def __repr__(self) -> str:
+        """The fields with their values (a few bodies' worth; shapes only for larger batches)."""
+        return fields_repr(type(self).__name__, dataclass_fields(self))
 
 
 @compiled_when_eager
@@ -191,6 +197,11 @@ class SleepingTop(eqx.Module):
     slow_rate: Float[Array, "*batch"]
     fast_rate: Float[Array, "*batch"]
     growth_rate: Float[Array, "*batch"]
+
+    @summarizing
+    def __repr__(self) -> str:
+        """The fields with their values (a few bodies' worth; shapes only for larger batches)."""
+        return fields_repr(type(self).__name__, dataclass_fields(self))
 
 
 @compiled_when_eager(static_argnames=("symmetry_rtol",))

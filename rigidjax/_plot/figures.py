@@ -72,8 +72,8 @@ def poinsot(trajectory, body=0, *, fig=None):
     **Returns:**
 
     The matplotlib Figure, with two axes: the polhode's (3-D) and the herpolhode's. Raises
-    ``ValueError`` naming `body` when it is not an index of the batch, and naming `trajectory`
-    when its scene has torques or it has no orientations.
+    ``ValueError`` naming `body` when it is not an index of the batch or does not rotate (no
+    invariable plane), and naming `trajectory` when its scene has torques or it has no orientations.
     """
     if not trajectory.model.torque_free:
         raise ValueError(
@@ -87,6 +87,11 @@ def poinsot(trajectory, body=0, *, fig=None):
     inertia = data.inertia(trajectory, i)
     two_energy = 2 * data.per_body(trajectory.kinetic_energy(), trajectory, 1)[i][0]
     momentum = data.per_body(trajectory.space_angular_momentum(), trajectory, 2)[i][0]
+    if not np.linalg.norm(momentum) > 0:
+        raise ValueError(
+            f"poinsot: body {i} does not rotate (angular momentum {np.linalg.norm(momentum):.3g}): "
+            "without angular momentum there is no invariable plane to draw."
+        )
     normal = momentum / np.linalg.norm(momentum)
     omega_space = data.to_space(data.orientation(trajectory, i), omega)
     e1, e2 = _unit_basis(normal)
