@@ -520,7 +520,11 @@ def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, 
     n = problem.count()
     dof = jnp.maximum(n - p.shape[0], 1.0)
     squares = jnp.sum(r * r)
-    variance = squares / dof
+    # A robust loss is chosen for outliers, whose residuals would set the scale of every standard
+    # error (27x the spread of the fitted values, for 20 outliers of 3 rad/s among 600 values): its
+    # scale is the median absolute residual's (1.4826 MAD, the standard deviation for normal noise).
+    mad = jnp.nanmedian(jnp.where(problem.mask.reshape(-1), jnp.abs(r), jnp.nan))
+    variance = jnp.where(problem.loss_index == 0, squares / dof, (1.4826 * mad) ** 2 * n / dof)
     covariance, undetermined = _gauss_newton_covariance(J, variance)
     counts = jnp.sum(problem.mask, axis=(0, 1)).astype(raw.dtype)
     rms = jnp.sqrt(jnp.sum(raw * raw, axis=(0, 1)) / jnp.maximum(counts, 1.0))
