@@ -190,12 +190,14 @@ mode. Measured on a 2-core CPU: the forward gradient saves ~5 s of compile and c
 sample and fit more to run (1800 samples: 0.43 -> 1.4 s), so the two break even near 8000 samples."""
 
 
-def _loss_tolerance(problem: _Problem, tol: float) -> float:
-    """The relative change of the loss below which a fit has converged: ``tol``, but at least 1e-8
-    for an integrated (torque) model, whose loss is smooth only to about the solver's rtol (1e-10;
+def _stopping_rule(problem: _Problem, steps: int, tol: float) -> tuple[int, float, bool]:
+    """The last arguments of :func:`_stops`: the step limit, the relative change of the loss below
+    which a fit has converged, and whether the loss is noisy. ``tol``, but at least 1e-8 for an
+    integrated (torque) model, whose loss is smooth only to about the solver's rtol (1e-10;
     step-size decisions jump): changes below 1e-8 of it are noise there (and statistically
     irrelevant: parameters move by ~1e-4 of their standard errors)."""
-    return tol if problem.torque is None else max(tol, 1e-8)
+    noisy = problem.torque is not None
+    return steps, max(tol, 1e-8) if noisy else tol, noisy
 
 
 def _forward_gradient(problem: _Problem) -> bool:
@@ -246,7 +248,7 @@ def _optax_fit(problem: _Problem, p0, optimizer, steps: int, tol: float, callbac
     n = problem.count()
     # Without a line search and with forward-mode gradients, every pass needs the Jacobian.
     jacobian_every_pass = forward and not reuses_value
-    stopping = (steps, _loss_tolerance(problem, tol), problem.torque is not None)
+    stopping = _stopping_rule(problem, steps, tol)
 
     def cond(carry):
         return ~carry["exit"]
@@ -332,7 +334,7 @@ def _lbfgs_fit(problem: _Problem, p0, steps: int, tol: float, callback):
     forward = _forward_gradient(problem)
     jacobian = _jacobian_with_residuals(problem, reverse=problem.reverse_mode)
     n = problem.count()
-    stopping = (steps, _loss_tolerance(problem, tol), problem.torque is not None)
+    stopping = _stopping_rule(problem, steps, tol)
 
     def loss_with_residuals(p):
         r, raw = problem.residuals_and_raw(p)

@@ -30,9 +30,9 @@ class InertiaFit(eqx.Module):
       means a wrong wobble frequency (a local minimum): use ``segments="auto"``.
     - `num_steps`: iterations of the optimiser.
     - `inertia_stderr`, `omega0_stderr`: standard errors (Gauss–Newton approximation of the
-      covariance at the optimum, scaled by the residual variance; with a robust loss by the
-      variance 1.4826 MAD of the residuals gives, which outliers do not inflate), same shapes as
-      the values;
+      covariance at the optimum, scaled by the residual variance; with a robust loss by
+      ``(1.4826 MAD)^2`` of the residuals, which outliers do not inflate), same shapes as the
+      values;
       ``inf`` for a value the record does not determine (a steady spin about a principal axis says
       nothing of the inertia; a torque of zero fixes no scale).
     - `principal_moments`: the fitted inertia's principal moments, ascending.
