@@ -243,6 +243,19 @@ def test_bad_bodies_and_missing_orientations(free, top):
         rplot.euler_angles(top, sequence="abc")
 
 
+def test_a_figure_argument_that_is_not_a_figure_is_named(free, top):
+    # An Axes or an array where a Figure goes failed inside matplotlib with an AttributeError.
+    _, ax = plt.subplots()
+    for function in (rplot.poinsot, rplot.cones, rplot.euler_angles):
+        with pytest.raises(TypeError, match=r"^fig must be a matplotlib Figure.*got Axes.*pass its \.figure"):
+            function(free, fig=ax)
+        with pytest.raises(TypeError, match=r"^fig must be a matplotlib Figure.*got ndarray"):
+            function(free, fig=np.zeros(3))
+    with pytest.raises(TypeError, match=r"^ax must be a matplotlib Axes.*got Figure"):
+        rplot.invariant_drift(top, ax=ax.figure)
+    assert rplot.poinsot(free, fig=ax.figure) is ax.figure
+
+
 # ---------------------------------------------------------------------------------------------
 # Animations
 

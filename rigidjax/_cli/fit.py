@@ -340,7 +340,8 @@ def run(args) -> int:
         + (f"  (first of {w0.shape[0]} windows)" if w0.shape[0] > 1 else "")
     )
     rms = np.asarray(fit.residual_rms)
-    lines.append("residual rms (rad/s): " + ", ".join(f"{r:.3g}" for r in rms))
+    robust = "" if args.loss == "squared" else ", robust: 1.4826 median |residual|"
+    lines.append(f"residual rms (rad/s{robust}): " + ", ".join(f"{r:.3g}" for r in rms))
     lines.append(
         f"{'converged' if bool(fit.converged) else 'NOT converged'} after {fit.num_steps} iterations "
         f"({fit.method}, {seconds:.1f} s including compile)"

@@ -65,12 +65,14 @@ def _check_quaternions(ts, q_observed, name="orientation_observed"):
     if np.any(np.isinf(q)):
         raise ValueError(f"{name} contains inf; mark missing samples with NaN instead.")
     q = np.where(np.isnan(q).any(axis=1, keepdims=True), np.nan, q)  # a quaternion is all or nothing
-    norm_error = np.abs(np.linalg.norm(q, axis=1) - 1.0)
-    if np.nanmax(norm_error, initial=0.0) > 1e-5:
-        row = int(np.nanargmax(norm_error))
+    with np.errstate(invalid="ignore"):
+        not_unit = np.abs(np.linalg.norm(q, axis=1) - 1.0) > 1e-5
+    if np.any(not_unit):
+        row = int(np.argmax(not_unit))
         raise ValueError(
-            f"{name} must hold unit quaternions; row {row} has norm "
-            f"{np.linalg.norm(q[row]):.8g}. Normalise them (rigidjax.quat_normalize) first."
+            f"{name} must hold unit quaternions; row {row} has norm {np.linalg.norm(q[row]):.8g}"
+            f" ({np.count_nonzero(not_unit)} of {len(q)} rows are not unit). Normalise them "
+            "(rigidjax.quat_normalize) first."
         )
     return ts, q
 

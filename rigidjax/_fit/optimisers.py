@@ -530,4 +530,8 @@ def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, 
     covariance, undetermined = _gauss_newton_covariance(J, variance)
     counts = jnp.sum(problem.mask, axis=(0, 1)).astype(raw.dtype)
     rms = jnp.sqrt(jnp.sum(raw * raw, axis=(0, 1)) / jnp.maximum(counts, 1.0))
+    # The rms is read against the noise estimate; with a robust loss the outliers it discounts would
+    # make that ratio hundreds, so there the rms is estimated the same robust way as the noise.
+    robust_rms = 1.4826 * jnp.nanmedian(jnp.where(problem.mask, jnp.abs(raw), jnp.nan), axis=(0, 1))
+    rms = jnp.where(problem.loss_index == 0, rms, jnp.where(counts > 0, robust_rms, 0.0))
     return p, history, n_steps, done, (covariance, undetermined), squares / n, rms

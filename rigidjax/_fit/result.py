@@ -37,7 +37,9 @@ class InertiaFit(eqx.Module):
       nothing of the inertia; a torque of zero fixes no scale).
     - `principal_moments`: the fitted inertia's principal moments, ascending.
     - `principal_axes`: its principal axes as columns (sensor-frame components, ``det = +1``).
-    - `residual_rms`: root-mean-square residual per component (rad/s; rad for orientation fits).
+    - `residual_rms`: root-mean-square residual per component (rad/s; rad for orientation fits);
+      with a robust loss, its robust estimate ``1.4826 median |residual|``, which the outliers the
+      loss discounts do not inflate.
     - `noise_estimate`: the noise per component estimated from the record's scatter about local
       fits, in the residual's units.
     - `orientation0`, `orientation0_stderr`: for :func:`fit_inertia_to_orientation`, the fitted

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 
 from .._kinematics.euler import euler_from_quat as _euler_from_quat_public
 from . import data
@@ -15,6 +17,11 @@ _MAX_SEPARATE_BODIES = 8  # invariant_drift draws more bodies than this as their
 def _new_figure(fig, figsize):
     if fig is None:
         return plt.figure(figsize=figsize)
+    if not isinstance(fig, Figure):
+        raise TypeError(
+            f"fig must be a matplotlib Figure (or None for a new one), got {type(fig).__name__}"
+            + ("; for an Axes pass its .figure" if isinstance(fig, Axes) else "")
+        )
     fig.clear()
     return fig
 
@@ -295,6 +302,8 @@ def invariant_drift(trajectory, bodies=None, *, ax=None):
     t = data.ts(trajectory)
     if ax is None:
         fig, ax = plt.subplots(figsize=(8, 4.5))
+    elif not isinstance(ax, Axes):
+        raise TypeError(f"ax must be a matplotlib Axes (or None for a new figure), got {type(ax).__name__}")
     for k, (name, values) in enumerate(series.items()):
         if chosen is None:
             ax.plot(t, np.maximum(np.nanmax(values, axis=0), floor), color=f"C{k}", lw=1.0,
