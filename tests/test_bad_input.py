@@ -1381,6 +1381,7 @@ def test_a_closed_form_beyond_the_float_range_is_a_failure_not_a_success(scene):
     assert not finite[1].all() and finite[[0, 2]].all()
     np.testing.assert_array_equal(np.asarray(traj.success), finite.all(-1))
     np.testing.assert_array_equal(np.asarray(traj.stats["first_failed_sample"]), [4, np.argmin(finite[1]), 4])
+    assert np.isnan(np.asarray(traj.omega)[1, np.argmin(finite[1]) :]).all()
     alone = rj.simulate(model, rj.State(omega[[0, 2]], q0[[0, 2]]), ts, accuracy="exact")
     np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega))
     jitted = jax.jit(lambda w: rj.simulate(model, rj.State(w, jnp.asarray(q0)), ts, accuracy="exact").omega)
@@ -1496,6 +1497,17 @@ def test_simulate_exact_fails_a_body_whose_phase_is_beyond_what_the_dtype_resolv
     traj = rj.simulate(model, rj.State(omega, q0), ts, accuracy="exact", throw=False)
     np.testing.assert_array_equal(np.asarray(traj.success), [True, False, True])
     np.testing.assert_array_equal(np.asarray(traj.stats["first_failed_sample"]), [4, 3, 4])
+    # Its samples from the failed one on are NaN, as an integrated body's (they held the noise
+    # evaluated there), those before it finite.
+    for values in (
+        np.asarray(traj.omega)[1],
+        np.asarray(traj.orientation)[1],
+        np.asarray(traj.euler_angles())[1],
+    ):
+        assert np.isfinite(values[:3]).all() and np.isnan(values[3:]).all()  # Euler angles were (nan, 0, 0)
+    if scene == "free body":  # and under the user's jit
+        run = jax.jit(lambda w: rj.simulate(model, rj.State(w, q0), ts, accuracy="exact", throw=False).omega)
+        np.testing.assert_array_equal(np.asarray(run(jnp.asarray(omega))), np.asarray(traj.omega))
     alone = rj.simulate(model, rj.State(omega[[0, 2]], q0[[0, 2]]), ts, accuracy="exact")
     np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega))
     jitted = jax.jit(lambda w: rj.simulate(model, rj.State(w, jnp.asarray(q0)), ts, accuracy="exact").omega)

@@ -146,13 +146,9 @@ def _collect(plan: Plan, batch: Batch, b: int, index, traj, derived) -> None:
     batch.steps_total += int(steps.sum())
     batch.body_steps += int(np.sum(steps * per_chunk))
 
-    euler, invariants = derived(traj)
-    # A failed body's samples from its first failed one on are NaN, as an integrator leaves them
-    # (the closed form leaves the values it evaluated, beyond what the dtype resolves).
-    first_bad = np.asarray(traj.stats["first_failed_sample"]).reshape(-1)[real]
-    failed = (np.arange(plan.samples) >= first_bad[:, None])[..., None]
-    omega = np.where(failed, np.nan, np.asarray(traj.omega)[real])
-    euler = np.where(failed, np.nan, np.asarray(euler)[real]) if plan.has_q else None
+    euler, invariants = derived(traj)  # a failed body's samples are NaN from its failure on
+    omega = np.asarray(traj.omega)[real]
+    euler = np.asarray(euler)[real] if plan.has_q else None
     res = plan.scene.analyze(
         plan.ts,
         omega.astype(np.float64),
@@ -172,9 +168,7 @@ def _collect(plan: Plan, batch: Batch, b: int, index, traj, derived) -> None:
 
     batch.store["omega"][index] = omega[:, plan.keep]
     if plan.has_q:
-        batch.store["orientation"][index] = np.where(failed, np.nan, np.asarray(traj.orientation)[real])[
-            :, plan.keep
-        ]
+        batch.store["orientation"][index] = np.asarray(traj.orientation)[real][:, plan.keep]
         batch.store["euler_angles"][index] = euler[:, plan.keep]
     plot_pos = {int(i): k for k, i in enumerate(plan.scene.plot_indices)}
     for row, i in enumerate(index):

@@ -188,6 +188,24 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
     )
 
 
+def nan_from_first_failure(traj: Trajectory) -> Trajectory:
+    """``traj`` with each failed body's samples NaN from its first failed sample on, as an
+    integrated body's are (``throw=False``). A separate pass over the samples, so not part of the
+    closed form's program, whose successful runs would pay for it (a copy of every sample: 10^4
+    bodies at 50 samples ~18 % slower); with concrete values and no failure, nothing is done."""
+    if not isinstance(traj.success, jax.core.Tracer) and bool(np.all(np.asarray(traj.success))):
+        return traj
+    n_times = traj.ts.shape[0]
+    keep = jnp.arange(n_times) < traj.stats["first_failed_sample"][..., None]
+    blank = lambda x: None if x is None else jnp.where(keep[..., None], x, jnp.nan)  # noqa: E731
+    return eqx.tree_at(
+        lambda t: (t.omega, t.orientation),
+        traj,
+        (blank(traj.omega), blank(traj.orientation)),
+        is_leaf=lambda x: x is None,
+    )
+
+
 _TOP_INPUTS = ("inertia", "mass", "com", "gravity", "omega0", "q0")
 """Lagrange's top's per-body inputs, in the order of :func:`.lagrange_top_motion`'s arguments."""
 

@@ -23,7 +23,7 @@ from . import batching, driver
 from . import progress as _progress
 from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
-from .exact import simulate_exact
+from .exact import nan_from_first_failure, simulate_exact
 from .formulations import LieGroupODE, ScaledODE, SplittingODE
 from .inputs import check_options, checked_inputs
 from .presets import (
@@ -193,7 +193,7 @@ def simulate(
       state turned NaN is run again body by body. With ``accuracy="exact"`` a body fails where its
       closed form is NaN or inf (inputs beyond the dtype's range) or its phase is rounded by more
       than 1e-3 rad (float64: a phase of 4.5e12 rad, float32: 8.4e3 rad; the samples would be
-      noise).
+      noise), and is NaN from that sample on too.
     - `args`: passed to user torques as ``fn(t, state, args)``.
     - `representation`: how the orientation is integrated when there is one: ``"quaternion"``
       (default; unit norm kept without drift) or ``"euler"`` (the Euler angles of ``euler_seq`` as
@@ -268,7 +268,7 @@ def simulate(
         traj = simulate_exact(model, state0, ts, chunk_size)
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
-        return _raise_if_exact_failed(traj) if throw else traj
+        return _raise_if_exact_failed(traj) if throw else nan_from_first_failure(traj)
     fixed_step = isinstance(solver, STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None

@@ -35,9 +35,9 @@ class Trajectory(eqx.Module):
     ``ts`` (T,) in s; ``omega`` (*batch, T, 3) body-frame rad/s; ``orientation`` (*batch, T, 4) unit
     quaternions (scalar first, body -> space) or None for an omega-only scene. ``success`` (*batch)
     is False where the integration failed (only with ``throw=False``): such a body keeps the samples
-    before its failure and is NaN from there on; with ``accuracy="exact"``, where a sample of the
-    closed form is NaN or inf (inputs beyond the dtype's range) or its phase is rounded by more
-    than 1e-3 rad, each sample as evaluated.
+    before its failure and is NaN from there on; with ``accuracy="exact"`` a body fails where a
+    sample of the closed form is NaN or inf (inputs beyond the dtype's range) or its phase is
+    rounded by more than 1e-3 rad, and is NaN from that sample on too.
     ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk),
     ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body;
     None for ``accuracy="exact"``, whose quaternions nothing normalises: :meth:`invariants` measures

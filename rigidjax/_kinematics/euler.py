@@ -170,7 +170,10 @@ def _euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     if not symmetric:
         first = first * sign
         middle = middle - 0.5 * jnp.pi
-    return jnp.stack([_wrap(first), middle, _wrap(third)], axis=-1)
+    angles = jnp.stack([_wrap(first), middle, _wrap(third)], axis=-1)
+    # The NaN-safe norms read NaN as 0, a gimbal lock: a NaN sample (a failed body's) would give
+    # finite angles (theta = psi = 0).
+    return jnp.where(jnp.isnan(a + b + c + d)[..., None], jnp.nan, angles)
 
 
 def _euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
