@@ -8,6 +8,7 @@ fastest; no error norm shared between tops).
     python benchmarks/heavy_top_exact_refcheck.py
 """
 
+import argparse
 import time
 
 import jax
@@ -19,6 +20,9 @@ from rigidjax._closed_form.heavy_top import lagrange_top_motion
 
 
 def main():
+    argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    ).parse_args()
     params, _, _ = tops(10_000)
     pick = np.linspace(0, 9_999, 16).astype(int)
     inertia, mass, com, w0, q0 = (x[pick] for x in params)

@@ -208,7 +208,7 @@ def main():
         for method in METHODS:
             short_err, dt = chosen[method]
             n = int(round(horizon / dt))
-            n -= n % n_save
+            n = max(n_save, n - n % n_save)  # whole save intervals, at least one
             dt = horizon / n
             go, fargs, unpack, n_done = make(scene, method, dt, n, n_save)
             t0 = time.perf_counter()

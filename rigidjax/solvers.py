@@ -6,8 +6,8 @@
   ``|L|`` and space-frame ``L`` kept to roundoff).
 - :class:`HeavyTopSplitting`: the heavy top's splitting (vertical ``L`` kept to roundoff).
 - :class:`UnrolledDopri8`: :class:`diffrax.Dopri8` with its stages written out, the same values at
-  about 0.6 of the cost per step on a batch stored as one array (the ``"balanced"`` and ``"precise"``
-  presets on 1024 bodies or more, when not differentiated).
+  about a third of the cost per step in ``simulate`` (the ``"balanced"`` and ``"precise"`` presets
+  on 1024 bodies or more, when not differentiated); with other vector fields, measure.
 
 Each is a diffrax solver: pass it to ``rigidjax.simulate(..., solver=..., dt0=...)`` (the scene's
 parameters then come from the model) or to ``diffrax.diffeqsolve`` with the vector fields of this

@@ -727,6 +727,32 @@ def test_once_silent_bad_values_now_raise(case):
     _raises_or_nan(_ONCE_SILENT[case][0])
 
 
+def test_the_fixed_step_runs_and_rkmk_step_name_their_arguments(without_runtime_typecheck):
+    """A negative or fractional n_steps returned the initial state or a raw fori_loop TypeError;
+    lists made the jitted run raise TracerArrayConversionError; a bad mass came out as "INTERNAL:
+    CpuCallback error"; rkmk_step's acceleration of the wrong shape was a broadcasting error, and a
+    NaN one gave NaN silently; a batch of three bodies' moments (3, 3) was called a tensor without
+    the way to pass it."""
+    run = rj.solvers.split_free_body
+    for n_steps in (-5, 2.0, True):
+        with pytest.raises(ValueError, match=r"split_free_body: n_steps must be a non-negative integer"):
+            run(I3, I3 * W, Q, 0.1, n_steps)
+    L, q = run(I3, I3 * W, Q, 0.1, 0)  # no step: the initial state
+    np.testing.assert_array_equal(L, I3 * W)
+    np.testing.assert_array_equal(q, Q)
+    lists = run(I3.tolist(), (I3 * W).tolist(), Q.tolist(), 0.1, 3)
+    np.testing.assert_array_equal(lists[0], run(I3, I3 * W, Q, 0.1, 3)[0])
+    with pytest.raises(ValueError, match=r"^split_heavy_top: mass must be positive"):
+        rj.solvers.split_heavy_top(I3, -1.0, COM, 9.81, I3 * W, Q, 0.1, 3)
+    with pytest.raises(ValueError, match=r"split_free_body needs principal moments.*\(3, 1, 3\)"):
+        run(np.stack([I3, I3, I3]), np.stack([W, W, W]), Q, 0.1, 3)
+    step = rj.solvers.rkmk_step
+    with pytest.raises(ValueError, match=r"angular_acceleration must return .* shape \(3,\).*got \(4,\)"):
+        step(lambda t, w, q, a: jnp.ones(4), 0.0, W, Q, 0.1)
+    with pytest.raises(ValueError, match=r"rkmk_step: the step's omega is NaN or inf"):
+        step(lambda t, w, q, a: w * jnp.nan, 0.0, W, Q, 0.1)
+
+
 def test_fit_rejects_complex_data():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # (the warning, not a fit: this stays cheap)

@@ -26,6 +26,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..._checks import (
@@ -35,6 +36,7 @@ from ..._checks import (
     check_last_axis,
     check_rotation_quaternion,
     common_float,
+    error_if,
 )
 from ..._kinematics.quaternion import _quat_exp, _quat_kinematics, _quat_multiply
 
@@ -180,10 +182,29 @@ def rkmk_step(
     omega = jnp.broadcast_to(check_finite(omega, "omega", where), batch + (3,))
     q = jnp.broadcast_to(check_rotation_quaternion(q, "q", where), batch + (4,))
     # t reaches the result only through the user's angular acceleration: its check is tied to omega.
-    omega = eqx.error_if(omega, ~jnp.isfinite(t), f"{where}: t contains NaN or inf.")
+    omega = error_if(omega, ~jnp.isfinite(t), f"{where}: t contains NaN or inf.")
     h = check_finite(h, "h", where)
+    rate = jax.eval_shape(angular_acceleration, t, omega, q, args)
+    if not (hasattr(rate, "shape") and _broadcasts_to(rate.shape, omega.shape)):
+        raise ValueError(
+            f"{where}: angular_acceleration must return d(omega)/dt of omega's shape {omega.shape} "
+            f"(or one that broadcasts to it), got {getattr(rate, 'shape', type(rate).__name__)}."
+        )
     omega1, q1, *_ = _rkmk(angular_acceleration, t, omega, q, h, args, tableau)
+    omega1 = error_if(
+        omega1,
+        ~jnp.isfinite(omega1),
+        f"{where}: the step's omega is NaN or inf: angular_acceleration returned NaN or inf, or "
+        "overflowed, within the step.",
+    )
     return omega1, q1
+
+
+def _broadcasts_to(shape, target) -> bool:
+    try:
+        return np.broadcast_shapes(shape, target) == tuple(target)
+    except ValueError:
+        return False
 
 
 def rigid_body_vector_field(angular_acceleration: Callable) -> Callable:

@@ -7,8 +7,11 @@ a unit quaternion scalar first that maps body to space (``dq/dt = q ⊗ (0, omeg
 the flow of ``H_i`` for a time ``h`` is exact: with ``theta = h L_i / I_i`` (``L_i`` is constant
 under it), ``L`` turns about body axis ``i`` by ``-theta`` (``dL/dt = L x omega``) and
 ``q <- q ⊗ (cos(theta/2), sin(theta/2) e_i)``. Each sub-flow is therefore a rotation: ``|L|``
-and ``|q|`` are kept to roundoff, and so is the space-frame angular momentum ``R(q) L`` (the
-rotation applied to ``q`` undoes the one applied to ``L``). The energy is not conserved exactly
+is kept to roundoff, and so is the space-frame angular momentum ``R(q) L`` (the rotation
+applied to ``q`` undoes the one applied to ``L``); only each step's rounding accumulates, as a
+random walk (``|L|`` of a tumbling body over 4e5 steps: 3e-14 relative in float64, 8e-5 in
+float32). ``q`` is normalised at the start of each step, against the steady drift of ``|q|`` that
+the rotations' roundoff would otherwise accumulate. The energy is not conserved exactly
 but its error stays bounded (the map is symplectic), with no secular drift.
 
 Order 2 is the Strang composition ``H1(h/2) H2(h/2) H3(h) H2(h/2) H1(h/2)``; order 4 composes it
@@ -26,14 +29,14 @@ Arrays carry bodies on leading axes (``L`` is ``(..., 3)``, ``q`` is ``(..., 4)`
 ``(..., 3)`` broadcasts against them), so a batch needs no ``vmap`` (though ``vmap`` works too).
 """
 
-import functools
 from collections.abc import Callable
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..._checks import (
@@ -43,10 +46,13 @@ from ..._checks import (
     check_last_axis,
     check_rotation_quaternion,
     common_float,
+    compiled_when_eager,
+    error_if,
 )
 from ..._dynamics.inertia import check_inertia
 from ..._dynamics.models import gravity_torque
 from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
+from ..._numerics import short_norm
 
 _YOSHIDA_W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 _YOSHIDA_W0 = 1.0 - 2.0 * _YOSHIDA_W1
@@ -93,6 +99,14 @@ def splitting_step(inertia, L, q, h, order: int = 2):
     return _splitting_step(inertia, L, q, h, order)
 
 
+def _checked_n_steps(n_steps, where: str) -> int:
+    """``n_steps`` as an ``int``; a ``ValueError`` unless it is a non-negative integer (0: the
+    initial state)."""
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int | np.integer) or n_steps < 0:
+        raise ValueError(f"{where}: n_steps must be a non-negative integer (a Python int), got {n_steps!r}.")
+    return int(n_steps)
+
+
 def _check_order(order):
     if order not in (2, 4):
         raise ValueError(f"order must be 2 or 4, got {order!r}.")
@@ -131,7 +145,16 @@ def _checked_state(where, inertia, L, q, h, names=("L", "q", "h"), **extra):
     return inertia, L, q, check_finite(h, h_name, where), *more
 
 
+def _unit(q):
+    """``q / |q|``: each step starts from a unit quaternion. The sub-flows are rotations, but their
+    roundoff drifts ``|q|`` steadily (float32: 6.7e-10 per step, 2.7e-4 after 4e5 steps), and the
+    heavy top's gravity torque reads ``R(q)`` as if ``|q| = 1``; a ``q`` given off unit norm means
+    the rotation of ``q / |q|``."""
+    return q / short_norm(q, keepdims=True)
+
+
 def _splitting_step(inertia, L, q, h, order: int = 2):
+    q = _unit(q)
     if order == 2:
         return _strang(inertia, L, q, h)
     if order == 4:
@@ -152,7 +175,9 @@ def _check_principal(inertia, who: str):
         raise ValueError(
             f"{who} needs principal moments (..., 3), got a (..., 3, 3) inertia tensor: diagonalise it "
             "with rigidjax.principal_axes and express the state (and com) in those axes, or use "
-            "rigidjax.simulate(..., solver=..., dt0=...), which does that for you."
+            "rigidjax.simulate(..., solver=..., dt0=...), which does that for you. (A batch of three "
+            "bodies' moments, shape (3, 3), reads as one tensor, as everywhere in rigidjax: give it a "
+            "second batch axis, (3, 1, 3).)"
         )
 
 
@@ -171,7 +196,7 @@ def _require_parameters(solver, name: str, constructor: str):
         )
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "order"))
+@compiled_when_eager(static_argnames=("n_steps", "order"))
 def split_free_body(
     inertia: Float[ArrayLike, "... 3"],
     L0: Float[ArrayLike, "... 3"],
@@ -197,12 +222,34 @@ def split_free_body(
     the inputs' (float32 inputs stay float32).
     """
     _check_order(order)
+    n_steps = _checked_n_steps(n_steps, "split_free_body")
     inertia, L0, q0, dt = _checked_state("split_free_body", inertia, L0, q0, dt, names=("L0", "q0", "dt"))
 
     def body(_, state):
         return _splitting_step(inertia, *state, dt, order)
 
     return jax.lax.fori_loop(0, n_steps, body, (L0, q0))
+
+
+class SubStepInterpolation(diffrax.AbstractLocalInterpolation):
+    """Dense output of the splittings: at a time ``t`` inside a step, the solver's own map from the
+    step's start over ``t - t0``. Its values keep what the map keeps (unit ``q``, ``|L|``, the
+    space-frame or vertical ``L``) and the method's order; a linear interpolation between the
+    step's ends left the spheres (``|q| - 1`` of 4e-6 mid-step at dt = 0.01) and fell to order 1.
+    """
+
+    t0: Any
+    t1: Any
+    y0: Any
+    y1: Any
+    solver: diffrax.AbstractSolver
+
+    def evaluate(self, t0, t1=None, left: bool = True):
+        del left
+        if t1 is not None:
+            return jax.tree.map(jnp.subtract, self.evaluate(t1), self.evaluate(t0))
+        L0, q0 = self.y0
+        return self.solver.map_over(L0, q0, jnp.asarray(t0 - self.t0).astype(L0.dtype))
 
 
 class LiePoissonSplitting(diffrax.AbstractSolver):
@@ -223,9 +270,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     splitting_order: int = eqx.field(static=True, default=2)
 
     term_structure: ClassVar = diffrax.AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., diffrax.LocalLinearInterpolation]] = (
-        diffrax.LocalLinearInterpolation
-    )
+    interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
 
     def __init__(self, inertia=None, order: int = 2):
         if order not in (2, 4):
@@ -250,15 +295,17 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     def init(self, terms, t0, t1, y0, args):
         return None
 
+    def map_over(self, L, q, h):
+        """The splitting map over a time ``h`` from ``(L, q)``."""
+        return _splitting_step(self.inertia.astype(L.dtype), L, q, h, self.splitting_order)
+
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         L0, q0 = y0
         _require_parameters(self, "LiePoissonSplitting", "LiePoissonSplitting(inertia, order)")
         _check_principal(self.inertia, "LiePoissonSplitting")
-        h = jnp.asarray(t1 - t0).astype(L0.dtype)
-        inertia = self.inertia.astype(L0.dtype)
-        y1 = _splitting_step(inertia, L0, q0, h, self.splitting_order)
-        dense_info = dict(y0=y0, y1=y1)
+        y1 = self.map_over(L0, q0, jnp.asarray(t1 - t0).astype(L0.dtype))
+        dense_info = dict(y0=y0, y1=y1, solver=self)
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
@@ -318,6 +365,7 @@ def heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
 
 
 def _heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
+    q = _unit(q)
     if order == 2:
         return _heavy_top_strang(inertia, weight_com, L, q, h)
     if order == 4:
@@ -335,7 +383,7 @@ def _checked_top_parameters(mass, com, gravity, where):
         as_float_array(x, n) for x, n in ((mass, "mass"), (com, "com"), (gravity, "gravity"))
     )
     mass = check_finite(mass, "mass", where)
-    mass = eqx.error_if(mass, jnp.any(mass <= 0), f"{where}: mass must be positive (kg).")
+    mass = error_if(mass, jnp.any(mass <= 0), f"{where}: mass must be positive (kg).")
     return mass, check_finite(com, "com", where), check_finite(gravity, "gravity", where)
 
 
@@ -350,7 +398,7 @@ def heavy_top_weight_com(mass, com, gravity, dtype=None):
     return (mass.astype(dtype) * gravity.astype(dtype))[..., None] * com.astype(dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "order"))
+@compiled_when_eager(static_argnames=("n_steps", "order"))
 def split_heavy_top(
     inertia: Float[ArrayLike, "... 3"],
     mass: Float[ArrayLike, "..."],
@@ -383,6 +431,7 @@ def split_heavy_top(
     """
     _check_order(order)
     where = "split_heavy_top"
+    n_steps = _checked_n_steps(n_steps, where)
     inertia, L0, q0, dt, mass, com, gravity = _checked_state(
         where, inertia, L0, q0, dt, ("L0", "q0", "dt"), mass=(mass, 0), com=(com, 1), gravity=(gravity, 0)
     )
@@ -423,9 +472,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     splitting_order: int = eqx.field(static=True, default=2)
 
     term_structure: ClassVar = diffrax.AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., diffrax.LocalLinearInterpolation]] = (
-        diffrax.LocalLinearInterpolation
-    )
+    interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
 
     def __init__(self, inertia=None, mass=None, com=None, gravity=9.81, order: int = 2):
         if order not in (2, 4):
@@ -466,6 +513,13 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     def init(self, terms, t0, t1, y0, args):
         return None
 
+    def map_over(self, L, q, h):
+        """The splitting map over a time ``h`` from ``(L, q)``."""
+        weight_com = heavy_top_weight_com(self.mass, self.com, self.gravity, L.dtype)
+        return _heavy_top_splitting_step(
+            self.inertia.astype(L.dtype), weight_com, L, q, h, self.splitting_order
+        )
+
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         L0, q0 = y0
@@ -473,13 +527,8 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
             self, "HeavyTopSplitting", "HeavyTopSplitting(inertia, mass, com, gravity, order)"
         )
         _check_principal(self.inertia, "HeavyTopSplitting as a diffrax solver")
-        dtype = L0.dtype
-        h = jnp.asarray(t1 - t0).astype(dtype)
-        weight_com = heavy_top_weight_com(self.mass, self.com, self.gravity, dtype)
-        y1 = _heavy_top_splitting_step(
-            self.inertia.astype(dtype), weight_com, L0, q0, h, self.splitting_order
-        )
-        dense_info = dict(y0=y0, y1=y1)
+        y1 = self.map_over(L0, q0, jnp.asarray(t1 - t0).astype(L0.dtype))
+        dense_info = dict(y0=y0, y1=y1, solver=self)
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
