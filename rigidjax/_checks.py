@@ -34,7 +34,14 @@ def as_float_array(x, name: str = "array"):
     """
     if isinstance(x, jax.Array) and x.dtype in _COMPUTED_FLOATS:
         return x  # the common case, without jnp.asarray's cost (~20 us a call)
-    x = jnp.asarray(x)
+    try:
+        x = jnp.asarray(x)
+    except (TypeError, ValueError) as error:
+        raise TypeError(
+            f"{name} must be a real number or array of them, got {type(x).__name__} {x!r:.60}."
+        ) from error
+    if not (jnp.issubdtype(x.dtype, jnp.number) or x.dtype == jnp.bool_):
+        raise TypeError(f"{name} must be a real number or array of them, got dtype {x.dtype}.")
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
         raise TypeError(f"{name} must be real, got dtype {x.dtype}.")
     if x.dtype == jnp.bool_:
@@ -49,10 +56,13 @@ def as_float_array(x, name: str = "array"):
 def common_float(*arrays, names=None):
     """Converts all inputs to float arrays of one common dtype (the widest float among them)."""
     names = names or [f"argument {i}" for i in range(len(arrays))]
+    # Python numbers take the arrays' dtype (as in NumPy and JAX): ellipj(float32 u, 0.5) stays
+    # float32. Among arrays, numpy's promotion, not jax's: widening float32 to float64 here is
+    # deliberate, and must not depend on the user's jax_numpy_dtype_promotion setting.
+    python_number = [isinstance(a, int | float) and not isinstance(a, bool) for a in arrays]
     arrays = [as_float_array(a, n) for a, n in zip(arrays, names, strict=True)]
-    # numpy's promotion, not jax's: widening float32 to float64 here is deliberate, and must not
-    # depend on the user's jax_numpy_dtype_promotion setting.
-    dtype = np.result_type(*[np.dtype(a.dtype) for a in arrays])
+    decide = [a for a, number in zip(arrays, python_number, strict=True) if not number] or arrays
+    dtype = np.result_type(*[np.dtype(a.dtype) for a in decide])
     return [a.astype(dtype) for a in arrays]
 
 

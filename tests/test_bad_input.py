@@ -548,6 +548,17 @@ def test_scene_structural_errors(without_runtime_typecheck, extreme):
             lambda: rj.simulate(rj.FreeBody(I3), rj.State(W, Q), TS, accuracy="bogus"),
             "accuracy must be one of",
         ),
+        (  # a fixed-step solver ignores accuracy; its typo ran silently
+            lambda: rj.simulate(
+                rj.FreeBody(I3),
+                rj.State(W, Q),
+                TS,
+                solver=rj.solvers.LiePoissonSplitting(),
+                dt0=0.1,
+                accuracy="bogus",
+            ),
+            "accuracy must be one of",
+        ),
         (lambda: rj.simulate(rj.FreeBody(I3), rj.State(W, Q), np.ones((2, 3))), "ts must be a 1-D array"),
     ]:
         with pytest.raises((ValueError, TypeError), match=match):

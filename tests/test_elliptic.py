@@ -636,3 +636,34 @@ def test_precession_rf_against_mpmath_near_and_far_apart(dtype):
         with mpmath.workdps(30):
             ref = [float(mpmath.elliprf(*(float(v) for v in vals))) for vals in zip(*args, strict=True)]
         np.testing.assert_allclose(got, ref, rtol=8 * eps, atol=0)
+
+
+def test_edges_of_the_domains_against_mpmath():
+    """m > 1 in the incomplete integrals gave numbers (F(3.3 | 1.2) = -64014.6, where mpmath's value
+    is complex and scipy's NaN); E(m) for m = -1e200 was -inf (m p overflowed); dF/dm at m = 1 was
+    inf for |phi| < pi/2 (it is finite: mpmath 0.0250676 at phi = 0.5); the derivative of R_J with
+    respect to an argument at 0 was finite (-0.06), where R_J falls like -sqrt(x)."""
+    for phi, m in [(0.5, 1.5), (3.3, 1.2), (0.5, 1 + 1e-15)]:
+        assert np.isnan(float(ellipkinc(phi, m))) and np.isnan(float(ellipeinc(phi, m)))
+    for m in (-1e50, -1e200, -1e300):
+        ref = float(mpmath.ellipe(mpmath.mpf(m)))
+        np.testing.assert_allclose(float(ellipe(m)), ref, rtol=4 * EPS64)
+    np.testing.assert_allclose(float(ellipe(np.float32(-1e30))), float(mpmath.ellipe(-1e30)), rtol=4 * EPS32)
+    with mpmath.workdps(40):
+        for phi in (0.5, 1.2, -0.7):
+            ref = mpmath.diff(lambda m, phi=phi: mpmath.ellipf(phi, m), mpmath.mpf(1) - mpmath.mpf(10) ** -30)
+            np.testing.assert_allclose(
+                float(jax.grad(ellipkinc, argnums=1)(phi, 1.0)), float(ref), rtol=8 * EPS64
+            )
+        partials = jax.grad(elliprj, argnums=(0, 1, 2, 3))(0.0, 1.0, 2.0, 3.0)
+        assert float(partials[0]) == -np.inf
+        for k, value in enumerate(partials[1:], start=1):
+            args = [mpmath.mpf(v) for v in (0, 1, 2, 3)]
+
+            def along(h, k=k, args=args):
+                shifted = list(args)
+                shifted[k] += h
+                return mpmath.elliprj(*shifted)
+
+            np.testing.assert_allclose(float(value), float(mpmath.diff(along, 0)), rtol=1e-13)
+    assert float(jax.grad(ellipkinc, argnums=1)(-4.0, 1.0)) == -np.inf  # -2 K of a whole turn back

@@ -352,6 +352,32 @@ def test_damaged_files(tmp_path):
         rj.Trajectory.load(path)
 
 
+def test_files_whose_arrays_do_not_fit_together(tmp_path, without_runtime_typecheck):
+    """An edited or pieced-together file loaded, then failed in the first computation with a
+    broadcasting error (omega of 5 samples beside 6 times, a model of 3 bodies beside 2), or gave
+    wrong values (orientations of norm 6); the save of an empty or non-path path was a raw error."""
+    path = tmp_path / "t.npz"
+    traj = _hand_made(rj.FreeBody(jnp.asarray([1.0, 2.0, 3.0])))
+    T = traj.ts.shape[0]
+    damaged = {
+        "omega": (np.asarray(traj.omega)[..., :-1, :], rf"omega should have shape \(\.\.\., {T}, 3\)"),
+        "orientation": (6.0 * np.asarray(traj.orientation), "not unit quaternions"),
+        "success": (np.ones(7, bool), "success should be booleans of shape"),
+        "ts": (np.asarray(traj.ts)[::-1], "strictly increasing"),
+        "model__inertia": (np.ones((7, 3)), "model's bodies do not broadcast"),
+    }
+    for key, (value, message) in damaged.items():
+        traj.save(path)
+        _rewrite(path, **{key: value})
+        with pytest.raises(ValueError, match="t.npz.*" + message):
+            rj.Trajectory.load(path)
+    for bad, error in (("", ValueError), (3, TypeError), (None, TypeError)):
+        with pytest.raises(error, match=r"^Trajectory.save: path (is empty|must be a file path)"):
+            traj.save(bad)
+        with pytest.raises(error, match=r"^Trajectory.load: path (is empty|must be a file path)"):
+            rj.Trajectory.load(bad)
+
+
 def test_float64_file_in_32_bit_mode(tmp_path):
     traj64 = _hand_made(rj.FreeBody(jnp.asarray([1.0, 2.0, 3.0])))
     traj64.save(tmp_path / "t64.npz")

@@ -142,9 +142,14 @@ def ellipkm1(p: Scalar) -> ScalarOut:
 def _ellipe(m, p):
     safe = p > 0
     p_safe = jnp.where(safe, p, jnp.ones_like(p))
-    rf, rd = _carlson_rf_rd(jnp.zeros_like(p), jnp.ones_like(p), p_safe)
-    # E(phi|m) of _legendre_values at phi = pi/2: E = p K + (m p / 3) R_D(0, 1, p), terms >= 0.
-    value = p_safe * rf + (m * p_safe / 3) * rd
+    one = jnp.ones_like(p)
+    rf, rd = _carlson_rf_rd(
+        jnp.zeros((2,) + p.shape, p.dtype), jnp.stack([one, p_safe]), jnp.stack([p_safe, one])
+    )
+    # The forms of _legendre_values at phi = pi/2, each with terms >= 0: E = p K + (m p / 3)
+    # R_D(0, 1, p) for 0 <= m <= 1, and E = K - (m / 3) R_D(0, p, 1) for m < 0, where the first
+    # form's terms cancel and m p overflows (m = -1e200: -inf).
+    value = jnp.where(m < 0, rf[0] - (m / 3) * rd[1], p_safe * rf[0] + (m * p_safe / 3) * rd[0])
     # E(1) = 1; m > 1 is outside the domain (NaN, as K).
     return jnp.where(safe, value, jnp.where(p == 0, jnp.ones_like(p), jnp.nan))
 
@@ -281,14 +286,25 @@ def _legendre_jvp(primals, tangents):
         df_dm = s**3 * q["rd"] / 6 + j * q["rd0"] / 3
         # dE/dm = (E - F) / (2 m) = -s^3 R_D(c^2, delta^2, 1) / 6 + ... (DLMF 19.25.9): no cancellation.
         de_dm = -(s**3) * q["rd_swapped"] / 6 + j * (pp * q["rd0"] / 3 - q["rf0"])
-        # m = 1: dF/dm = inf except at phi = 0; dE/dm = (sin r - atanh(sin r)) / 2 - inf j.
+        # m = 1: dF/dm = s^3 R_D(c^2, 1, c^2) / 6 (DLMF 19.18.1 at delta = c), finite for |r| <
+        # pi/2, plus 2 j dK/dm = inf j; dE/dm = (sin r - atanh(sin r)) / 2 - inf j.
         inf = jnp.full_like(s, jnp.inf)
         zero = jnp.zeros_like(s)
-        df_dm = jnp.where(q["m1"], jnp.where(s == 0, zero, inf), df_dm)
+        c_safe = jnp.where(c > 0, c, jnp.ones_like(c))
+        _, rd_at_1 = _carlson_rf_rd(c_safe * c_safe, jnp.ones_like(c), c_safe * c_safe)
+        df_dm_1 = jnp.where(c > 0, s**3 * rd_at_1 / 6, inf)
+        df_dm = jnp.where(q["m1"], df_dm_1 + jnp.where(j == 0, zero, j * inf), df_dm)
         de_dm = jnp.where(q["m1"], (s - jnp.arctanh(s)) / 2 - jnp.where(j == 0, zero, j * inf), de_dm)
         f_terms.append((df_dm, m_dot))
         e_terms.append((de_dm, m_dot))
     return (f, e), (_linear(f_terms, f), _linear(e_terms, e))
+
+
+def _legendre_checked(phi, m, p):
+    """``_legendre`` with NaN for ``m > 1`` (``p < 0``), where its forms would give numbers."""
+    bad = p < 0
+    f, e = _legendre(phi, jnp.where(bad, jnp.zeros_like(m), m), jnp.where(bad, jnp.ones_like(p), p))
+    return jnp.where(bad, jnp.nan, f), jnp.where(bad, jnp.nan, e)
 
 
 def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
@@ -304,7 +320,7 @@ def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
-    return _legendre(phi, m, 1 - m)[0]
+    return _legendre_checked(phi, m, 1 - m)[0]
 
 
 def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
@@ -319,7 +335,7 @@ def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
-    return _legendre(phi, m, 1 - m)[1]
+    return _legendre_checked(phi, m, 1 - m)[1]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -385,10 +401,12 @@ def ellipj(u: Scalar, m: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Scala
 
     **Arguments:**
 
-    - `u`: the argument, any real value.
+    - `u`: the argument, ``|u| <= 0.5 / eps`` (float64: 2.3e15, float32: 4.2e6), beyond which
+      the rounding of ``u`` alone is about a radian.
     - `m`: the parameter, ``0 <= m <= 1``, broadcast against `u`.
 
-    **Returns:** ``(sn, cn, dn, am)``, each of the broadcast shape; NaN outside ``0 <= m <= 1``.
+    **Returns:** ``(sn, cn, dn, am)``, each of the broadcast shape; NaN outside ``0 <= m <= 1`` or
+    beyond that ``|u|`` (except at ``m = 1``, which is not periodic).
     """
     u, m = common_float(u, m, names=["u", "m"])
     u, m = _broadcast((u, m), ("u", "m"))
@@ -403,10 +421,11 @@ def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Sc
 
     **Arguments:**
 
-    - `u`: the argument, any real value.
+    - `u`: the argument, ``|u| <= 0.5 / eps`` as for :func:`ellipj`.
     - `p`: the complementary parameter, ``0 <= p <= 1``, broadcast against `u`.
 
-    **Returns:** ``(sn, cn, dn, am)``, each of the broadcast shape; NaN outside ``0 <= p <= 1``.
+    **Returns:** ``(sn, cn, dn, am)``, each of the broadcast shape; NaN outside ``0 <= p <= 1`` or
+    beyond that ``|u|``.
     """
     u, p = common_float(u, p, names=["u", "p"])
     u, p = _broadcast((u, p), ("u", "p"))
@@ -414,7 +433,11 @@ def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Sc
 
 
 def _ellipj_checked(u, m, p):
-    bad = (m < 0) | (p < 0) | jnp.isnan(m) | jnp.isnan(p)
+    # Beyond |u| = 0.5 / eps the rounding of u alone is about a radian: the values would be noise
+    # (from 4e15 on in float64 they broke dn^2 + m sn^2 = 1, then turned NaN or 4e18).
+    # (m = 1 is not periodic: tanh, sech and gd keep their limits.)
+    beyond = (jnp.abs(u) > 0.5 / float(jnp.finfo(u.dtype).eps)) & (p != 0)
+    bad = (m < 0) | (p < 0) | jnp.isnan(m) | jnp.isnan(p) | beyond
     m_ok = jnp.where(bad, jnp.zeros_like(m), m)
     p_ok = jnp.where(bad, jnp.ones_like(p), p)
     out = _ellipj(u, m_ok, p_ok)

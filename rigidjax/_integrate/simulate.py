@@ -269,12 +269,12 @@ def simulate(
         if report is not None:  # one closed-form program: all bodies at once
             _progress.report_whole(report, traj)
         return _raise_if_exact_failed(traj) if throw else nan_from_first_failure(traj)
+    if accuracy not in PRESETS:  # also with a fixed-step solver, which ignores it: a typo is named
+        raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
     fixed_step = isinstance(solver, STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
         formulation, grid, n_steps = _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given)
-    elif accuracy not in PRESETS:
-        raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
     elif stepsize_controller is not None and (rtol is not None or atol is not None):
         raise ValueError(
             "simulate: rtol and atol set the preset's step-size controller; with stepsize_controller "

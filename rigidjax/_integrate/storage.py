@@ -52,6 +52,7 @@ from .._dynamics.models import (
     Torque,
     ViscousDamping,
 )
+from . import batching
 
 FORMAT = "rigidjax.Trajectory"
 FORMAT_VERSION = 1
@@ -193,11 +194,22 @@ def encode(traj: eqx.Module) -> dict[str, np.ndarray]:
     return enc.arrays
 
 
+def checked_path(path, where: str) -> str:
+    """``path`` as a string; a ``TypeError`` or ``ValueError`` naming it unless it is a non-empty
+    ``str``, ``bytes`` or ``os.PathLike``."""
+    if not isinstance(path, str | bytes | os.PathLike):
+        raise TypeError(f"{where}: path must be a file path (str or os.PathLike), got {type(path).__name__}.")
+    path = os.fsdecode(os.fspath(path))
+    if not path:
+        raise ValueError(f"{where}: path is empty; give a file path such as 'trajectory.npz'.")
+    return path
+
+
 def check_writable(path, where: str = "Trajectory.save") -> str:
     """``path`` as a string, after checking that a file can be created there: a ``FileNotFoundError``,
     ``IsADirectoryError`` or ``PermissionError`` whose message starts with ``where`` and names the
     path otherwise."""
-    path = os.fsdecode(os.fspath(path))
+    path = checked_path(path, where)
     if os.path.isdir(path):
         raise IsADirectoryError(
             f"{where}: {path!r} is a directory; give a file path such as "
@@ -419,12 +431,46 @@ def decode(path: str, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
     unread = sorted(set(arrays) - dec.used)
     if unread:
         raise dec.fail(f"it has entries this rigidjax does not know ({', '.join(unread)})")
+    _check_consistent(dec, fields)
     return fields
+
+
+def _check_consistent(dec, fields) -> None:
+    """The arrays fit together as :func:`rigidjax.simulate` writes them (a file edited or pieced
+    together loaded, then failed in the first computation with a broadcasting error)."""
+    ts, omega, q, success = (np.asarray(fields[k]) for k in ("ts", "omega", "orientation", "success"))
+    if ts.ndim != 1 or ts.size < 1:
+        raise dec.fail(f"ts should be 1-D with at least one time, got shape {ts.shape}")
+    if omega.ndim < 2 or omega.shape[-2:] != (ts.size, 3):
+        raise dec.fail(f"omega should have shape (..., {ts.size}, 3) for {ts.size} times, got {omega.shape}")
+    batch = omega.shape[:-2]
+    if fields["orientation"] is not None and q.shape != batch + (ts.size, 4):
+        raise dec.fail(f"orientation should have shape {batch + (ts.size, 4)} beside omega, got {q.shape}")
+    if success.shape != batch or success.dtype != np.bool_:
+        raise dec.fail(
+            f"success should be booleans of shape {batch} (one per body), got {success.dtype} {success.shape}"
+        )
+    try:
+        model_batch = batching.batch_shape(fields["model"])
+        ok = np.broadcast_shapes(model_batch, batch) == batch
+    except ValueError:
+        ok = False
+    if not ok:
+        raise dec.fail(f"the model's bodies do not broadcast to the {batch} bodies of omega")
+    if not (np.all(np.isfinite(ts)) and np.all(np.diff(ts) > 0)):
+        raise dec.fail("ts should be finite and strictly increasing")
+    if fields["orientation"] is not None:
+        with np.errstate(invalid="ignore"):
+            off = (
+                np.abs(np.linalg.norm(q.astype(np.float64), axis=-1) - 1.0) > 1e-3
+            )  # NaN rows: failed bodies
+        if np.any(off):
+            raise dec.fail("its orientations are not unit quaternions")
 
 
 def read(path) -> dict[str, Any]:
     """Reads the file at ``path`` and returns the fields of the stored :class:`Trajectory`."""
-    path = os.fsdecode(os.fspath(path))
+    path = checked_path(path, "Trajectory.load")
     if os.path.isdir(path):
         raise IsADirectoryError(f"Trajectory.load: {path!r} is a directory, not a trajectory file.")
     try:

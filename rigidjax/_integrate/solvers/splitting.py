@@ -171,7 +171,7 @@ def _splitting_step(inertia, L, q, h, order: int = 2):
 
 def _check_principal(inertia, who: str):
     """Trace-time ValueError for a ``(..., 3, 3)`` tensor: the axis flows need principal moments."""
-    if jnp.ndim(inertia) >= 2 and jnp.shape(inertia)[-2:] == (3, 3):
+    if np.ndim(inertia) >= 2 and np.shape(inertia)[-2:] == (3, 3):
         raise ValueError(
             f"{who} needs principal moments (..., 3), got a (..., 3, 3) inertia tensor: diagonalise it "
             "with rigidjax.principal_axes and express the state (and com) in those axes, or use "
