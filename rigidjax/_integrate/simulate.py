@@ -114,8 +114,8 @@ def simulate(
 
     **Arguments:**
 
-    - `model`: a scene (:class:`FreeBody`, :class:`RigidBody`, :class:`HeavyTop`), possibly
-      batched: a leading batch axis on its array fields.
+    - `model`: a scene (:class:`FreeBody`, :class:`RigidBody`, :class:`HeavyTop`,
+      :class:`Gyrostat`), possibly batched: a leading batch axis on its array fields.
     - `state0`: initial :class:`State`; its batch axes broadcast against the model's. With
       ``orientation=None`` and a scene that does not need it, only Euler's equations (three per
       body) are integrated.
