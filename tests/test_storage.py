@@ -371,6 +371,13 @@ def test_files_whose_arrays_do_not_fit_together(tmp_path, without_runtime_typech
         _rewrite(path, **{key: value})
         with pytest.raises(ValueError, match="t.npz.*" + message):
             rj.Trajectory.load(path)
+    # A trajectory built by hand that load would refuse is refused before it is written.
+    off_unit = rj.Trajectory(
+        traj.ts, traj.omega, 6.0 * traj.orientation, traj.model, traj.success, traj.stats
+    )
+    with pytest.raises(ValueError, match="^Trajectory.save: its orientations are not unit.*loaded back"):
+        off_unit.save(tmp_path / "hand.npz")
+    assert not (tmp_path / "hand.npz").exists()
     for bad, error in (("", ValueError), (3, TypeError), (None, TypeError)):
         with pytest.raises(error, match=r"^Trajectory.save: path (is empty|must be a file path)"):
             traj.save(bad)

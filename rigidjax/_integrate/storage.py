@@ -151,6 +151,12 @@ class _Encoder:
 def encode(traj: eqx.Module) -> dict[str, np.ndarray]:
     """The named NumPy arrays of the file for the :class:`Trajectory` ``traj``; a ``ValueError`` for
     anything that cannot be stored faithfully (a user torque, a custom scene, an object array)."""
+    fields = dict(
+        ts=traj.ts, omega=traj.omega, orientation=traj.orientation, model=traj.model, success=traj.success
+    )
+    _check_consistent(
+        lambda problem: ValueError(f"Trajectory.save: {problem}; it could not be loaded back."), fields
+    )
     enc = _Encoder()
     enc.module("model", traj.model, "model")
     enc.array("ts", traj.ts)
@@ -431,23 +437,25 @@ def decode(path: str, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
     unread = sorted(set(arrays) - dec.used)
     if unread:
         raise dec.fail(f"it has entries this rigidjax does not know ({', '.join(unread)})")
-    _check_consistent(dec, fields)
+    _check_consistent(dec.fail, fields)
     return fields
 
 
-def _check_consistent(dec, fields) -> None:
-    """The arrays fit together as :func:`rigidjax.simulate` writes them (a file edited or pieced
-    together loaded, then failed in the first computation with a broadcasting error)."""
+def _check_consistent(fail: Callable[[str], Exception], fields) -> None:
+    """The arrays fit together as :func:`rigidjax.simulate` writes them; ``fail(problem)`` is the
+    exception otherwise. Checked on load (a file edited or pieced together loaded, then failed in
+    the first computation with a broadcasting error) and on save (a trajectory built by hand that
+    load would refuse is refused before it is written, while its values are still in memory)."""
     ts, omega, q, success = (np.asarray(fields[k]) for k in ("ts", "omega", "orientation", "success"))
     if ts.ndim != 1 or ts.size < 1:
-        raise dec.fail(f"ts should be 1-D with at least one time, got shape {ts.shape}")
+        raise fail(f"ts should be 1-D with at least one time, got shape {ts.shape}")
     if omega.ndim < 2 or omega.shape[-2:] != (ts.size, 3):
-        raise dec.fail(f"omega should have shape (..., {ts.size}, 3) for {ts.size} times, got {omega.shape}")
+        raise fail(f"omega should have shape (..., {ts.size}, 3) for {ts.size} times, got {omega.shape}")
     batch = omega.shape[:-2]
     if fields["orientation"] is not None and q.shape != batch + (ts.size, 4):
-        raise dec.fail(f"orientation should have shape {batch + (ts.size, 4)} beside omega, got {q.shape}")
+        raise fail(f"orientation should have shape {batch + (ts.size, 4)} beside omega, got {q.shape}")
     if success.shape != batch or success.dtype != np.bool_:
-        raise dec.fail(
+        raise fail(
             f"success should be booleans of shape {batch} (one per body), got {success.dtype} {success.shape}"
         )
     try:
@@ -456,16 +464,16 @@ def _check_consistent(dec, fields) -> None:
     except ValueError:
         ok = False
     if not ok:
-        raise dec.fail(f"the model's bodies do not broadcast to the {batch} bodies of omega")
+        raise fail(f"the model's bodies do not broadcast to the {batch} bodies of omega")
     if not (np.all(np.isfinite(ts)) and np.all(np.diff(ts) > 0)):
-        raise dec.fail("ts should be finite and strictly increasing")
+        raise fail("ts should be finite and strictly increasing")
     if fields["orientation"] is not None:
         with np.errstate(invalid="ignore"):
             off = (
                 np.abs(np.linalg.norm(q.astype(np.float64), axis=-1) - 1.0) > 1e-3
             )  # NaN rows: failed bodies
         if np.any(off):
-            raise dec.fail("its orientations are not unit quaternions")
+            raise fail("its orientations are not unit quaternions")
 
 
 def read(path) -> dict[str, Any]:
