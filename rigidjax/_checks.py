@@ -548,13 +548,17 @@ def check_positive_int(value, name: str, where: str):
 
 def float_dtype(*xs):
     """The one dtype rule of rigidjax's entry points: the widest floating dtype among the inputs'
-    (NumPy promotion: float32 with float64 is float64, whatever ``jax_numpy_dtype_promotion`` says);
-    the default float when no input is floating (Python numbers, integers)."""
-    dtypes = [
-        np.dtype(x.dtype if isinstance(x, jax.Array) else jnp.asarray(x).dtype) for x in xs if x is not None
-    ]
-    dtypes = [d for d in dtypes if np.issubdtype(d, np.floating)]
-    return np.result_type(*dtypes) if dtypes else np.dtype(jnp.result_type(float))
+    (NumPy promotion: float32 with float64 is float64, whatever ``jax_numpy_dtype_promotion`` says),
+    weakly typed ones (Python numbers) counting only when no other input is floating; the default
+    float when no input is floating (integers)."""
+    arrays = [x if isinstance(x, jax.Array) else jnp.asarray(x) for x in xs if x is not None]
+    floats = [x for x in arrays if np.issubdtype(np.dtype(x.dtype), np.floating)]
+    # Weakly typed values (Python numbers, a default such as gravity=9.81) take the others' dtype:
+    # a float32 scene with the default gravity stays float32.
+    strong = [x for x in floats if not getattr(x, "weak_type", False)] or floats
+    return (
+        np.result_type(*[np.dtype(x.dtype) for x in strong]) if strong else np.dtype(jnp.result_type(float))
+    )
 
 
 def check_times_shape(ts, name: str = "ts"):

@@ -404,3 +404,41 @@ def test_angular_momentum_and_tensor_shape_rule():
     assert not is_full_tensor(np.ones(3)) and not is_full_tensor(np.ones((5, 3)))
     with pytest.raises(ValueError, match="inertia"):
         is_full_tensor(np.ones((2, 4)))
+
+
+def test_torques_and_scenes_as_a_user_writes_them(without_runtime_typecheck):
+    """Python numbers (the default gravity=9.81, mass=1.0, ViscousDamping(0.1)) made a float32 scene
+    run in float64; a tuple holding a bare function was refused although documented; a torque
+    function returning None, complex or bool numbers gave a raw error or was used silently (complex:
+    its imaginary part dropped; bool: 1 N m); reading the orientation of a scene without one was a
+    raw TypeError. Reference for the values: a sphere under a constant torque, omega0 + tau t / I."""
+    f32 = np.float32
+    state32 = rj.State(f32([0.5, -0.3, 1.2]), f32([1.0, 0.0, 0.0, 0.0]))
+    ts32 = f32([0.0, 0.5, 1.0])
+    for model in (
+        rj.HeavyTop(f32([1.0, 1.0, 0.5]), f32(1.0), f32([0.0, 0.0, 0.3])),
+        rj.HeavyTop(f32([1.0, 2.0, 2.5]), 1.0, f32([0.0, 0.0, 0.3])),
+        rj.RigidBody(f32([1.0, 2.0, 2.5]), rj.ViscousDamping(0.1)),
+    ):
+        assert rj.simulate(model, state32, ts32, accuracy="fast").omega.dtype == jnp.float32
+    sphere, tau = 2.0, np.array([1.0, 0.0, 0.0])
+    both = rj.RigidBody(
+        jnp.full(3, sphere), (rj.ConstantTorque(jnp.asarray(tau)), lambda t, s, a: jnp.asarray(tau))
+    )
+    at_rest = rj.State(jnp.zeros(3), jnp.array([1.0, 0.0, 0.0, 0.0]))
+    traj = rj.simulate(both, at_rest, jnp.array([0.0, 1.0]), accuracy="precise")
+    np.testing.assert_allclose(traj.omega[-1], 2 * tau / sphere, rtol=1e-10)
+    for returned, what in (
+        (None, "NoneType"),
+        (jnp.array([1j, 0, 0]), "complex"),
+        (jnp.array([True, False, False]), "bool"),
+    ):
+        body = rj.RigidBody(jnp.full(3, sphere), lambda t, s, a, r=returned: r)
+        with pytest.raises(TypeError, match=rf"Torque\(.*\) returned .*{what}.*real numbers"):
+            rj.simulate(body, at_rest, jnp.array([0.0, 1.0]))
+    reads_q = rj.Torque(lambda t, s, a: s.orientation[1:], needs_orientation=False)
+    with pytest.raises(TypeError, match="without an orientation.*needs_orientation=True"):
+        rj.simulate(rj.RigidBody(jnp.full(3, sphere), reads_q), rj.State(jnp.zeros(3)), jnp.array([0.0, 1.0]))
+    with pytest.raises(ValueError, match="Gyrostat's rotors"):
+        rj.simulate(rj.Gyrostat(jnp.array([1.0, 2.0, 2.5]), jnp.array([0.0, 0.0, 0.5])),
+                    rj.State(jnp.ones(3)), jnp.array([0.0, 1.0]), accuracy="exact")  # fmt: skip

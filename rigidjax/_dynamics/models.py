@@ -180,7 +180,10 @@ class Torque(AbstractTorque):
     **Arguments:**
 
     - `fn`: ``fn(t, state, args) -> (3,)``. It sees one body (``state.omega`` of shape ``(3,)``);
-      batching is done for you. Numbers ``fn`` closes over are constants.
+      batching is done for you. ``fn`` is compiled once per function object: numbers it reads
+      from globals, closures or an object's attributes are constants of that program, and a later
+      change to them is not seen (a sweep that sets a global between runs gets the first value
+      every time). Pass numbers that change through `params` or ``simulate``'s ``args``.
     - `params`: numbers you want gradients for; ``fn`` then receives them as its third argument,
       ``fn(t, state, params)``, instead of ``simulate``'s ``args``.
     - `needs_orientation`: set False when ``fn`` ignores ``state.orientation``, so that scenes
@@ -209,7 +212,27 @@ class Torque(AbstractTorque):
             ) from None
 
     def __call__(self, t, state, args):
-        out = self.fn(t, state, self.params if self.params is not None else args)
+        name = getattr(self.fn, "__qualname__", type(self.fn).__name__)
+        try:
+            out = self.fn(t, state, self.params if self.params is not None else args)
+        except (TypeError, AttributeError) as error:
+            if state.orientation is None:
+                raise TypeError(
+                    f"Torque({name}) failed on a state without an orientation ({error}). A torque "
+                    "that reads state.orientation needs needs_orientation=True (the default) and an "
+                    "orientation in the initial state."
+                ) from error
+            raise
+        try:
+            kind = None if out is None else jnp.result_type(out)
+        except (TypeError, ValueError):
+            kind = None
+        if kind is None or not (jnp.issubdtype(kind, jnp.floating) or jnp.issubdtype(kind, jnp.integer)):
+            got = type(out).__name__ if kind is None else f"dtype {kind}"
+            raise TypeError(
+                f"Torque({name}) returned {got}; a torque function returns the body-frame torque "
+                "(N m) as real numbers, shape (3,)."
+            )
         return jnp.asarray(out, state.omega.dtype)
 
 
@@ -217,7 +240,8 @@ class GravityTorque(AbstractTorque):
     """Uniform gravity on a body held at a fixed point (a pivot, a gimbal, a bearing).
 
     The torque is ``com x (m g R^T (-Z))`` in body axes (N m), gravity along space -Z.
-    ``RigidBody(I, torque=GravityTorque(m, com))`` is ``HeavyTop(I, m, com)``; as a known torque it
+    ``RigidBody(I, torque=GravityTorque(m, com))`` moves as ``HeavyTop(I, m, com)`` (without its
+    potential energy in the trajectory's energies and invariants); as a known torque it
     gives :func:`rigidjax.fit_inertia_to_orientation` the scale (a heavy top's m g l).
 
     **Arguments:**
@@ -282,13 +306,18 @@ def _as_torque_tuple(torque) -> tuple:
         return ()
     if isinstance(torque, AbstractTorque):
         return (torque,)
-    if isinstance(torque, list | tuple) and all(isinstance(x, AbstractTorque) for x in torque):
-        return tuple(torque)
     if callable(torque):
         return (Torque(torque),)
+    if isinstance(torque, list | tuple):
+        bad = [type(x).__name__ for x in torque if not (isinstance(x, AbstractTorque) or callable(x))]
+        if not bad:
+            return tuple(x if isinstance(x, AbstractTorque) else Torque(x) for x in torque)
+        got = f"a {type(torque).__name__} holding {', '.join(bad)}"
+    else:
+        got = type(torque).__name__
     raise TypeError(
         "torque must be an AbstractTorque (ConstantTorque, ViscousDamping, Torque(fn)), a callable "
-        f"fn(t, state, args), or a tuple of them; got {type(torque).__name__}."
+        f"fn(t, state, args), or a tuple of them; got {got}."
     )
 
 

@@ -32,6 +32,7 @@ from .._closed_form.barrier import _materialised
 from .._closed_form.frame import phase_unresolved
 from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
+from .._dynamics.gyrostat import Gyrostat
 from .._dynamics.models import FreeBody, HeavyTop
 from . import batching
 from .inputs import checked_inputs
@@ -325,6 +326,12 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
             )
         )
         return _run_exact(top, omega0, q0, ts, chunk_size)
+    if isinstance(model, Gyrostat):
+        raise ValueError(
+            "accuracy='exact' is a closed form for torque-free rigid bodies and Lagrange's top; a "
+            "Gyrostat's rotors change the motion and have none here: use accuracy='balanced' or "
+            "'precise'."
+        )
     if not model.torque_free:
         raise ValueError(
             "accuracy='exact' is a closed form: for torque-free bodies (a FreeBody, or a RigidBody "
