@@ -246,7 +246,7 @@ class GravityTorque(AbstractTorque):
 
     **Arguments:**
 
-    - `mass`: kg, ``(...)``.
+    - `mass`: kg, ``(...)``, positive (a body without mass feels no gravity: use a torque-free scene).
     - `com`: body-frame position (m) of the centre of mass relative to the fixed point, ``(..., 3)``.
     - `gravity`: gravitational acceleration (m/s^2), default 9.81.
     """
@@ -543,7 +543,7 @@ class HeavyTop(AbstractModel):
 
     - `inertia`: about the PIVOT, in body axes (kg m^2): moments ``(..., 3)`` or a tensor
       ``(..., 3, 3)``.
-    - `mass`: kg, ``(...)``.
+    - `mass`: kg, ``(...)``, positive (a body without mass feels no gravity: use a torque-free scene).
     - `com`: body-frame position of the centre of mass relative to the pivot (m), ``(..., 3)``.
     - `gravity`: m/s^2 along space -Z, default 9.81.
     - `torque`: extra torques (e.g. friction), as for :class:`RigidBody`.
