@@ -446,6 +446,13 @@ def test_euler_angle_state_agrees_with_quaternions_and_stops_at_gimbal_lock():
     before = np.asarray(ts) < t_lock
     np.testing.assert_allclose(np.asarray(flagged.omega)[before], np.asarray(ok.omega)[before], atol=1e-7)
     assert np.all(np.isnan(np.asarray(flagged.omega[first:])))
+    # float32 (under x64): the root finder's time tolerance is one float32 resolves (at 1e-8 it did
+    # not converge: "diffrax result code 7"), and its condition is compared in the default dtype.
+    f32 = np.float32
+    free32 = rj.FreeBody(f32([1.0, 2.0, 2.5]))
+    lock32 = rj.State(f32([3.0, 0.0, 0.0]), rj.quat_from_euler(f32([0.0, 1.0, 0.0])))
+    with pytest.raises(Exception, match=r"between t = 0.7 s and t = 0.8 s.*gimbal lock"):
+        rj.simulate(free32, lock32, ts.astype(f32), representation="euler", accuracy="fast")
 
 
 @pytest.mark.slow

@@ -143,12 +143,15 @@ class ScaledODE(eqx.Module):
         seq, tolerance = self.euler_seq, self.lock_tolerance
 
         def margin(t, y, args, **kwargs):
-            return jnp.min(lock_distance(y[3:].T, seq)) - tolerance
+            # In the default float dtype: diffrax compares it with a Python 0.0 (float64 under x64).
+            return (jnp.min(lock_distance(y[3:].T, seq)) - tolerance).astype(jnp.result_type(float))
 
         # A real-valued condition, its crossing found by Newton on the dense output: a boolean one
         # is seen at step ends only, and a smooth motion's long steps ran past the lock (through
         # theta = 0 to 0.11 s later) with the samples in between returned as valid.
-        return diffrax.Event(margin, root_finder=optx.Newton(rtol=1e-8, atol=1e-8))
+        # (Its tolerance on the time is one float32 resolves: Newton converges quadratically, so
+        # the located time is far closer than that; at 1e-8 it did not converge in float32.)
+        return diffrax.Event(margin, root_finder=optx.Newton(rtol=1e-5, atol=1e-5))
 
     @staticmethod
     def save_fn(t, y, args):
