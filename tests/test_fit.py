@@ -519,6 +519,24 @@ def test_omega_from_orientations_converges_at_second_order():
         q[::3] *= -1.0
         np.testing.assert_allclose(rj.omega_from_orientations(ts, q), estimate, rtol=0, atol=1e-12)
     assert 3.5 < errors[0] / errors[1] < 4.5, errors
+    # Also where the spacing alternates h, 2h (the difference over two steps was first order there).
+    uneven = []
+    for n in (41, 81):
+        ts = np.cumsum(np.r_[0.0, np.resize([1.0, 2.0], n - 1)]) * 8.0 / (1.5 * (n - 1))
+        q = np.array(rj.torque_free_motion(I_TRUE, W0_TRUE, q0, ts)[1])
+        exact = np.asarray(rj.torque_free_omega(I_TRUE, W0_TRUE, ts))
+        uneven.append(np.max(np.abs(rj.omega_from_orientations(ts, q)[1:-1] - exact[1:-1])))
+    assert 3.5 < uneven[0] / uneven[1] < 4.5, uneven
+
+
+def test_omega_from_orientations_of_a_fast_spin():
+    """A spin of 2 rad per sample (under pi per step): the log over two steps (4 rad, beyond pi)
+    aliased it to -11.4 rad/s at every interior sample. Reference: the uniform spin itself."""
+    ts = np.arange(6) * 0.1
+    q = np.stack([np.cos(10.0 * ts), 0 * ts, 0 * ts, np.sin(10.0 * ts)], axis=1)  # 20 rad/s about z
+    np.testing.assert_allclose(
+        rj.omega_from_orientations(ts, q), np.tile([0.0, 0.0, 20.0], (6, 1)), atol=1e-12
+    )
 
 
 @pytest.mark.slow

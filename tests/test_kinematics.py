@@ -716,3 +716,16 @@ def test_round_trip_property(seq, phi, theta, psi):
             assert 0.0 <= out[1] <= np.pi
         else:
             assert abs(out[1]) <= np.pi / 2
+
+
+def test_quat_exp_refuses_an_angle_beyond_what_the_dtype_resolves():
+    """|theta| = 2e154 squared overflowed: a NaN quaternion without an error (1e154 gave a "unit"
+    quaternion of a rotation whose angle float64 cannot hold). Below 1/eps the values stay those of
+    the closed form (cos(n/2), sin(n/2) theta/n)."""
+    for theta in ([2e154, 0.0, 0.0], [1e16, 0.0, 0.0]):
+        with pytest.raises(ValueError, match="quat_exp: theta's angle is beyond what its dtype resolves"):
+            rj.kinematics.quat_exp(jnp.asarray(theta))
+    n = 1e6
+    np.testing.assert_allclose(
+        rj.kinematics.quat_exp(jnp.array([0.0, 0.0, n])), [np.cos(n / 2), 0, 0, np.sin(n / 2)], atol=1e-9
+    )

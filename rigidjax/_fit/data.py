@@ -93,8 +93,13 @@ def _align_signs(q):
 def omega_from_orientations(ts, q_observed):
     """Body-frame angular velocity from orientation samples, by central differences.
 
-    ``omega_i = log(q_{i-1}^* q_{i+1}) / (t_{i+1} - t_{i-1})``, one-sided at the ends. ``q`` and
-    ``-q`` are the same orientation. A starting point for fits, not a smoothed estimate.
+    From the rotation vector of each step, ``s_k = log(q_k^* q_{k+1})``, and its length
+    ``h_k = t_{k+1} - t_k``: ``omega_i = (h_i / h_{i-1} s_{i-1} + h_{i-1} / h_i s_i) / (h_{i-1} +
+    h_i)``, second order also where the spacing varies; one-sided (first order) at the ends. Each
+    step is taken as the shorter of the two rotations between its samples, so the body may turn by
+    up to ``pi`` per step (a log over two steps aliased a spin of 2 rad per step to -1.1 rad per
+    step). ``q`` and ``-q`` are the same orientation. A starting point for fits, not a smoothed
+    estimate.
 
     **Arguments:**
 
@@ -102,21 +107,24 @@ def omega_from_orientations(ts, q_observed):
     - `q_observed`: ``(T, 4)`` unit quaternions (scalar first, body -> space); a row with a NaN is a
       missing sample.
 
-    **Returns:** the angular velocity (rad/s), ``(T, 3)``; NaN where a neighbour is missing.
+    **Returns:** the angular velocity (rad/s), ``(T, 3)``; NaN where the sample or a neighbour is
+    missing.
     """
     ts, q = _check_quaternions(ts, q_observed, "q_observed")
     q = _align_signs(q)
     T = ts.shape[0]
     if T < 2:  # no difference to take: the one sample's omega was [nan, inf, nan]
         raise ValueError(f"omega_from_orientations needs at least 2 samples, got {T}.")
-    lo = np.clip(np.arange(T) - 1, 0, T - 1)
-    hi = np.clip(np.arange(T) + 1, 0, T - 1)
-    conj = q[lo] * np.array([1.0, -1.0, -1.0, -1.0])
-    rel = np.asarray(evaluated_now(_quat_multiply, conj, q[hi]))
-    rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)
+    conj = q[:-1] * np.array([1.0, -1.0, -1.0, -1.0])
+    rel = np.asarray(evaluated_now(_quat_multiply, conj, q[1:]))
+    rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)  # the shorter rotation: angle <= pi
     vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
     angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])
     with np.errstate(invalid="ignore", divide="ignore"):
-        axis = np.where(vec_norm[:, None] > 0, rel[:, 1:] / vec_norm[:, None], 0.0)
-        omega = axis * (angle / (ts[hi] - ts[lo]))[:, None]
+        step = np.where(vec_norm[:, None] > 0, rel[:, 1:] / vec_norm[:, None], 0.0) * angle[:, None]
+    h = np.diff(ts)[:, None]
+    omega = np.empty((T, 3))
+    omega[0], omega[-1] = step[0] / h[0], step[-1] / h[-1]
+    h1, h2 = h[:-1], h[1:]
+    omega[1:-1] = (h2 / h1 * step[:-1] + h1 / h2 * step[1:]) / (h1 + h2)
     return omega

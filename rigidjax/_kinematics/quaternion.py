@@ -10,8 +10,10 @@ concrete inputs, ``eqx.error_if`` under ``jit`` and ``vmap``): NaN or inf raises
 as a rotation (:func:`matrix_from_quat`, :func:`quat_rotate`, :func:`quat_normalize`,
 :func:`rigidjax.euler_from_quat`) means the rotation of ``q / |q|``, as in scipy's ``from_quat``:
 drift off unit norm, small or large, is normalised away (documented, not an error), and only a zero
-quaternion -- which is no rotation -- raises. (A *state* is stricter: :func:`rigidjax.simulate`
-rejects an initial orientation more than ``1e-6`` off unit norm.) :func:`quat_from_matrix` rejects a
+quaternion -- which is no rotation -- raises, or one whose squared norm under- or overflows (a
+norm below ~1e-154 or above ~1e154 in float64, 1e-19 / 2e19 in float32). (A *state* is
+stricter: :func:`rigidjax.simulate` rejects an initial orientation more than ``1e-6`` off unit
+norm.) :func:`quat_from_matrix` rejects a
 matrix with ``max|R R^T - 1|`` above ``1e-6`` (float64) / ``1e-4`` (float32) or with ``det R < 0``
 and accepts tiny non-orthogonality. :func:`quat_multiply` and :func:`quat_conjugate` are algebra on
 any quaternions (e.g. ``q ⊗ (0, omega)``) and only check finiteness. Rigidjax's own integrators call
@@ -34,6 +36,7 @@ from .._checks import (
     check_rotation_quaternion,
     common_float,
     compiled_when_eager,
+    error_if,
 )
 from .._numerics import eps
 from .._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
@@ -270,11 +273,21 @@ def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
     - `theta`: rotation vector (axis times angle, rad), shape ``(..., 3)``.
 
     **Returns:** the unit quaternion ``(w, x, y, z)``, shape ``(..., 4)``. NaN or inf in `theta`
-    raises at run time.
+    raises at run time, and so does an angle whose rounding exceeds a radian (``|theta|`` above
+    ``1 / eps``: float64 4.5e15, float32 8.4e6), where the rotation is noise (beyond ~1e154 its
+    square overflowed to a NaN quaternion).
     """
     theta = as_float_array(theta, "theta")
     check_last_axis(theta, 3, "theta")
-    return _quat_exp(check_finite(theta, "theta", "quat_exp"))
+    theta = check_finite(theta, "theta", "quat_exp")
+    largest = jnp.max(jnp.abs(theta), axis=-1)
+    theta = error_if(
+        theta,
+        largest * eps(theta.dtype) > 1.0,
+        "quat_exp: theta's angle is beyond what its dtype resolves (|theta| > 1 / eps: its rounding "
+        "exceeds a radian, so the rotation would be noise).",
+    )
+    return _quat_exp(theta)
 
 
 def _quat_exp(theta):
