@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -69,7 +70,7 @@ def _batch():
 def test_two_devices_give_the_trajectories_of_one(tmp_path):
     """45 bodies in five chunks of nine: on two devices a sixth chunk of padding, the same chunks and
     bitwise the same trajectories as on one device, also when run in blocks to report progress."""
-    path = tmp_path / "two.npy"
+    path, gradient = tmp_path / "two.npy", tmp_path / "gradient.npy"
     code = f"""
 import rigidjax as rj
 assert rj.use_cpu_cores(2) == 2
@@ -84,6 +85,11 @@ assert len(traj.omega.sharding.device_set) == 2  # the chunks ran on both device
 blocks = rj.simulate(model, state, jnp.linspace(0.0, 5.0, 6), chunk_size=10, progress=lambda *_: None)
 assert np.array_equal(blocks.omega, traj.omega) and np.array_equal(blocks.orientation, traj.orientation)
 np.save({str(path)!r}, np.concatenate([np.asarray(traj.omega), np.asarray(traj.orientation)], axis=-1))
+# Reverse mode through chunks on both devices (it failed in the checkpointed adjoint's backward loop).
+ts = jnp.linspace(0.0, 5.0, 6)
+run = lambda w: rj.simulate(model, rj.State(w, state.orientation), ts, chunk_size=10)
+loss = lambda w: jnp.sum(run(w).omega[:, -1] ** 2)
+np.save({str(gradient)!r}, np.asarray(jax.grad(loss)(state.omega)))
 """
     _fresh_process("-c", code)
     inertia, omega, q0 = _batch()
@@ -96,6 +102,15 @@ np.save({str(path)!r}, np.concatenate([np.asarray(traj.omega), np.asarray(traj.o
     assert int(traj.stats["chunk_size"]) == 9  # five chunks: one of padding on two devices
     one = np.concatenate([np.asarray(traj.omega), np.asarray(traj.orientation)], axis=-1)
     np.testing.assert_array_equal(np.load(path), one)
+    model, state = rj.FreeBody(jnp.asarray(inertia)), rj.State(jnp.asarray(omega), jnp.asarray(q0))
+
+    def loss(w):  # the adjoint the two devices' reverse mode takes by default
+        ts, direct = jnp.linspace(0.0, 5.0, 6), diffrax.DirectAdjoint()
+        traj = rj.simulate(model, rj.State(w, state.orientation), ts, chunk_size=10, adjoint=direct)
+        return jnp.sum(traj.omega[:, -1] ** 2)
+
+    got = np.load(gradient)
+    np.testing.assert_allclose(got, np.asarray(jax.grad(loss)(state.omega)), rtol=1e-9, atol=1e-12)
 
 
 def test_the_command_names_a_device_count_it_cannot_have(tmp_path):

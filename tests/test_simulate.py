@@ -756,3 +756,37 @@ def test_default_chunk_size_on_an_accelerator(monkeypatch):
     per_body = (100_000 + 32) * 7 * 2 * 8
     assert default_chunk_size(100_000, 8) == 139 * 2**30 // (8 * per_body) < 512 * 132
     assert default_chunk_size(100_000, 4) == 139 * 2**30 // (8 * per_body // 2)
+
+
+def test_options_as_users_pass_them(without_runtime_typecheck):
+    """The Euler-angle state returned -q0 at t = 0 for about half of the initial orientations;
+    BacksolveAdjoint failed deep inside diffrax; float64 times that collapse in a float32 run were
+    reported as the user's times not increasing; jacrev(jacrev(f)) raised JAX's "Reverse-mode
+    differentiation does not work for lax.while_loop". Reference for the second derivative: the
+    closed form's Hessian."""
+    body = rj.FreeBody(jnp.array([1.0, 2.0, 2.5]))
+    q0 = jnp.array([-0.9234, 0.3078, 0.2052, 0.1026])
+    q0 = q0 / jnp.linalg.norm(q0)
+    euler = rj.simulate(
+        body, rj.State(jnp.array([0.3, 1.0, 0.2]), q0), jnp.linspace(0.0, 1.0, 5), representation="euler"
+    )
+    np.testing.assert_allclose(euler.orientation[0], q0, atol=1e-12)
+    with pytest.raises(ValueError, match="BacksolveAdjoint.*does not support"):
+        rj.simulate(
+            body, rj.State(jnp.ones(3)), jnp.linspace(0.0, 1.0, 3), adjoint=diffrax.BacksolveAdjoint()
+        )
+    f32 = np.float32
+    with pytest.raises(ValueError, match="ts increase in float64 but not once cast to float32"):
+        rj.simulate(
+            rj.FreeBody(f32([1.0, 2.0, 2.5])),
+            rj.State(f32([0.3, 1.0, 0.2])),
+            np.array([1e5, 1e5 + 1e-3, 1e5 + 2e-3]),
+        )
+    w, ts = jnp.array([0.3, 1.0, 0.2]), jnp.linspace(0.0, 1.0, 3)
+
+    def f(inertia, **options):
+        return jnp.sum(rj.simulate(rj.FreeBody(inertia), rj.State(w), ts, **options).omega[-1] ** 2)
+
+    inertia = jnp.array([1.0, 2.0, 2.5])
+    twice = jax.jacrev(jax.jacrev(f))(inertia)
+    np.testing.assert_allclose(twice, jax.hessian(lambda i: f(i, accuracy="exact"))(inertia), atol=1e-8)

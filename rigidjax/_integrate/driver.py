@@ -68,14 +68,19 @@ except ImportError:  # pragma: no cover
 def _tracer_kinds(x) -> set[str]:
     """The class names of the tracers ``x`` is made of, at every depth of nesting (``JVPTracer``
     for one of forward mode): under ``jacfwd(vmap(f))`` a forward-mode tracer is wrapped in a
-    batching tracer, under ``jit(jacfwd(f))`` it wraps a jit tracer."""
-    kinds = set()
+    batching tracer, under ``jit(jacfwd(f))`` it wraps a jit tracer. Two levels of reverse mode
+    (``jacrev(jacrev(f))``) add ``"LinearizeTracer x2"``."""
+    kinds, linearize = set(), 0
     for _ in range(64):  # tracers nest once per transformation
         if not isinstance(x, jax.core.Tracer):
             break
-        kinds.add("JVPTracer" if _JVP_TRACER is not None and isinstance(x, _JVP_TRACER) else type(x).__name__)
+        kind = "JVPTracer" if _JVP_TRACER is not None and isinstance(x, _JVP_TRACER) else type(x).__name__
+        kinds.add(kind)
+        linearize += kind == "LinearizeTracer"
         inner = [getattr(x, name, None) for name in ("primal", "val")]
         x = next((v for v in inner if isinstance(v, jax.core.Tracer)), None)
+    if linearize > 1:
+        kinds.add("LinearizeTracer x2")
     return kinds
 
 
@@ -95,7 +100,8 @@ def default_adjoint(*inputs) -> diffrax.AbstractAdjoint:
     """The adjoint when the caller names none: ``diffrax.ForwardMode()`` when any array among
     ``inputs`` (pytrees) carries forward-mode tangents, ``diffrax.DirectAdjoint()`` when they carry
     both forward-mode tangents and reverse mode's linearize tracers (a second derivative such as
-    ``jax.hessian``), else ``diffrax.RecursiveCheckpointAdjoint()``.
+    ``jax.hessian``) or reverse mode's alone on several devices, else
+    ``diffrax.RecursiveCheckpointAdjoint()``.
 
     The checkpointed adjoint is a ``custom_vjp``, which JAX cannot push tangents through;
     ``ForwardMode`` is a plain loop, which JAX cannot transpose; the direct adjoint's bounded loop
@@ -104,11 +110,18 @@ def default_adjoint(*inputs) -> diffrax.AbstractAdjoint:
     """
     leaves = jax.tree_util.tree_leaves(inputs)
     kinds = set().union(*(_tracer_kinds(x) for x in leaves))
-    if "JVPTracer" in kinds and "LinearizeTracer" in kinds:
-        # Both modes nested (jax.hessian, jacrev of jacfwd): only the direct adjoint does both.
+    if ("JVPTracer" in kinds and "LinearizeTracer" in kinds) or "LinearizeTracer x2" in kinds:
+        # Both modes nested (jax.hessian, jacrev of jacfwd), or reverse mode twice (jacrev of
+        # jacrev: the checkpointed adjoint's loop cannot be differentiated in reverse again): only
+        # the direct adjoint does both.
         return diffrax.DirectAdjoint()
     if "JVPTracer" in kinds:
         return diffrax.ForwardMode()
+    if "LinearizeTracer" in kinds and jax.device_count() > 1:
+        # Reverse mode through chunks spread over several devices (shard_map): the checkpointed
+        # adjoint's backward loop failed there ("Closure-converted function called with different
+        # dynamic arguments"); the direct adjoint transposes.
+        return diffrax.DirectAdjoint()
     return diffrax.RecursiveCheckpointAdjoint()
 
 

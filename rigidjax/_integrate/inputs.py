@@ -92,6 +92,12 @@ def check_options(*, flags, objects, dt0, lock_tolerance):
         else:
             got = f"{type(value).__name__} {value!r}"
         raise TypeError(f"simulate: {name} must be {example}; got {got}.")
+    if isinstance(objects.get("adjoint"), diffrax.BacksolveAdjoint):
+        raise ValueError(
+            "simulate: adjoint=BacksolveAdjoint() does not support the way simulate saves its samples "
+            "(SaveAt(fn=...)); leave adjoint out (the default works in both modes) or pass "
+            "diffrax.RecursiveCheckpointAdjoint(), DirectAdjoint() or ForwardMode()."
+        )
     if dt0 is not None:
         if np.ndim(dt0) != 0:
             raise ValueError(f"simulate: dt0 must be a single step (s), got shape {np.shape(dt0)}.")

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_positive_int, check_times_shape, error_if, float_dtype, known_values
+from .._checks import check_positive_int, check_times_shape, error_if, float_dtype, is_traced, known_values
 from .._closed_form.frame import PHASE_ROUNDING_LIMIT, phase_advice
 from .._dynamics.models import AbstractModel, HeavyTop, State
 from .._kinematics.euler import is_proper_sequence
@@ -153,12 +153,16 @@ def simulate(
       ``solver``, ``rtol``, ``atol``, ``stepsize_controller``, ``dt0``, ``adjoint`` and
       ``representation="euler"`` are an error rather than unused.
     - `dt0`: the first (or fixed) step (s).
-    - `adjoint`: any diffrax adjoint, always used when given. Default: ``diffrax.ForwardMode()``
+    - `adjoint`: a diffrax adjoint, always used when given (not ``BacksolveAdjoint``, which does
+      not support the way the samples are saved). Default: ``diffrax.ForwardMode()``
       when ``model``, ``state0``, ``ts`` or ``args`` carry forward-mode tangents (``jax.jvp``,
       ``jax.jacfwd``, also under ``jit`` or ``vmap``), else diffrax's checkpointed reverse mode
       (``RecursiveCheckpointAdjoint``: ``jax.grad``, ``jax.jacrev``, ``jax.vjp``), so both modes work
-      without choosing; with both modes nested (``jax.hessian``, ``jacrev(jacfwd(f))``)
-      ``diffrax.DirectAdjoint()``. A ``jax.jit`` between ``jacfwd`` and ``simulate``
+      without choosing; with both modes nested (``jax.hessian``, ``jacrev(jacfwd(f))``) or reverse
+      mode twice (``jacrev(jacrev(f))``)
+      ``diffrax.DirectAdjoint()``, and so in reverse mode on several devices
+      (:func:`rigidjax.use_cpu_cores`; the checkpointed adjoint fails there through
+      ``shard_map``). A ``jax.jit`` between ``jacfwd`` and ``simulate``
       (``jacfwd(jit(f))``) hides the tangents: pass ``adjoint=diffrax.ForwardMode()`` there, or jit
       outside the ``jacfwd``.
     - `max_steps`: step limit per chunk; reaching it is an error (or NaN rows with
@@ -190,7 +194,9 @@ def simulate(
       is never a failure of one body. With ``throw=False`` a failed body is flagged in
       ``Trajectory.success`` and is NaN from its failure on, while every other body keeps its
       result: bodies share a step size within a chunk, so a chunk stopped by a body whose torque or
-      state turned NaN is run again body by body. With ``accuracy="exact"`` a body fails where its
+      state turned NaN is run again body by body (not inside the user's ``jax.jit``, where the
+      chunk's bodies are flagged together: call ``simulate`` outside the ``jit``, or pass
+      ``chunk_size=1``). With ``accuracy="exact"`` a body fails where its
       closed form is NaN or inf (inputs beyond the dtype's range) or its phase is rounded by more
       than 1e-3 rad (float64: a phase of 4.5e12 rad, float32: 8.4e3 rad; the samples would be
       noise), and is NaN from that sample on too.
@@ -297,7 +303,7 @@ def simulate(
     dtype = float_dtype(
         state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
     )
-    ts = ts.astype(dtype)
+    ts = _times_in(ts, dtype)
     omega0 = state0.omega.astype(dtype)
     q0 = None if state0.orientation is None else state0.orientation.astype(dtype)
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, model)
@@ -346,12 +352,25 @@ def simulate(
         traj = _progress.run_in_blocks(
             run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort_by_speed, threads
         )
+    if representation == "euler":
+        traj = _in_the_hemisphere_of(traj, q0)
     if isinstance(traj.success, jax.core.Tracer):  # inside the user's jit: no values to look at
         return _error_if_failed(traj, max_steps, formulation) if throw else traj
     traj = _isolate_faults(traj, model, omega0, q0, run)
     if throw:
         _raise_if_failed(traj, max_steps, formulation)
     return traj
+
+
+def _in_the_hemisphere_of(traj, q0):
+    """The Euler-angle state's quaternions with the sign of ``q0``: converted from angles, a body's
+    trajectory came out as ``-q`` for about half of the initial orientations (the same rotations,
+    but not the ``q0`` given, which losses on ``q`` and their gradients see)."""
+    first = traj.orientation[..., 0, :]
+    sign = jnp.where(jnp.sum(first * jnp.broadcast_to(q0, first.shape), axis=-1) < 0, -1.0, 1.0)
+    return eqx.tree_at(
+        lambda t: t.orientation, traj, traj.orientation * sign[..., None, None].astype(q0.dtype)
+    )
 
 
 def _isolate_faults(traj, model, omega0, q0, run):
@@ -390,6 +409,22 @@ def _isolate_faults(traj, model, omega0, q0, run):
         success=merge(traj.success, again.success),
         stats=stats,
     )
+
+
+def _times_in(ts, dtype):
+    """``ts`` in the run's dtype (the model's and the state's); a ``ValueError`` where times that
+    increase in their own dtype collapse in that one (float64 times 1e5 + 1e-3 apart in float32:
+    the check of increasing times then blamed the user's times)."""
+    cast = ts.astype(dtype)
+    if cast.dtype != ts.dtype and ts.shape[0] > 1 and not is_traced(ts):
+        given, run = np.asarray(ts), np.asarray(cast)
+        if np.all(np.diff(given) > 0) and not np.all(np.diff(run) > 0):
+            raise ValueError(
+                f"simulate: ts increase in {given.dtype} but not once cast to {run.dtype}, the dtype of "
+                "the model and state0: neighbouring times round to the same value. Give the model and "
+                "state0 in float64, or measure the times from ts[0]."
+            )
+    return cast
 
 
 def _failure_reason(code: int, max_steps: int, formulation) -> str:
