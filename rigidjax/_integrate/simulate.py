@@ -352,11 +352,12 @@ def simulate(
         traj = _progress.run_in_blocks(
             run, report, model, omega0, q0, ts, args, formulation, chunk_size, sort_by_speed, threads
         )
-    if representation == "euler":
-        traj = _in_the_hemisphere_of(traj, q0)
     if isinstance(traj.success, jax.core.Tracer):  # inside the user's jit: no values to look at
+        traj = _in_the_hemisphere_of(traj, q0) if representation == "euler" else traj
         return _error_if_failed(traj, max_steps, formulation) if throw else traj
     traj = _isolate_faults(traj, model, omega0, q0, run)
+    if representation == "euler":  # after the faults' reruns, which return their own signs
+        traj = _in_the_hemisphere_of(traj, q0)
     if throw:
         _raise_if_failed(traj, max_steps, formulation)
     return traj
