@@ -106,3 +106,10 @@ def summarizing(method):
     """Marks a ``__repr__`` as one built from :func:`summarize` (so nesting uses it, not a dump)."""
     method._summarizes = True
     return method
+
+
+@summarizing
+def module_repr(self) -> str:
+    """A ``__repr__`` for an equinox module: its class and fields, arrays as dtype, shape and (when
+    few) values, no array dumps. Assign it: ``__repr__ = module_repr``."""
+    return fields_repr(type(self).__name__, dataclass_fields(self))

@@ -21,7 +21,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import as_float_array, check_last_axis
 from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
-from .._repr import dataclass_fields, fields_repr, summarizing
+from .._repr import dataclass_fields, fields_repr, module_repr, summarizing
 from .equations import _components, _cross_components, _euler_equations, _inertia_times, is_full_tensor
 
 _Z = (0.0, 0.0, 1.0)
@@ -94,10 +94,7 @@ class AbstractTorque(eqx.Module):
     @abc.abstractmethod
     def __call__(self, t, state: State, args: Any) -> Float[Array, "3"]: ...
 
-    @summarizing
-    def __repr__(self) -> str:
-        """The class and its fields, arrays as dtype, shape and (when few) values: no array dumps."""
-        return fields_repr(type(self).__name__, dataclass_fields(self))
+    __repr__ = module_repr
 
 
 class ConstantTorque(AbstractTorque):

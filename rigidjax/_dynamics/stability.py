@@ -24,7 +24,7 @@ from .._checks import (
     error_if,
 )
 from .._numerics import safe_sqrt
-from .._repr import dataclass_fields, fields_repr, summarizing
+from .._repr import module_repr
 from .._types import Inertia, Scalar, Vector
 from .equations import is_full_tensor
 from .inertia import check_inertia
@@ -104,10 +104,7 @@ class SpinStability(eqx.Module):
         """``lambda^2 > 0``: an exponentially growing perturbation (``growth_rate > 0``)."""
         return ~(self.stable | self.marginal)
 
-    @summarizing
-    def __repr__(self) -> str:
-        """The fields with their values (a few bodies' worth; shapes only for larger batches)."""
-        return fields_repr(type(self).__name__, dataclass_fields(self))
+    __repr__ = module_repr
 
 
 @compiled_when_eager
@@ -198,10 +195,7 @@ class SleepingTop(eqx.Module):
     fast_rate: Float[Array, "*batch"]
     growth_rate: Float[Array, "*batch"]
 
-    @summarizing
-    def __repr__(self) -> str:
-        """The fields with their values (a few bodies' worth; shapes only for larger batches)."""
-        return fields_repr(type(self).__name__, dataclass_fields(self))
+    __repr__ = module_repr
 
 
 @compiled_when_eager(static_argnames=("symmetry_rtol",))

@@ -151,12 +151,6 @@ class _Encoder:
 def encode(traj: eqx.Module) -> dict[str, np.ndarray]:
     """The named NumPy arrays of the file for the :class:`Trajectory` ``traj``; a ``ValueError`` for
     anything that cannot be stored faithfully (a user torque, a custom scene, an object array)."""
-    fields = dict(
-        ts=traj.ts, omega=traj.omega, orientation=traj.orientation, model=traj.model, success=traj.success
-    )
-    _check_consistent(
-        lambda problem: ValueError(f"Trajectory.save: {problem}; it could not be loaded back."), fields
-    )
     enc = _Encoder()
     enc.module("model", traj.model, "model")
     enc.array("ts", traj.ts)
@@ -166,6 +160,11 @@ def encode(traj: eqx.Module) -> dict[str, np.ndarray]:
     else:
         enc.array("orientation", traj.orientation)
     enc.array("success", traj.success)
+    _check_consistent(  # on the arrays as written (host copies made once)
+        lambda problem: ValueError(f"Trajectory.save: {problem}; it could not be loaded back."),
+        enc.arrays,
+        traj.model,
+    )
     stats = []
     for name, x in traj.stats.items():
         key = f"stats/{name}"
@@ -437,29 +436,30 @@ def decode(path: str, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
     unread = sorted(set(arrays) - dec.used)
     if unread:
         raise dec.fail(f"it has entries this rigidjax does not know ({', '.join(unread)})")
-    _check_consistent(dec.fail, fields)
+    _check_consistent(dec.fail, arrays, fields["model"])
     return fields
 
 
-def _check_consistent(fail: Callable[[str], Exception], fields) -> None:
+def _check_consistent(fail: Callable[[str], Exception], arrays: dict[str, np.ndarray], model) -> None:
     """The arrays fit together as :func:`rigidjax.simulate` writes them; ``fail(problem)`` is the
     exception otherwise. Checked on load (a file edited or pieced together loaded, then failed in
     the first computation with a broadcasting error) and on save (a trajectory built by hand that
     load would refuse is refused before it is written, while its values are still in memory)."""
-    ts, omega, q, success = (np.asarray(fields[k]) for k in ("ts", "omega", "orientation", "success"))
+    ts, omega, q, success = (np.asarray(arrays.get(k)) for k in ("ts", "omega", "orientation", "success"))
+    has_q = "orientation" in arrays
     if ts.ndim != 1 or ts.size < 1:
         raise fail(f"ts should be 1-D with at least one time, got shape {ts.shape}")
     if omega.ndim < 2 or omega.shape[-2:] != (ts.size, 3):
         raise fail(f"omega should have shape (..., {ts.size}, 3) for {ts.size} times, got {omega.shape}")
     batch = omega.shape[:-2]
-    if fields["orientation"] is not None and q.shape != batch + (ts.size, 4):
+    if has_q and q.shape != batch + (ts.size, 4):
         raise fail(f"orientation should have shape {batch + (ts.size, 4)} beside omega, got {q.shape}")
     if success.shape != batch or success.dtype != np.bool_:
         raise fail(
             f"success should be booleans of shape {batch} (one per body), got {success.dtype} {success.shape}"
         )
     try:
-        model_batch = batching.batch_shape(fields["model"])
+        model_batch = batching.batch_shape(model)
         ok = np.broadcast_shapes(model_batch, batch) == batch
     except ValueError:
         ok = False
@@ -467,7 +467,7 @@ def _check_consistent(fail: Callable[[str], Exception], fields) -> None:
         raise fail(f"the model's bodies do not broadcast to the {batch} bodies of omega")
     if not (np.all(np.isfinite(ts)) and np.all(np.diff(ts) > 0)):
         raise fail("ts should be finite and strictly increasing")
-    if fields["orientation"] is not None:
+    if has_q:
         with np.errstate(invalid="ignore"):
             off = (
                 np.abs(np.linalg.norm(q.astype(np.float64), axis=-1) - 1.0) > 1e-3

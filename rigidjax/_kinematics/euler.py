@@ -47,10 +47,12 @@ SEQUENCES = PROPER_SEQUENCES + TAIT_BRYAN_SEQUENCES
 _AXIS = {"x": 0, "y": 1, "z": 2}
 
 
-def _parse_seq(seq: str) -> tuple[int, int, int]:
+def _parse_seq(seq: str, name: str = "seq") -> tuple[int, int, int]:
+    """The axes of an Euler sequence; a ``ValueError`` naming ``name`` (the caller's argument) for
+    any other value."""
     if not isinstance(seq, str) or seq.lower() not in SEQUENCES:
         raise ValueError(
-            f"seq must be one of the twelve intrinsic Euler sequences {SEQUENCES} "
+            f"{name} must be one of the twelve intrinsic Euler sequences {SEQUENCES} "
             f"(case-insensitive), got {seq!r}."
         )
     return tuple(_AXIS[c] for c in seq.lower())

@@ -8,7 +8,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from .._kinematics.euler import SEQUENCES
+from .._kinematics.euler import _parse_seq
 from .._kinematics.euler import euler_from_quat as _euler_from_quat_public
 from . import data
 
@@ -209,11 +209,7 @@ def euler_angles(trajectory, body=0, sequence: str = "zxz", *, fig=None):
     when it has no orientations, and for an unknown `sequence`. Samples whose orientation is not
     finite (a failed body) are left out.
     """
-    if not isinstance(sequence, str) or sequence.lower() not in SEQUENCES:
-        raise ValueError(
-            f"sequence must be one of the twelve intrinsic Euler sequences {SEQUENCES} "
-            f"(case-insensitive), got {sequence!r}."
-        )
+    _parse_seq(sequence, "sequence")
     data.need_orientation(trajectory, "euler_angles")
     i = data.body_index(trajectory, body)
     q = data.orientation(trajectory, i)
