@@ -97,8 +97,8 @@ def omega_from_orientations(ts, q_observed):
     ``h_k = t_{k+1} - t_k``: ``omega_i = (h_i / h_{i-1} s_{i-1} + h_{i-1} / h_i s_i) / (h_{i-1} +
     h_i)``, second order also where the spacing varies; one-sided (first order) at the ends. Each
     step is taken as the shorter of the two rotations between its samples, so the body may turn by
-    up to ``pi`` per step (a log over two steps aliased a spin of 2 rad per step to -1.1 rad per
-    step). ``q`` and ``-q`` are the same orientation. A starting point for fits, not a smoothed
+    up to ``pi`` per step (a difference over two steps would alias a spin of more than ``pi / 2``
+    per step). ``q`` and ``-q`` are the same orientation. A starting point for fits, not a smoothed
     estimate.
 
     **Arguments:**

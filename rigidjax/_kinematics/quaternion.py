@@ -274,8 +274,7 @@ def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
 
     **Returns:** the unit quaternion ``(w, x, y, z)``, shape ``(..., 4)``. NaN or inf in `theta`
     raises at run time, and so does an angle whose rounding exceeds a radian (``|theta|`` above
-    ``1 / eps``: float64 4.5e15, float32 8.4e6), where the rotation is noise (beyond ~1e154 its
-    square overflowed to a NaN quaternion).
+    ``1 / eps``: float64 4.5e15, float32 8.4e6), where the rotation would be noise.
     """
     theta = as_float_array(theta, "theta")
     check_last_axis(theta, 3, "theta")

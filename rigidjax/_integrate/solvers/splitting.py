@@ -234,8 +234,8 @@ def split_free_body(
 class SubStepInterpolation(diffrax.AbstractLocalInterpolation):
     """Dense output of the splittings: at a time ``t`` inside a step, the solver's own map from the
     step's start over ``t - t0``. Its values keep what the map keeps (unit ``q``, ``|L|``, the
-    space-frame or vertical ``L``) and the method's order; a linear interpolation between the
-    step's ends left the spheres (``|q| - 1`` of 4e-6 mid-step at dt = 0.01) and fell to order 1.
+    space-frame or vertical ``L``) and the method's order, which a linear interpolation between the
+    step's ends would not (``|q| - 1`` of 4e-6 mid-step at dt = 0.01, first order).
     """
 
     t0: Any
