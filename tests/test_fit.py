@@ -8,6 +8,7 @@ are what compile, not the loss), so the file compiles only a handful of times.
 import functools
 import types
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -561,3 +562,69 @@ def test_a_known_torque_that_cannot_be_integrated_is_an_error_that_says_so():
     torque = rj.ConstantTorque(jnp.array([2e-9, -1e-9, 3e-9]))
     with pytest.raises(FloatingPointError, match="could not be integrated.*segments"):
         fit_inertia(ts, w, torque=torque, method="levenberg-marquardt", inertia_init=jnp.asarray(inertia))
+
+
+def test_a_float32_fit_of_a_record_in_clock_time_predicts_at_its_own_times():
+    """Times 1.7e9 s since 1970 (float32's spacing there is 128 s): the fit subtracted each window's
+    start on the host, but the predictions subtracted it in float32, every time collapsed onto one
+    and predict_omega was off by ~2 rad/s. Record: scipy's DOP853 (rtol 1e-12) of Euler's equations."""
+    from scipy.integrate import solve_ivp
+
+    elapsed = np.linspace(0.0, 10.0, 240)
+    sol = solve_ivp(
+        lambda t, w: np.cross(I_TRUE * w, w) / I_TRUE,
+        (0.0, 10.0),
+        [0.3, 1.0, 0.4],
+        method="DOP853",
+        rtol=1e-12,
+        atol=1e-14,
+        t_eval=elapsed,
+    )
+    observed, clock = sol.y.T, 1.7e9 + 37.3 + elapsed
+    fit = fit_inertia(clock, observed, method="levenberg-marquardt", dtype=jnp.float32)
+    np.testing.assert_allclose(fit.inertia, TRUTH, atol=1e-5)
+    assert fit.segment_starts.dtype == np.float64 and fit.segment_starts[0] == clock[0]
+    np.testing.assert_allclose(fit.predict_omega(clock), observed, atol=2e-5)
+    np.testing.assert_allclose(fit.predict_omega(clock[120]), observed[120], atol=2e-5)
+    np.testing.assert_allclose(jax.jit(fit.predict_omega.__func__)(fit, clock), observed, atol=2e-5)
+    for ts, error, match in (
+        ("noon", TypeError, "ts must be a real number"),
+        (clock[:2] * 1j, TypeError, "ts must be real"),
+        (clock[None, :2], ValueError, r"ts must be times \(s\), \(T,\) or a number, got shape \(1, 2\)"),
+        (np.array([clock[0], np.nan]), ValueError, "ts must be finite"),
+    ):
+        with pytest.raises(error, match=match):
+            fit.predict_omega(ts)
+    for dtype, match in ((jnp.float16, "float32 or float64"), (np.int32, "float32 or float64")):
+        with pytest.raises(ValueError, match=match):
+            fit_inertia(clock, observed, dtype=dtype)
+    with jax.enable_x64(False), pytest.raises(ValueError, match="float64 needs JAX's 64-bit mode"):
+        fit_inertia(clock, observed, dtype=np.float64)
+
+
+def test_a_tennis_racket_record_of_two_flips_is_fitted_from_the_default_start():
+    """Near the intermediate axis the flips last a fraction of the wobble period; the starting
+    estimate's local fits spanned 1/16 of that period and smoothed the flips into a start of
+    (0.1846, 0.3261, 0.4894) from which the fit ended on the flat-plate edge (0.049, 0.451, 0.5)
+    with residuals 100x the noise. Record: scipy's DOP853 (rtol 1e-12) of Euler's equations,
+    I = (1, 2, 3), two flips in 40 s."""
+    from scipy.integrate import solve_ivp
+
+    inertia, ts = np.array([1.0, 2.0, 3.0]), np.linspace(0.0, 40.0, 400)
+    sol = solve_ivp(
+        lambda t, w: np.cross(inertia * w, w) / inertia,
+        (0.0, 40.0),
+        [0.01, 1.0, 0.01],
+        method="DOP853",
+        rtol=1e-12,
+        atol=1e-14,
+        t_eval=ts,
+    )
+    assert np.sum(np.diff(np.sign(sol.y[1])) != 0) == 2  # two flips
+    observed = sol.y.T + 0.005 * np.random.default_rng(0).standard_normal((ts.size, 3))
+    start, _ = estimate_inertia(ts, observed)
+    np.testing.assert_allclose(start, inertia / 6.0, atol=0.006)
+    fit = fit_inertia(ts, observed, method="levenberg-marquardt", segments="auto")
+    z = (np.asarray(fit.inertia) - inertia / 6.0) / np.asarray(fit.inertia_stderr)
+    assert np.all(np.abs(z) < 4.0), (fit.inertia, z)
+    assert np.all(np.asarray(fit.residual_rms / fit.noise_estimate) < 1.3)

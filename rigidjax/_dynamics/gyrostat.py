@@ -108,5 +108,5 @@ class Gyrostat(AbstractModel):
             return jnp.broadcast_to(jnp.sqrt(twice_energy / (jnp.min(moments) / top)), (3,))
         return jnp.sqrt(twice_energy / (moments / top))
 
-    def _leaf_core_ndims(self):
+    def per_body_ndims(self):
         return {"inertia": self.inertia_core_ndim, "rotor_momentum": 1}

@@ -76,14 +76,37 @@ class State(eqx.Module):
 
 
 class AbstractTorque(eqx.Module):
-    """A body-frame torque ``tau(t, state, args)`` (N m) acting on one body."""
+    """A body-frame torque ``tau(t, state, args)`` (N m) acting on one body.
+
+    A torque of your own is a subclass: array fields, ``needs_orientation`` (a class attribute or
+    property: whether ``__call__`` reads ``state.orientation``), ``__call__`` for one body, and
+    :meth:`per_body_ndims` for the fields that hold one value per body:
+
+    ```python
+    class Magnetorquer(rj.AbstractTorque):
+        dipole: jax.Array                      # (..., 3) body-frame dipole (A m^2), one per body
+        needs_orientation = True
+
+        def per_body_ndims(self):
+            return {"dipole": 1}
+
+        def __call__(self, t, state, args):
+            b_body = rj.quat_rotate(rj.quat_conjugate(state.orientation), jnp.array([0.0, 0.0, 3e-5]))
+            return jnp.cross(self.dipole, b_body)
+    ```
+
+    ``RigidBody(inertia, torque=Magnetorquer(dipoles))`` with ``dipoles`` of shape ``(N, 3)`` is
+    then a batch of ``N`` bodies, each ``__call__`` seeing its own ``(3,)`` dipole.
+    """
 
     needs_orientation: eqx.AbstractClassVar[bool]
     conservative: ClassVar[bool] = False
 
-    def _leaf_core_ndims(self) -> dict[str, int]:
-        """Per-body array fields and their trailing per-body ndims; leading axes are batch axes, so
-        a batch of bodies can have a torque each. Fields not listed are shared by the batch."""
+    def per_body_ndims(self) -> dict[str, int]:
+        """The array fields that hold one value per body, each with the number of trailing axes one
+        body's value has (``{"dipole": 1}`` for a ``(..., 3)`` field, 0 for a scalar per body):
+        leading axes beyond those are batch axes, broadcast against the scene's. Fields not listed
+        are shared by every body of the batch. None by default."""
         return {}
 
     def _leaf_rules(self) -> dict[str, tuple[Callable, str]]:
@@ -119,7 +142,7 @@ class ConstantTorque(AbstractTorque):
     def needs_orientation(self) -> bool:  # type: ignore[override]
         return self.frame == "space"
 
-    def _leaf_core_ndims(self):
+    def per_body_ndims(self):
         return {"torque": 1}
 
     def __call__(self, t, state, args):
@@ -162,7 +185,7 @@ class ViscousDamping(AbstractTorque):
     def _leaf_rules(self):
         return {"coefficient": (lambda c: c < 0, _NON_NEGATIVE_DAMPING)}
 
-    def _leaf_core_ndims(self):
+    def per_body_ndims(self):
         # A trailing axis of 3 (or 1) is per body axis; so a batch of per-body scalars is (N, 1).
         shape = jnp.shape(self.coefficient)
         return {"coefficient": 1 if shape and shape[-1] in (1, 3) else 0}
@@ -259,7 +282,7 @@ class GravityTorque(AbstractTorque):
     def __check_init__(self):
         check_last_axis(jnp.asarray(self.com), 3, "GravityTorque.com")
 
-    def _leaf_core_ndims(self):
+    def per_body_ndims(self):
         return {"mass": 0, "com": 1, "gravity": 0}
 
     def __call__(self, t, state, args):
@@ -292,7 +315,8 @@ def _total_torque(torques, t, state, args):
             raise ValueError(
                 f"{_torque_name(i, torque)} returned shape {tuple(shape)}; a torque returns the "
                 f"body-frame torque (N m) on the body it is given, shape {tuple(expected)} (state.omega's "
-                "shape: a torque function sees one body, batching is done for it)."
+                "shape: a torque function sees one body, batching is done for it; an AbstractTorque "
+                "whose fields hold one value per body lists them in per_body_ndims)."
             )
         total = total + tau
     return total
@@ -335,7 +359,26 @@ def _torque_field_getter(index: int, name: str):
 
 
 class AbstractModel(eqx.Module):
-    """A scene: how one rigid body's angular velocity changes."""
+    """A scene: how one rigid body's angular velocity changes.
+
+    A scene of your own is a subclass with array fields (``inertia`` among them: the momentum and
+    energy of the trajectory read it), ``needs_orientation``, ``angular_acceleration`` for one body
+    and :meth:`per_body_ndims`; ``simulate`` batches, checks and integrates it with every
+    integrating preset and solver:
+
+    ```python
+    class TorsionSpring(rj.AbstractModel):             # held toward the identity orientation
+        inertia: jax.Array                             # (..., 3) principal moments, kg m^2
+        stiffness: jax.Array                           # (...) N m
+        needs_orientation = True
+
+        def per_body_ndims(self):
+            return {"inertia": 1, "stiffness": 0}
+
+        def angular_acceleration(self, t, state, args):
+            return rj.euler_equations(self.inertia, state.omega, -self.stiffness * state.orientation[1:])
+    ```
+    """
 
     @property
     @abc.abstractmethod
@@ -403,17 +446,20 @@ class AbstractModel(eqx.Module):
         return jnp.broadcast_to(scale, (3,))
 
     @abc.abstractmethod
-    def _leaf_core_ndims(self) -> dict[str, int]:
-        """Number of trailing (per-body) axes of each array field; the rest are batch axes."""
+    def per_body_ndims(self) -> dict[str, int]:
+        """The array fields that hold one value per body, each with the number of trailing axes one
+        body's value has (``inertia``: 1 for principal moments ``(..., 3)``, 2 for a tensor ``(..., 3,
+        3)``; 0 for a scalar per body): leading axes beyond those are batch axes, broadcast together.
+        Fields not listed are shared by every body."""
 
     def body_leaves(self) -> list[BodyLeaf]:
         """Every per-body array of the scene, its own fields and then each torque's, with its number
         of trailing per-body axes; leading axes beyond those are batch axes."""
         # Methods called by the class: bound to a Module instance, each call would build a Module.
-        own = type(self)._leaf_core_ndims(self)
+        own = type(self).per_body_ndims(self)
         leaves = [BodyLeaf(n, operator.attrgetter(n), c) for n, c in own.items()]
         for i, torque in enumerate(getattr(self, "torques", ())):
-            for n, c in type(torque)._leaf_core_ndims(torque).items():
+            for n, c in type(torque).per_body_ndims(torque).items():
                 leaves.append(BodyLeaf(f"torques[{i}].{n}", _torque_field_getter(i, n), c))
         return leaves
 
@@ -483,7 +529,7 @@ class FreeBody(AbstractModel):
             return jnp.broadcast_to(jnp.linalg.norm(state.omega), (3,))
         return _polhode_scale(self.inertia, state.omega)
 
-    def _leaf_core_ndims(self):
+    def per_body_ndims(self):
         return {"inertia": self.inertia_core_ndim}
 
 
@@ -526,7 +572,7 @@ class RigidBody(AbstractModel):
             return _polhode_scale(self.inertia, state.omega)
         return super().omega_scale(state, duration, args)
 
-    def _leaf_core_ndims(self):
+    def per_body_ndims(self):
         return {"inertia": self.inertia_core_ndim}
 
 
@@ -602,7 +648,7 @@ class HeavyTop(AbstractModel):
         com_space = _quat_rotate(orientation, self.com.astype(orientation.dtype))
         return (self.mass * self.gravity).astype(orientation.dtype) * com_space[..., 2]
 
-    def _leaf_core_ndims(self):
+    def per_body_ndims(self):
         return {"inertia": self.inertia_core_ndim, "mass": 0, "com": 1, "gravity": 0}
 
 

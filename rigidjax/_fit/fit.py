@@ -194,8 +194,13 @@ def _check_options(
             dtype = np.dtype(dtype)
         except TypeError:
             raise TypeError(f"dtype must be a floating dtype (float32 or float64), got {dtype!r}.") from None
-        if not np.issubdtype(dtype, np.floating):
+        if dtype not in (np.float32, np.float64):
             raise ValueError(f"dtype must be a floating dtype (float32 or float64), got {dtype}.")
+        if dtype == np.float64 and not jax.config.jax_enable_x64:
+            raise ValueError(
+                "dtype float64 needs JAX's 64-bit mode: jax.config.update('jax_enable_x64', True) "
+                "before any array is created (JAX computes in float32 otherwise)."
+            )
     return method, int(steps), inertia_trace, known_moment, dtype
 
 
@@ -290,7 +295,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         principal_axes=evecs,
         residual_rms=rms * data.residual_unit,
         noise_estimate=jnp.asarray(data.noise, dtype),
-        segment_starts=jnp.asarray(data.starts, dtype),
+        segment_starts=np.asarray(data.starts, np.float64),
         initial_inertia=initial,
         covariance=_covariance_out(covariance),
         normalised=inertia_trace is None and known_moment is None and problem.torque is None,

@@ -3,10 +3,12 @@
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._checks import as_float_array, check_finite
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
 from .._dynamics.models import RigidBody, State
 from .._integrate.simulate import simulate
@@ -45,7 +47,8 @@ class InertiaFit(eqx.Module):
     - `orientation0`, `orientation0_stderr`: for :func:`fit_inertia_to_orientation`, the fitted
       initial orientation(s) (unit quaternions) and their standard errors (rad, a rotation vector
       about the body axes); None for angular-velocity fits.
-    - `segment_starts`: the start time (s) of each window.
+    - `segment_starts`: the start time (s) of each window, float64 on the host (a NumPy array):
+      clock times such as Unix timestamps keep their resolution in a float32 fit.
     - `initial_inertia`: the data-driven starting estimate (same gauge as `inertia`).
     - `covariance`: the covariance of the optimiser's scaled parameters (``inf`` on the diagonal of
       a parameter the record does not determine).
@@ -68,7 +71,7 @@ class InertiaFit(eqx.Module):
     noise_estimate: Float[Array, "3"]
     orientation0: Float[Array, "4"] | Float[Array, "segments 4"] | None
     orientation0_stderr: Float[Array, "3"] | Float[Array, "segments 3"] | None
-    segment_starts: Float[Array, " segments"]
+    segment_starts: Float[ArrayLike, " segments"]
     initial_inertia: Float[Array, "3"] | Float[Array, "3 3"]
     covariance: Float[Array, "p p"]
     normalised: bool = eqx.field(static=True)
@@ -98,19 +101,52 @@ class InertiaFit(eqx.Module):
             lines.append(f"torque={show(self.torque)}")
         return "InertiaFit(\n" + "".join(f"    {line},\n" for line in lines) + ")"
 
+    def _windows(self, ts):
+        """``(window, elapsed)``: the window each time falls in (the first before
+        `segment_starts[0]`) and the time since its start, in the fit's dtype. The difference is
+        taken in float64, on the host for concrete times: a float32 fit of a record in clock time
+        (1.7e9 s since 1970: float32's spacing there is 128 s) predicts from its elapsed times."""
+        checked = as_float_array(ts, "ts")
+        if checked.ndim > 1:
+            raise ValueError(f"ts must be times (s), (T,) or a number, got shape {tuple(checked.shape)}.")
+        dtype = self.inertia.dtype
+        if isinstance(ts, jax.core.Tracer) or isinstance(self.segment_starts, jax.core.Tracer):
+            wide = jnp.result_type(float)
+            times = check_finite(checked, "ts", "predict").astype(wide)
+            starts = jnp.asarray(self.segment_starts, wide)
+            window = jnp.clip(jnp.searchsorted(starts, times, side="right") - 1, 0, starts.shape[0] - 1)
+            return window, (times - starts[window]).astype(dtype)
+        times = np.asarray(ts, np.float64)
+        if not np.all(np.isfinite(times)):
+            raise ValueError("ts must be finite times (s); it contains NaN or inf.")
+        starts = np.asarray(self.segment_starts, np.float64)
+        window = np.clip(np.searchsorted(starts, times, side="right") - 1, 0, starts.shape[0] - 1)
+        return window, jnp.asarray(times - starts[window], dtype)
+
     def _predict_with_torque(self, ts, with_orientation: bool):
         """Integrates the fitted model under its known torque from each window's start ("precise")."""
-        ts = np.asarray(ts, float)
-        starts = np.asarray(self.segment_starts)
-        window = np.clip(np.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
+        window, elapsed = self._windows(ts)
+        if isinstance(elapsed, jax.core.Tracer):
+            raise TypeError(
+                "The predictions of a fit with a known torque integrate on the host, window by window: "
+                "call them outside jax.jit."
+            )
+        if np.any(elapsed < 0):
+            raise ValueError(
+                f"ts must not precede the first window's start ({float(self.segment_starts[0])!r} s) "
+                "for a fit with a known torque: its model is integrated forward from there."
+            )
+        scalar = np.ndim(window) == 0
+        window, elapsed = np.atleast_1d(window), np.atleast_1d(np.asarray(elapsed, np.float64))
         omega0 = self.omega0.reshape(-1, 3)
         q0 = None if self.orientation0 is None else self.orientation0.reshape(-1, 4)
         dtype = self.inertia.dtype
-        out = np.zeros((ts.shape[0], 4 if with_orientation else 3))
+        out = np.zeros((window.shape[0], 4 if with_orientation else 3))
         for k in np.unique(window):
             rows = np.flatnonzero(window == k)
-            times = np.concatenate([[starts[k]], ts[rows]])
-            keep = np.concatenate([[True], np.diff(times) > 0])  # a sample exactly at the start
+            order = np.argsort(elapsed[rows], kind="stable")
+            times = np.concatenate([[0.0], elapsed[rows][order]])
+            keep = np.concatenate([[True], np.diff(times) > 0])  # repeated times, one at the start
             state = State(omega0[k], q0[k] if q0 is not None else None)
             traj = simulate(
                 RigidBody(self.inertia, torque=self.torque),
@@ -120,10 +156,10 @@ class InertiaFit(eqx.Module):
             )
             values = np.asarray(traj.orientation if with_orientation else traj.omega)
             index = np.cumsum(keep) - 1
-            out[rows] = values[index[1:]]
-        return jnp.asarray(out, dtype)
+            out[rows[order]] = values[index[1:]]
+        return jnp.asarray(out[0] if scalar else out, dtype)
 
-    def predict_omega(self, ts) -> Float[Array, "T 3"]:
+    def predict_omega(self, ts) -> Float[Array, "*T 3"]:
         """The fitted model's angular velocity at given times.
 
         Each time is predicted from the window it falls in (the first window before
@@ -132,48 +168,45 @@ class InertiaFit(eqx.Module):
 
         **Arguments:**
 
-        - `ts`: times (s), ``(T,)``.
+        - `ts`: times (s), ``(T,)`` or a number.
 
-        **Returns:** the body-frame angular velocity (rad/s, sensor axes), ``(T, 3)``.
+        **Returns:** the body-frame angular velocity (rad/s, sensor axes), ``(T, 3)`` (``(3,)`` for
+        a number).
         """
         if self.torque is not None:
             return self._predict_with_torque(ts, with_orientation=False)
-        ts = jnp.asarray(ts, self.inertia.dtype)
-        starts = self.segment_starts
+        window, elapsed = self._windows(ts)
         omega0 = self.omega0.reshape(-1, 3)
-        window = jnp.clip(jnp.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
         if self.inertia.ndim == 2:
             axes = self.principal_axes
-            w = torque_free_omega(self.principal_moments, omega0[window] @ axes, ts - starts[window])
-            return w @ axes.T
-        return torque_free_omega(self.inertia, omega0[window], ts - starts[window])
+            return torque_free_omega(self.principal_moments, omega0[window] @ axes, elapsed) @ axes.T
+        return torque_free_omega(self.inertia, omega0[window], elapsed)
 
-    def predict_orientation(self, ts) -> Float[Array, "T 4"]:
+    def predict_orientation(self, ts) -> Float[Array, "*T 4"]:
         """The fitted model's orientation at given times; orientation fits only.
 
         Each time is predicted from the window it falls in, as in :meth:`predict_omega`.
 
         **Arguments:**
 
-        - `ts`: times (s), ``(T,)``.
+        - `ts`: times (s), ``(T,)`` or a number.
 
-        **Returns:** unit quaternions (scalar first, body -> space), ``(T, 4)``.
+        **Returns:** unit quaternions (scalar first, body -> space), ``(T, 4)`` (``(4,)`` for a
+        number).
         """
         if self.orientation0 is None:
             raise ValueError("This fit has no orientation: it was fitted to angular velocity only.")
         if self.torque is not None:
             return self._predict_with_torque(ts, with_orientation=True)
-        ts = jnp.asarray(ts, self.inertia.dtype)
-        starts = self.segment_starts
+        window, elapsed = self._windows(ts)
         omega0 = self.omega0.reshape(-1, 3)
         q0 = self.orientation0.reshape(-1, 4)
-        window = jnp.clip(jnp.searchsorted(starts, ts, side="right") - 1, 0, starts.shape[0] - 1)
         axes = self.principal_axes
         q_axes = _quat_from_matrix(axes)
         q = torque_free_motion(
             self.principal_moments,
             omega0[window] @ axes,
             _quat_multiply(q0[window], q_axes),
-            ts - starts[window],
+            elapsed,
         )[1]
         return _quat_multiply(q, _quat_conjugate(q_axes))
