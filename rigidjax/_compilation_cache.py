@@ -10,6 +10,7 @@ programs that compiled in under a second, which around a simulation add up to se
 import os
 
 import jax
+from jax.experimental.compilation_cache import compilation_cache
 
 DISABLE_VARIABLE = "RIGIDJAX_NO_COMPILATION_CACHE"
 """Set (to anything but an empty string) to turn the cache off: :func:`use_compilation_cache` then
@@ -28,8 +29,9 @@ def use_compilation_cache(path: str | os.PathLike | None = None) -> str | None:
 
     It turns on JAX's persistent compilation cache in `path` and asks it to keep every program,
     however quickly it compiled or small it is (JAX's defaults skip programs under a second of
-    compile, most of those around a simulation). Call it once, after the imports; programs compiled
-    before the call are not written. The cache is keyed on the program, the jax and jaxlib versions
+    compile, most of those around a simulation). Call it after the imports; programs compiled
+    before the call are not written. A later call with another `path` moves the cache there. The
+    cache is keyed on the program, the jax and jaxlib versions
     and the XLA flags, so a changed program or a new JAX version simply compiles again; deleting
     the directory is safe. The ``rigidjax`` command does this on every run.
 
@@ -71,6 +73,10 @@ def use_compilation_cache(path: str | os.PathLike | None = None) -> str | None:
             f"use_compilation_cache: path {path!r} cannot be used as the cache directory: "
             f"{error.strerror or error}"
         ) from None
+    if jax.config.jax_compilation_cache_dir not in (None, path):
+        # JAX opens its cache at the first compile and keeps that directory: a new one takes a
+        # reset, after which the next compile opens it.
+        compilation_cache.reset_cache()
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)

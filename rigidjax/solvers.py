@@ -16,10 +16,11 @@ module (:func:`rigid_body_vector_field`, :func:`free_body_vector_field`,
 :func:`dexpinv`, :func:`splitting_step`, :func:`heavy_top_splitting_step`), and so are runs of
 ``n_steps`` fixed steps without diffrax (:func:`split_free_body`, :func:`split_heavy_top`).
 ``PRESETS`` maps each ``accuracy`` name of ``simulate`` to its diffrax solver class and relative
-tolerance.
+tolerance; :func:`preset` gives the solver and tolerance a run of a given batch and dtype uses.
 """
 
 from ._integrate.presets import PRESETS as PRESETS
+from ._integrate.presets import preset as preset
 from ._integrate.solvers.rkmk import RKMK as RKMK
 from ._integrate.solvers.rkmk import dexpinv as dexpinv
 from ._integrate.solvers.rkmk import rigid_body_vector_field as rigid_body_vector_field
@@ -44,6 +45,7 @@ __all__ = [
     "free_body_vector_field",
     "heavy_top_splitting_step",
     "heavy_top_vector_field",
+    "preset",
     "rigid_body_vector_field",
     "rkmk_step",
     "split_free_body",

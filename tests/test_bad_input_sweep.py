@@ -290,6 +290,7 @@ ELSEWHERE = {
     "LiePoissonSplitting": "test_splitting.py::test_solvers_without_parameters_for_simulate",
     "HeavyTopSplitting": "test_splitting.py::test_heavy_top_errors",
     "UnrolledDopri8": "test_unrolled_dopri8.py::test_rejects_terms_that_are_not_an_ode",
+    "preset": "test_unrolled_dopri8.py::test_preset_names_what_simulate_runs",
     "rigid_body_vector_field": "test_bad_input_sweep.py::test_vector_field_of_a_non_function",
     "animate": "test_plot.py::test_bad_bodies_and_missing_orientations",
     "cones": "test_plot.py::test_bad_bodies_and_missing_orientations",

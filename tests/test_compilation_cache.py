@@ -69,3 +69,35 @@ def test_bad_paths_are_named(tmp_path, without_runtime_typecheck):
         rj.use_compilation_cache(occupied)
     with pytest.raises(TypeError, match="path must be a directory path"):
         rj.use_compilation_cache(3)
+
+
+_MOVING_CHILD = """
+import json, os, sys
+import jax, jax.numpy as jnp
+import rigidjax as rj
+first, second = sys.argv[1:3]
+rj.use_compilation_cache(first)
+jax.jit(lambda x: x * 2 + 1)(jnp.ones(3)).block_until_ready()
+in_first = sorted(os.listdir(first))
+moved = rj.use_compilation_cache(second)
+jax.jit(lambda x: x * 5 - 3)(jnp.ones(3)).block_until_ready()
+print(json.dumps({"moved": moved, "first": in_first, "first_after": sorted(os.listdir(first)),
+                  "second": sorted(os.listdir(second))}))
+"""
+
+
+def test_a_second_call_moves_the_cache_to_its_directory(tmp_path):
+    """JAX opens its cache at the first compile: a second call returned its new directory while
+    every program went on to the first one (the second stayed empty)."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    clean = {
+        k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT"))
+    }
+    child = subprocess.run(
+        [sys.executable, "-c", _MOVING_CHILD, str(first), str(second)],
+        env=clean, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert child.returncode == 0, child.stderr[-3000:]
+    out = json.loads(child.stdout.strip().splitlines()[-1])
+    assert out["moved"] == str(second) and out["first"] and out["second"]
+    assert out["first_after"] == out["first"]  # the second program went to the second directory only

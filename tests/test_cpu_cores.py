@@ -34,6 +34,14 @@ def test_count_must_be_a_positive_integer(count, without_runtime_typecheck):
         rj.use_cpu_cores(count)
 
 
+def test_a_count_beyond_any_cpu_is_refused_before_jax_is_asked():
+    """10**30 was accepted, and JAX's backend then failed to start ("Unable to initialize backend
+    'cpu'"); 10**11 made the command line end in a jaxlib traceback."""
+    for count in (4097, 10**11, 10**30):
+        with pytest.raises(ValueError, match=rf"count must be at most 4096 .*got {count}"):
+            rj.use_cpu_cores(count)
+
+
 def test_after_jax_started_only_its_count_is_accepted():
     jnp.zeros(1).block_until_ready()  # JAX has started in this process
     current = len(jax.devices("cpu"))
@@ -41,6 +49,9 @@ def test_after_jax_started_only_its_count_is_accepted():
     with pytest.raises(RuntimeError, match=rf"already started .* {current} CPU device.*right after"):
         rj.use_cpu_cores(current + 1)
     assert len(jax.devices("cpu")) == current
+    if rj._integrate.cores.available_cores() != current:  # the default asks for another count
+        with pytest.raises(RuntimeError, match=r"use_cpu_cores\(\) \(\d+ devices\): JAX has already"):
+            rj.use_cpu_cores()
 
 
 def test_a_count_chosen_by_xla_flags_is_kept_and_every_core_is_the_default():

@@ -267,3 +267,22 @@ def test_float32_results_are_checked_by_a_float64_solve(tumbling):
     assert np.all(omega >= true_omega) and np.all(omega <= 10 * floor)
     true_angle = _angle_error(traj.orientation.astype(jnp.float64), np.asarray(exact.orientation))
     _check(estimate["orientation"], true_angle, 10 * float(np.finfo(np.float32).eps), "q")
+
+
+def test_tolerances_at_the_roundoff_floor_leave_no_finer_solve_and_say_so():
+    """float32 without x64 at "balanced" (rtol raised to float32's floor, 1.2e-6) ran its second
+    solve at the same floor: two identical runs, whose difference read as an error estimate of
+    1.2e-6 for every body (the command line's float32 runs: true errors up to 1e-4 rad). Now
+    refused, as is a float64 rtol below float64's floor; "fast" in float32 has a finer solve."""
+    inertia, omega0 = jnp.array([1.0, 2.0, 3.0]), jnp.array([0.1, 1.0, 0.1])
+    with jax.enable_x64(False):
+        model = rj.FreeBody(inertia.astype(jnp.float32))
+        state = rj.State(omega0.astype(jnp.float32))
+        ts = jnp.linspace(0.0, 2.0, 3, dtype=jnp.float32)
+        with pytest.raises(ValueError, match=r"at or below float32's floor.*turn on jax_enable_x64"):
+            rj.simulate(model, state, ts, error_estimate=True)
+        fast = rj.simulate(model, state, ts, accuracy="fast", error_estimate=True)
+        assert float(fast.stats["error_estimate_omega"]) > 10 * float(np.finfo(np.float32).eps)
+    with pytest.raises(ValueError, match=r"\(1e-15, 1e-15\) are at or below float64's floor.*loosen them\.$"):
+        rj.simulate(rj.FreeBody(inertia), rj.State(omega0), jnp.linspace(0.0, 2.0, 3), rtol=1e-15,
+                    error_estimate=True)  # fmt: skip

@@ -73,7 +73,8 @@ def test_progress_bar_text(capfd):
 
 def test_progress_with_error_estimate_is_one_report_over_both_solves(capfd):
     """The estimate's second solve continues the same report: totals are twice the bodies, the
-    count never goes back, and the bar ends once."""
+    count never goes back nor repeats (the second solve's start was reported again as (6, 12)), and
+    the bar ends once."""
     model, state0 = _scene()
     plain = rj.simulate(model, state0, TS, chunk_size=2, error_estimate=True)
     calls = []
@@ -85,7 +86,6 @@ def test_progress_with_error_estimate_is_one_report_over_both_solves(capfd):
         (2, 2 * N),
         (4, 2 * N),
         (6, 2 * N),
-        (6, 2 * N),
         (8, 2 * N),
         (10, 2 * N),
         (12, 2 * N),
@@ -93,15 +93,19 @@ def test_progress_with_error_estimate_is_one_report_over_both_solves(capfd):
     _assert_same(plain, traj)
     rj.simulate(model, state0, TS, chunk_size=2, error_estimate=True, progress=True)
     lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("simulate [")]
-    assert len(lines) == 8 and all("/12 body solves (2 per body: result, error estimate)" in x for x in lines)
+    assert len(lines) == 7 and all("/12 body solves (2 per body: result, error estimate)" in x for x in lines)
     assert lines[-1].startswith(f"simulate [{'#' * 30}] 12/12") and not any("12/12" in x for x in lines[:-1])
 
 
-def test_progress_exact_reports_once():
+def test_progress_starts_at_zero_and_ends_at_the_total_in_one_program_too():
+    """The closed form and a batch of one chunk run as one program: they reported only the total
+    (a progress bar stayed blank until the run had ended); now 0 first, as documented."""
     model, state0 = _scene()
-    calls = []
-    rj.simulate(model, state0, TS, accuracy="exact", progress=lambda d, t: calls.append((d, t)))
-    assert calls == [(N, N)]
+    for options in (dict(accuracy="exact"), dict(chunk_size=N), dict(chunk_size=N, error_estimate=True)):
+        calls = []
+        rj.simulate(model, state0, TS, progress=lambda d, t, calls=calls: calls.append((d, t)), **options)
+        total = 2 * N if options.get("error_estimate") else N
+        assert calls == ([(0, total), (N, total), (total, total)] if total > N else [(0, N), (N, N)])
 
 
 @pytest.mark.parametrize("bad", ["yes", 1, 0.5])

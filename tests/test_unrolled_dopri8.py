@@ -204,3 +204,33 @@ def test_simulate_traces_the_vector_field_once_or_twice(monkeypatch):
     assert 1 <= len(traces) <= 2
     reference = rj.simulate(model, state, ts, accuracy="exact")
     np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(reference.omega), rtol=0, atol=1e-7)
+
+
+def test_preset_names_what_simulate_runs(without_runtime_typecheck):
+    """``rigidjax.solvers.preset`` against runs of simulate: its solver and tolerance, passed to
+    simulate explicitly, give the preset's trajectories to the bit (the command line's summary
+    named UnrolledDopri8 and rtol 1e-8 for float32 blocks of 100 bodies, which ran Dopri8 at 1.2e-6)."""
+    from rigidjax.solvers import preset
+
+    assert [type(preset("balanced", n)[0]) for n in (1000, 1024)] == [diffrax.Dopri8, UnrolledDopri8]
+    assert type(preset("precise", 4096, differentiated=True)[0]) is diffrax.Dopri8
+    assert type(preset("fast", 10**6)[0]) is diffrax.Tsit5
+    assert preset("balanced", 5, jnp.float32)[1] == 10 * float(np.finfo(np.float32).eps)
+    assert preset("precise", 5, jnp.float64)[1] == 1e-11
+    inertia = jnp.array([[1.0, 2.0, 2.5], [1.5, 2.0, 3.0]], jnp.float32)
+    state = rj.State(jnp.array([0.1, 3.0, 0.2], jnp.float32), jnp.array([1.0, 0.0, 0.0, 0.0], jnp.float32))
+    ts = jnp.linspace(0.0, 2.0, 5, dtype=jnp.float32)
+    solver, rtol = preset("balanced", 2, jnp.float32)
+    ran = rj.simulate(rj.FreeBody(inertia), state, ts, accuracy="balanced")
+    named = rj.simulate(rj.FreeBody(inertia), state, ts, solver=solver, rtol=rtol, atol=rtol)
+    np.testing.assert_array_equal(ran.omega, named.omega)
+    np.testing.assert_array_equal(ran.orientation, named.orientation)
+    for call, error, match in (
+        (lambda: preset("exact"), ValueError, r"accuracy must be one of .*the closed form: no solver"),
+        (lambda: preset("balance"), ValueError, "accuracy must be one of 'fast', 'balanced', 'precise'"),
+        (lambda: preset("fast", 0), ValueError, "n_bodies must be a positive integer"),
+        (lambda: preset("fast", 2, jnp.float16), ValueError, "dtype must be float32 or float64"),
+        (lambda: preset("fast", 2, differentiated="yes"), TypeError, "differentiated must be True or False"),
+    ):
+        with pytest.raises(error, match=match):
+            call()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import time
 
@@ -21,7 +22,7 @@ import numpy as np
 
 import rigidjax as rj
 
-from .common import StatusLine, bar
+from .common import StatusLine, UsageError, bar
 from .scenes import SCENE_BUILDERS, SCENE_DEFAULTS, Scene, block_params
 
 SAVE_BUDGET_BYTES = 32 * 2**20
@@ -66,29 +67,62 @@ class Batch:
     loop_time: float = 0.0
 
 
+WORKING_COPIES = 4
+"""A block's trajectories (omega, orientation, Euler angles) are held about this many times over
+while they are computed and analysed."""
+
+
+def _physical_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):  # not a POSIX system that tells
+        return None
+
+
+def _check_memory(args, n: int, samples: int, block_size: int) -> None:
+    """A :class:`UsageError` before the run when one block's trajectories and the stored samples
+    need more memory than the machine has (the run would end in an allocation failure)."""
+    memory = _physical_memory()
+    values = 3 + 4 + 3  # omega, orientation, Euler angles per body and sample
+    block = block_size * samples * values * np.dtype(args.dtype).itemsize * WORKING_COPIES
+    per_sample = n * values * np.dtype(args.save_dtype).itemsize if args.out else 0
+    if args.save_every is None:  # within the budget, or the first and the last sample
+        stored = min(samples * per_sample, max(SAVE_BUDGET_BYTES, 2 * per_sample))
+    else:
+        stored = (samples // args.save_every + 2) * per_sample
+    if memory is not None and block + stored > memory:
+        raise UsageError(
+            f"-n {n:,} bodies at --samples {samples:,} need about {(block + stored) / 2**30:.3g} GiB "
+            f"(each block's trajectories {block / 2**30:.3g} GiB, the stored samples "
+            f"{stored / 2**30:.3g} GiB), more than this machine's {memory / 2**30:.3g} GiB; use fewer "
+            "samples or bodies, more --blocks, or a larger --save-every."
+        )
+
+
 def plan_run(args) -> Plan:
     n_default, duration_default, samples_default = SCENE_DEFAULTS[args.scene]
     n = args.bodies if args.bodies is not None else n_default
     duration = args.duration if args.duration is not None else duration_default
     samples = args.samples if args.samples is not None else samples_default
-    rng = np.random.default_rng(args.seed)
-    if args.scene == "heavy-top" and args.accuracy == "exact":
-        scene = SCENE_BUILDERS[args.scene](n, rng, symmetric=True)  # the closed form is Lagrange's top
-    else:
-        scene = SCENE_BUILDERS[args.scene](n, rng)
     blocks = args.blocks if args.blocks is not None else min(10, max(1, math.ceil(n / 100)))
     block_size = math.ceil(n / min(blocks, n))
     if block_size == 3:
         # Three bodies' moments, a (3, 3) array, would read as one inertia tensor: pad to four.
         block_size = 4
     blocks = math.ceil(n / block_size)
+    _check_memory(args, n, samples, block_size)
+    rng = np.random.default_rng(args.seed)
+    if args.scene == "heavy-top" and args.accuracy == "exact":
+        scene = SCENE_BUILDERS[args.scene](n, rng, symmetric=True)  # the closed form is Lagrange's top
+    else:
+        scene = SCENE_BUILDERS[args.scene](n, rng)
     # Fastest bodies first, so that bodies of similar speed share a block (and its step size).
     order = np.argsort(-np.linalg.norm(scene.omega0, axis=-1), kind="stable")
     order = np.concatenate([order, np.full(blocks * block_size - n, order[-1])])
     has_q = scene.orientation0 is not None
     per_sample = n * (3 + (7 if has_q else 0)) * np.dtype(args.save_dtype).itemsize
-    if args.save_every is None:
-        save_every = max(1, math.ceil(samples * per_sample / SAVE_BUDGET_BYTES))
+    if args.save_every is None:  # at least the first and the last sample, whatever their size
+        save_every = min(max(1, math.ceil(samples * per_sample / SAVE_BUDGET_BYTES)), max(1, samples - 1))
     else:
         save_every = args.save_every
     return Plan(
@@ -102,7 +136,7 @@ def plan_run(args) -> Plan:
         np.linspace(0.0, duration, samples),
         np.dtype(args.dtype),
         save_every,
-        np.arange(0, samples, save_every),
+        np.union1d(np.arange(0, samples, save_every), [samples - 1]),  # the final state too
     )
 
 

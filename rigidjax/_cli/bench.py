@@ -30,12 +30,14 @@ import rigidjax as rj
 
 from .common import (
     StatusLine,
+    UsageError,
     bar,
     check_output,
     plain,
     positive_float,
     positive_int,
     rng_seed,
+    solver_text,
     write_or_rescue,
     write_text,
 )
@@ -86,13 +88,6 @@ def _errors(omega, q, omega_ref, q_ref) -> dict[str, float]:
     return errors
 
 
-def _solver_text(method: str) -> str:
-    if method == "exact":
-        return "closed form"
-    solver, rtol = rj.solvers.PRESETS[method]
-    return f"{solver.__name__}, rtol {rtol:g}"
-
-
 def _fmt(x, spec: str = ".1e") -> str:
     return "-" if x is None else format(x, spec)
 
@@ -120,8 +115,8 @@ def run(args) -> int:
     methods = [k.strip() for k in args.methods.split(",") if k.strip()]
     bad = sorted(set(methods) - set(METHODS))
     if bad or not methods:
-        print(f"rigidjax bench: unknown --methods {bad}; choose from {','.join(METHODS)}", file=sys.stderr)
-        return 2
+        given = f"unknown --methods {', '.join(bad)}" if bad else "--methods names no method"
+        raise UsageError(f"{given}; choose from {','.join(METHODS)}")
     methods = list(dict.fromkeys(methods))
     if args.json:
         check_output(args.json, "--json", (".json",))  # before the run, so a typo cannot cost it
@@ -169,7 +164,7 @@ def run(args) -> int:
         rows.append(
             {
                 "accuracy": m,
-                "solver": _solver_text(m),
+                "solver": solver_text(m, args.bodies, dtype),
                 "dtype": str(np.asarray(omega).dtype),
                 "run_s": run_s,
                 "runs_s": times[m],

@@ -11,6 +11,8 @@ import sys
 import tempfile
 from collections.abc import Callable
 
+import rigidjax as rj
+
 from .._integrate.progress import StatusLine as StatusLine
 from .._integrate.progress import bar as bar
 from .._integrate.storage import check_writable, write_atomic, write_file_atomic
@@ -32,6 +34,15 @@ def plain(docstring: str) -> str:
     """A module docstring as command-line help: ``code`` and :role:`name` markup become plain text."""
     text = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", docstring)
     return text.replace("``", "")
+
+
+def solver_text(accuracy: str, n_bodies: int, dtype) -> str:
+    """The solver and tolerance ``simulate`` runs ``accuracy`` with, for ``n_bodies`` bodies at a
+    time in ``dtype`` (the unrolled Dopri8 for large batches, the tolerance floor of float32)."""
+    if accuracy == "exact":
+        return "closed form"
+    solver, rtol = rj.solvers.preset(accuracy, n_bodies, dtype)
+    return f"{type(solver).__name__}, rtol {rtol:.2g}"
 
 
 class UsageError(Exception):

@@ -22,8 +22,8 @@ import numpy as np
 import rigidjax as rj
 
 from .common import (
+    StatusLine,
     UsageError,
-    bar,
     check_output,
     plain,
     positive_int,
@@ -141,23 +141,33 @@ def _number(path: str, row: int, column: str, text: str) -> float:
 
 
 class _Progress:
+    """The fit's iterations on one status line: rewritten in place on a terminal; in a log, a line
+    a second at most, and the last iteration's when the fit ends."""
+
     def __init__(self, steps: int, stream, enabled: bool):
-        self.steps, self.stream, self.enabled = steps, stream, enabled
-        self.start = time.perf_counter()
+        self.steps, self.line = steps, StatusLine(stream, enabled)
+        self.start = self.shown = time.perf_counter()
+        self.pending = None
 
     def __call__(self, iteration, loss) -> None:
-        if not self.enabled:
+        if not self.line.enabled:
             return
-        iteration = int(iteration)
-        filled = bar(min(iteration, self.steps), self.steps)
-        elapsed = time.perf_counter() - self.start
-        self.stream.write(f"\r  iteration {iteration:4d} [{filled}] loss {float(loss):.3e}  {elapsed:5.1f} s")
-        self.stream.flush()
+        now = time.perf_counter()
+        text = (
+            f"  iteration {int(iteration):4d} (at most {self.steps}), loss {float(loss):.3e}, "
+            f"{now - self.start:5.1f} s"
+        )
+        if self.line.tty or now - self.shown >= 1.0:
+            self.line.show(text)
+            self.shown, self.pending = now, None
+        else:
+            self.pending = text
 
     def close(self) -> None:
-        if self.enabled:
-            self.stream.write("\n")
-            self.stream.flush()
+        if self.pending is not None:
+            self.line.show(self.pending, last=True)
+            self.pending = None
+        self.line.end()
 
 
 def _format(value: float, error: float) -> str:

@@ -42,6 +42,8 @@ def use_cores(requested: int | None) -> None:
     there); a request that cannot be met is a usage error."""
     try:
         rj.use_cpu_cores(requested)
+    except ValueError as error:
+        raise UsageError(f"--cpu-devices {requested}: {error}") from None
     except RuntimeError as error:
         if requested is not None:
             raise UsageError(f"--cpu-devices {requested}: {error}") from None

@@ -8,12 +8,13 @@ third of them spun near the unstable intermediate axis: the tennis-racket flip) 
 against the closed form).
 
 The batch runs in blocks of identical shape, so :func:`rigidjax.simulate` compiles once
-(``batch.py``); a first call on block 0 with the time span shrunk by 1e-9 (same shapes, so the same
-compiled program, but almost no integration) is reported as the compile time.
+(``batch.py``); a first call on block 0 over a milliradian of the fastest body's rotation (same
+shapes, so the same compiled program, but almost no integration) is reported as the compile time.
 
 The ``.npz`` file (all arrays are NumPy, readable with ``numpy.load`` and no pickle):
 
-- ``ts`` (T_saved,): the stored sample times (s), every ``save_every``-th output sample;
+- ``ts`` (T_saved,): the stored sample times (s), every ``save_every``-th output sample and the
+  last;
 - ``omega`` (N, T_saved, 3): body-frame angular velocity (rad/s);
 - ``orientation`` (N, T_saved, 4) and ``euler_angles`` (N, T_saved, 3) (``zxz``: precession phi,
   nutation theta, spin psi, unwrapped in time) for scenes with an orientation (not ``earth``,
@@ -58,6 +59,7 @@ from .common import (
     positive_float,
     positive_int,
     rng_seed,
+    solver_text,
     write_figure,
     write_npz,
     write_or_rescue,
@@ -249,8 +251,7 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
     if args.accuracy == "exact":
         method = "exact (closed form, no integration steps)"
     else:
-        solver, rtol = rj.solvers.PRESETS[args.accuracy]
-        method = f"{args.accuracy} ({solver.__name__}, rtol {rtol:g})"
+        method = f"{args.accuracy} ({solver_text(args.accuracy, block_size, plan.dtype)})"
     copies = padded - plan.n
     padding = f", last padded with {copies} cop{'y' if copies == 1 else 'ies'}" if copies else ""
     lines = [
@@ -289,7 +290,7 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
         lines.append(
             (
                 "stored samples",
-                f"1 in every {plan.save_every} samples ({len(plan.keep)} of {plan.samples}), "
+                f"1 in every {plan.save_every} samples and the last ({len(plan.keep)} of {plan.samples}), "
                 f"{args.save_dtype}; --save-every 1 keeps all",
             )
         )
@@ -311,8 +312,11 @@ def _warm_up_times(plan: Plan) -> np.ndarray:
 
 def run(args) -> int:
     """The ``simulate`` command: plan, compile, simulate block by block, write, summarise."""
-    if args.dtype == "float64" and not jax.config.read("jax_enable_x64"):
-        jax.config.update("jax_enable_x64", True)  # before any array of this run is made
+    if not jax.config.read("jax_enable_x64"):
+        # Before any array of this run is made. float32 runs too: their arrays are made float32
+        # explicitly, and the error estimate's finer solve runs in float64 (in float32 it could be
+        # no finer than the run itself at the balanced and precise tolerances).
+        jax.config.update("jax_enable_x64", True)
     # Every output path is checked before the run, so a typo cannot cost the results.
     if args.out:
         check_output(args.out, "--out", (".npz",))
@@ -327,10 +331,16 @@ def run(args) -> int:
         )
     t_start = time.perf_counter()
     plan = plan_run(args)
-    if args.out and plan.save_every >= plan.samples:
+    # Spacings below the smallest normal number are flushed to zero in XLA's arithmetic.
+    if not np.all(np.diff(plan.ts.astype(plan.dtype)) >= np.finfo(plan.dtype).tiny):
         raise UsageError(
-            f"--save-every {plan.save_every} would store only the first of the {plan.samples} samples; "
-            f"give at most {plan.samples - 1} (or --out '' to store nothing)."
+            f"--duration {plan.duration:g}: its {plan.samples} sample times are not distinct in "
+            f"{plan.dtype.name} (their spacing is below its resolution); give a longer --duration."
+        )
+    if args.out and args.save_every is not None and plan.save_every >= plan.samples:
+        raise UsageError(
+            f"--save-every {plan.save_every} would store only the first and the last of the "
+            f"{plan.samples} samples; give at most {plan.samples - 1} (or --out '' to store nothing)."
         )
     info(
         args,
@@ -339,13 +349,12 @@ def run(args) -> int:
     )
     info(args, "compiling (first call: block 0 over a time span of a milliradian of rotation)...")
     t0 = time.perf_counter()
-    run_block(plan, args, 0, jnp.asarray(_warm_up_times(plan), plan.dtype))
-    compile_time = time.perf_counter() - t0
-    info(args, f"compiled in {compile_time:.2f} s")
-
-    try:
+    try:  # the scene is valid: what simulate refuses is the span (--duration)
+        run_block(plan, args, 0, jnp.asarray(_warm_up_times(plan), plan.dtype))
+        compile_time = time.perf_counter() - t0
+        info(args, f"compiled in {compile_time:.2f} s")
         batch = simulate_blocks(plan, args)
-    except ValueError as error:  # the scene is valid: what simulate refuses is the span (--duration)
+    except ValueError as error:
         raise UsageError(f"--duration {plan.duration:g}: {error}") from None
     summary, scene_rows = _summary(plan, batch, args, compile_time)
     # A write that fails after the run goes to the temporary directory instead (and exit status 1).
@@ -370,7 +379,10 @@ def run(args) -> int:
         _print_summary(plan, batch, args, summary, scene_rows, out_files, t_start)
     if summary["failed_bodies"]:
         if args.accuracy == "exact":
-            what, advice = "the closed form failed", "a shorter --duration or --dtype float64"
+            what, advice = (
+                "the closed form failed",
+                "a shorter --duration" + (" or --dtype float64" if args.dtype == "float32" else ""),
+            )
         else:
             what, advice = "the integration failed", "--accuracy fast or a shorter --duration"
         print(
@@ -441,7 +453,7 @@ def add_parser(subparsers) -> None:
         "--dtype",
         choices=("float64", "float32"),
         default="float64",
-        help="simulation dtype (float64 turns on jax_enable_x64)",
+        help="simulation dtype (the error estimate of a float32 run compares with a float64 solve)",
     )
     sim.add_argument(
         "--seed", type=rng_seed, default=0, help="seed of numpy.random.default_rng for the scene"
@@ -468,8 +480,8 @@ def add_parser(subparsers) -> None:
         type=_save_every,
         default=None,
         metavar="K",
-        help="store every K-th sample in the .npz (default 'auto': the smallest K that keeps the "
-        "stored trajectories under 32 MiB)",
+        help="store every K-th sample and the last in the .npz (default 'auto': the smallest K that "
+        "keeps the stored trajectories under 32 MiB, or the first and last sample if none does)",
     )
     sim.add_argument(
         "--save-dtype",

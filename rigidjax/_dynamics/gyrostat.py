@@ -11,7 +11,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import as_float_array, check_last_axis, is_full_tensor
 from .equations import _cross, _euler_equations, _inertia_times
-from .models import AbstractModel, _as_torque_tuple, _inertia_field, _total_torque
+from .models import AbstractModel, _inertia_field
+from .torques import _as_torque_tuple, _total_torque
 
 
 class Gyrostat(AbstractModel):

@@ -10,7 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._dynamics.models import State, _total_torque
+from .._dynamics.state import State
+from .._dynamics.torques import _total_torque
 from .data import _check_data
 
 # Symmetric tensor entries (Ixx, Iyy, Izz, Ixy, Ixz, Iyz), and the principal moments alone.

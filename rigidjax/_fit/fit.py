@@ -24,7 +24,7 @@ import numpy as np
 import optax
 
 from .._checks import is_positive_int
-from .._dynamics.models import GravityTorque, _as_torque_tuple
+from .._dynamics.torques import GravityTorque, _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation

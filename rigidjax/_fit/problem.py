@@ -29,7 +29,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.equations import _euler_equations
-from .._dynamics.models import State, _total_torque
+from .._dynamics.state import State
+from .._dynamics.torques import _total_torque
 from .._integrate.driver import solve
 from .._kinematics.quaternion import _quat_conjugate, _quat_derivative, _quat_exp, _quat_multiply
 

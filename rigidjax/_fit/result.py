@@ -10,7 +10,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._checks import as_float_array, check_finite
 from .._closed_form.torque_free import torque_free_motion, torque_free_omega
-from .._dynamics.models import RigidBody, State
+from .._dynamics.models import RigidBody
+from .._dynamics.state import State
 from .._integrate.simulate import simulate
 from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
 from .._repr import summarize

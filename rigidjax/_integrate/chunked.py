@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from .._closed_form.torque_free import motion_timing
 from .._dynamics.inertia import principal_axes
-from .._dynamics.models import State
+from .._dynamics.state import State
 from .._numerics import short_norm
 from . import batching, driver
 from .trajectory import Trajectory, first_failed_sample

@@ -36,7 +36,7 @@ from .._checks import float_dtype
 from .._kinematics.quaternion import _quat_conjugate, _quat_multiply
 from . import driver
 from . import progress as _progress
-from .presets import PRESETS
+from .presets import PRESETS, preset_rtol
 from .solvers import STRUCTURE_PRESERVING
 from .trajectory import Trajectory
 
@@ -84,7 +84,7 @@ def with_error_estimate(simulate, model, state0, ts, **kwargs) -> Trajectory:
             fine_kwargs["dt0"] = kwargs["dt0"] / 2
             factor = _richardson(kwargs["solver"].order(None), ts, kwargs["dt0"])
     else:  # checked before the first run: an unsupported controller raises at once
-        fine_kwargs, factor = _finer_adaptive(fine_kwargs, eps, fine_eps)
+        fine_kwargs, factor = _finer_adaptive(fine_kwargs, dtype, fine_eps)
     coarse = simulate(model, state0, ts, **kwargs)
     fine = simulate(fine_model, fine_state0, fine_ts, **fine_kwargs)
     stats = dict(coarse.stats)
@@ -170,23 +170,44 @@ def _tighter(tol, floor):
         return jnp.maximum(tol / TOLERANCE_FACTOR, floor)
 
 
-def _finer_adaptive(kwargs, eps, fine_eps):
+def _check_finer(tolerances, finer, dtype):
+    """Refuses a finer run that is not finer: each concrete tolerance must have come down."""
+    try:
+        same = all(float(f) >= float(t) for t, f in zip(tolerances, finer, strict=True))
+    except (jax.errors.ConcretizationTypeError, TypeError):  # traced tolerances: nothing to compare
+        return
+    if same:
+        floor = 10 * float(np.finfo(dtype).eps)
+        wider = (
+            ""
+            if dtype == np.float64
+            else " or turn on jax_enable_x64 (the second solve then runs in float64)"
+        )
+        raise ValueError(
+            f"error_estimate=True: the tolerances (rtol, atol) = ({float(tolerances[0]):g}, "
+            f"{float(tolerances[1]):g}) are at or below {np.dtype(dtype).name}'s floor of ten roundoff units "
+            f"({floor:.2g}), so no more accurate second solve exists to compare with; loosen them{wider}."
+        )
+
+
+def _finer_adaptive(kwargs, dtype, fine_eps):
     """The finer run's arguments: tolerances divided by TOLERANCE_FACTOR (not below ten roundoff
-    units of the finer run's dtype, ``fine_eps``), or half the constant step."""
+    units of the finer run's dtype, ``fine_eps``), or half the constant step. Tolerances already at
+    that floor leave no finer run: a ``ValueError`` (the difference of two identical runs would
+    read as an error of ten roundoff units, whatever the error)."""
     floor = 10 * fine_eps
     controller = kwargs["stepsize_controller"]
     if controller is None:
         rtol = kwargs["rtol"]
-        rtol = max(PRESETS[kwargs["accuracy"]][1], 10 * eps) if rtol is None else rtol
+        rtol = preset_rtol(kwargs["accuracy"], dtype) if rtol is None else rtol
         atol = rtol if kwargs["atol"] is None else kwargs["atol"]
         kwargs["rtol"], kwargs["atol"] = _tighter(rtol, floor), _tighter(atol, floor)
+        _check_finer((rtol, atol), (kwargs["rtol"], kwargs["atol"]), dtype)
         return kwargs, 1.0
     if isinstance(controller, diffrax.PIDController):
-        kwargs["stepsize_controller"] = eqx.tree_at(
-            lambda c: (c.rtol, c.atol),
-            controller,
-            (_tighter(controller.rtol, floor), _tighter(controller.atol, floor)),
-        )
+        finer = (_tighter(controller.rtol, floor), _tighter(controller.atol, floor))
+        _check_finer((controller.rtol, controller.atol), finer, dtype)
+        kwargs["stepsize_controller"] = eqx.tree_at(lambda c: (c.rtol, c.atol), controller, finer)
         return kwargs, 1.0
     if isinstance(controller, diffrax.ConstantStepSize):
         if kwargs["dt0"] is None:

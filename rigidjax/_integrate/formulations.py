@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .._dynamics.inertia import principal_axes
-from .._dynamics.models import State
+from .._dynamics.state import State
 from .._kinematics.euler import _euler_from_quat, _euler_rates, _quat_from_euler, is_proper_sequence
 from .._kinematics.quaternion import (
     _quat_conjugate,

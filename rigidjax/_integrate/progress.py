@@ -75,6 +75,13 @@ class StatusLine:
             self.stream.write(line + "\n")
         self.stream.flush()
 
+    def end(self) -> None:
+        """Ends the line a terminal's last update left open (the next output starts below it)."""
+        if self.tty and self._width:
+            self.stream.write("\n")
+            self.stream.flush()
+            self._width = 0
+
 
 def passes(report, count: int) -> list[Callable[[int, int], None]]:
     """``count`` reports for ``count`` solves of the same batch, one after the other, that make one
@@ -83,7 +90,11 @@ def passes(report, count: int) -> list[Callable[[int, int], None]]:
         report.passes = count
 
     def one(i):
-        return lambda done, total: report(i * total + done, count * total)
+        def report_pass(done, total):
+            if i == 0 or done > 0:  # a later pass's start is the previous pass's end, reported
+                report(i * total + done, count * total)
+
+        return report_pass
 
     return [one(i) for i in range(count)]
 
@@ -133,12 +144,12 @@ _TRACED = (
 )
 
 
-def report_whole(report, traj) -> None:
-    """One report for a batch computed in one program (the closed forms)."""
-    if is_traced(traj.omega):
+def report_start(report, n: int, *inputs) -> None:
+    """The first report, ``(0, n)``, of a batch computed in one program (the closed forms); a
+    ``ValueError`` for traced ``inputs``."""
+    if is_traced(*inputs):
         raise ValueError(_TRACED)
-    n = int(np.prod(traj.batch_shape))
-    report(n, n)
+    report(0, n)
 
 
 MAX_HOST_THREADS = 4
@@ -201,7 +212,8 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     # The chunks of the whole batch's program (which shards where ts has several samples).
     chunk, n_chunks, _ = batching.chunk_layout(n, chunk_size)
     if ts.shape[0] == 1 or n_chunks == 1:
-        traj = run(model, omega0, q0, chunk_size, sort)
+        report(0, n)
+        traj = jax.block_until_ready(run(model, omega0, q0, chunk_size, sort))
         report(n, n)
         return traj
     order = np.asarray(_chunk_order(model, omega0, q0, ts, args, formulation, chunk_size, bool(sort)))

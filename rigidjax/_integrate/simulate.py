@@ -17,7 +17,8 @@ import numpy as np
 
 from .._checks import check_positive_int, check_times_shape, error_if, float_dtype, is_traced, known_values
 from .._closed_form.frame import PHASE_ROUNDING_LIMIT, phase_advice
-from .._dynamics.models import AbstractModel, HeavyTop, State
+from .._dynamics.models import AbstractModel, HeavyTop
+from .._dynamics.state import State
 from .._kinematics.euler import is_proper_sequence
 from . import batching, driver
 from . import progress as _progress
@@ -32,6 +33,7 @@ from .presets import (
     FaultStopPIDController,
     default_chunk_size,
     default_max_steps,
+    preset_rtol,
     preset_solver,
 )
 from .solvers import STRUCTURE_PRESERVING, HeavyTopSplitting, LiePoissonSplitting
@@ -271,9 +273,12 @@ def simulate(
             solver=solver, rtol=rtol, atol=atol, stepsize_controller=stepsize_controller, dt0=dt0,
             adjoint=adjoint, representation=None if representation == "quaternion" else representation,
         )  # fmt: skip
-        traj = simulate_exact(model, state0, ts, chunk_size)
         if report is not None:  # one closed-form program: all bodies at once
-            _progress.report_whole(report, traj)
+            _progress.report_start(report, math.prod(batch), model, state0, ts)
+        traj = simulate_exact(model, state0, ts, chunk_size)
+        if report is not None:
+            jax.block_until_ready(traj.omega)
+            report(math.prod(batch), math.prod(batch))
         return _raise_if_exact_failed(traj) if throw else nan_from_first_failure(traj)
     if accuracy not in PRESETS:  # also with a fixed-step solver, which ignores it: a typo is named
         raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
@@ -322,7 +327,7 @@ def simulate(
         max_steps = max(n_steps, 1)  # exactly the grid's steps
     else:
         formulation = ScaledODE(euler_seq if representation == "euler" else None, float(lock_tolerance))
-        preset_rtol = PRESETS[accuracy][1]
+        tolerance = preset_rtol(accuracy, dtype)
         solver_from_preset = solver is None
         if solver is None:
             differentiated = driver.is_differentiated(model, state0, ts, args)
@@ -331,7 +336,7 @@ def simulate(
         controller = stepsize_controller
         if controller is None:
             controller = _preset_controller(
-                accuracy, solver_from_preset, preset_rtol, rtol, atol, ts, omega0, dtype, representation
+                accuracy, solver_from_preset, tolerance, rtol, atol, ts, omega0, dtype, representation
             )
     euler = formulation.euler_seq if isinstance(formulation, ScaledODE) else None
     model, omega0, q0, ts = checked_inputs(model, omega0, q0, ts, euler, float(lock_tolerance))
@@ -603,16 +608,15 @@ def _fault_dtmin(ts):
 
 
 def _preset_controller(
-    accuracy, solver_from_preset, preset_rtol, rtol, atol, ts, omega0, dtype, representation
+    accuracy, solver_from_preset, tolerance, rtol, atol, ts, omega0, dtype, representation
 ):
-    """The preset's ``PIDController`` on the chunk's max norm."""
+    """The preset's ``PIDController`` on the chunk's max norm; ``tolerance``: the preset's, in
+    ``dtype`` (:func:`.preset_rtol`)."""
     # Arrays, not Python floats, so that a new tolerance does not trigger a recompilation.
-    # A preset never asks for less than ten roundoff units (float32: 1.2e-6).
-    floor = 10 * float(jnp.finfo(dtype).eps)
     if rtol is None and atol is None:
-        rtol = atol = _device_scalar(max(preset_rtol, floor), dtype)
+        rtol = atol = _device_scalar(tolerance, dtype)
     else:
-        rtol = max(preset_rtol, floor) if rtol is None else rtol
+        rtol = tolerance if rtol is None else rtol
         rtol, atol = _checked_tolerances(rtol, rtol if atol is None else atol, dtype)
     # "precise" lands a step on every sample time: Dopri8's dense output is accurate to ~1e-9 only,
     # far worse than its steps; the other presets' interpolants are within their tolerance.

@@ -43,15 +43,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._dynamics.gyrostat import Gyrostat
-from .._dynamics.models import (
-    ConstantTorque,
-    FreeBody,
-    GravityTorque,
-    HeavyTop,
-    RigidBody,
-    Torque,
-    ViscousDamping,
-)
+from .._dynamics.models import FreeBody, HeavyTop, RigidBody
+from .._dynamics.torques import ConstantTorque, GravityTorque, Torque, ViscousDamping
 from . import batching
 
 FORMAT = "rigidjax.Trajectory"
@@ -482,9 +475,18 @@ def read(path) -> dict[str, Any]:
     if os.path.isdir(path):
         raise IsADirectoryError(f"Trajectory.load: {path!r} is a directory, not a trajectory file.")
     try:
-        archive = np.load(path, allow_pickle=False)
+        with open(path, "rb") as file:
+            magic = file.read(6)
     except FileNotFoundError:
         raise FileNotFoundError(f"Trajectory.load: there is no file {path!r}.") from None
+    if not (magic.startswith(b"PK") or magic == b"\x93NUMPY"):
+        # NumPy reads any other file as pickled data and suggests allow_pickle: never for this.
+        raise ValueError(
+            f"Trajectory.load: {path!r} is not a rigidjax trajectory: it is not a .npz archive (a "
+            "zip file, as Trajectory.save writes)."
+        )
+    try:
+        archive = np.load(path, allow_pickle=False)
     except Exception as err:
         raise ValueError(
             f"Trajectory.load: {path!r} is not a rigidjax trajectory: NumPy cannot read it as a .npz "

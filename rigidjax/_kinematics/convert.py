@@ -19,7 +19,7 @@ from .._checks import (
     error_if,
     unit_tolerance,
 )
-from .._dynamics.models import State
+from .._dynamics.state import State
 
 __all__ = [
     "from_mujoco_free_joint",

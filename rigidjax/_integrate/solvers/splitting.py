@@ -50,7 +50,7 @@ from ..._checks import (
     error_if,
 )
 from ..._dynamics.inertia import check_inertia
-from ..._dynamics.models import gravity_torque
+from ..._dynamics.torques import gravity_torque
 from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
 from ..._numerics import short_norm
 
