@@ -863,3 +863,15 @@ def test_odd_sizes_and_spans_are_one_line_errors(tmp_path, monkeypatch):
         code, out, err = _run(["simulate", *argv, "--no-plot"])
         _assert_one_line_error(code, out, err, "simulate", "GiB), more than this machine's")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_file_removed_after_writing_does_not_stop_the_summary(tmp_path):
+    """The summary read each written file's size again: a file removed in between ended the run in
+    a FileNotFoundError traceback, without the summary."""
+    from rigidjax._cli.common import file_size
+
+    written = tmp_path / "out.npz"
+    written.write_bytes(b"x" * 3000)
+    assert file_size(str(written)) == "2.9 KiB"
+    written.unlink()
+    assert file_size(str(written)) == "size unknown: No such file or directory"

@@ -163,6 +163,10 @@ def info(args, message: str) -> None:
 
 
 def file_size(path: str) -> str:
-    """The size of ``path`` in KiB or MiB, for the summaries."""
-    size = os.path.getsize(path)
+    """The size of ``path`` in KiB or MiB, for the summaries (which a file removed since it was
+    written must not stop)."""
+    try:
+        size = os.path.getsize(path)
+    except OSError as error:
+        return f"size unknown: {error.strerror or error}"
     return f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"

@@ -15,7 +15,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import as_float_array, check_last_axis
+from .._checks import as_float_array, broadcasts_to, check_last_axis
 from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
 from .._repr import module_repr
 from .equations import _components, _cross_components
@@ -271,11 +271,7 @@ def _total_torque(torques, t, state, args):
     for i, torque in enumerate(torques):
         tau = torque(t, state, args)
         shape, expected = jnp.shape(tau), jnp.shape(state.omega)
-        try:
-            fits = len(shape) >= 1 and shape[-1] == 3 and jnp.broadcast_shapes(shape, expected) == expected
-        except ValueError:
-            fits = False
-        if not fits:
+        if not (len(shape) >= 1 and shape[-1] == 3 and broadcasts_to(shape, expected)):
             raise ValueError(
                 f"{_torque_name(i, torque)} returned shape {tuple(shape)}; a torque returns the "
                 f"body-frame torque (N m) on the body it is given, shape {tuple(expected)} (state.omega's "

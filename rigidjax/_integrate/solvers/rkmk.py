@@ -26,11 +26,11 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..._checks import (
     as_float_array,
+    broadcasts_to,
     check_batch_shapes,
     check_finite,
     check_last_axis,
@@ -185,7 +185,7 @@ def rkmk_step(
     omega = error_if(omega, ~jnp.isfinite(t), f"{where}: t contains NaN or inf.")
     h = check_finite(h, "h", where)
     rate = jax.eval_shape(angular_acceleration, t, omega, q, args)
-    if not (hasattr(rate, "shape") and _broadcasts_to(rate.shape, omega.shape)):
+    if not (hasattr(rate, "shape") and broadcasts_to(rate.shape, omega.shape)):
         raise ValueError(
             f"{where}: angular_acceleration must return d(omega)/dt of omega's shape {omega.shape} "
             f"(or one that broadcasts to it), got {getattr(rate, 'shape', type(rate).__name__)}."
@@ -198,13 +198,6 @@ def rkmk_step(
         "overflowed, within the step.",
     )
     return omega1, q1
-
-
-def _broadcasts_to(shape, target) -> bool:
-    try:
-        return np.broadcast_shapes(shape, target) == tuple(target)
-    except ValueError:
-        return False
 
 
 def rigid_body_vector_field(angular_acceleration: Callable) -> Callable:
