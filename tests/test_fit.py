@@ -32,6 +32,24 @@ def record(inertia, omega0, ts, noise, rng, rotation=None):
     return w + noise * np.std(w, axis=0) * rng.standard_normal(w.shape)
 
 
+def scipy_omega(inertia, omega0, ts, torque=0.0):
+    """omega at ``ts`` of Euler's equations in principal axes with a constant body torque, by scipy's
+    DOP853 at rtol 1e-12 (independent of rigidjax)."""
+    from scipy.integrate import solve_ivp
+
+    inertia, torque = np.asarray(inertia, float), np.asarray(torque, float)
+    sol = solve_ivp(
+        lambda t, w: (np.cross(inertia * w, w) + torque) / inertia,
+        (ts[0], ts[-1]),
+        np.asarray(omega0, float),
+        method="DOP853",
+        rtol=1e-12,
+        atol=1e-14,
+        t_eval=ts,
+    )
+    return sol.y.T
+
+
 @functools.cache
 def short_times():
     period = float(rj.torque_free_period(I_TRUE, W0_TRUE))
@@ -342,16 +360,9 @@ def test_the_default_optimiser_converges_with_a_known_torque():
     loss, for 1e-3 rad/s of measurement noise); L-BFGS at the optimum accepted steps that moved the
     loss either way by that much and ran to its 2000-step limit with converged=False. Record:
     scipy's DOP853 (rtol 1e-12) of Euler's equations with the torque."""
-    from scipy.integrate import solve_ivp
-
     inertia, tau, w0 = np.array([1.0, 2.0, 2.5]), np.array([0.2, -0.1, 0.3]), np.array([0.3, 0.1, 2.0])
     ts = np.linspace(0.0, 4.0, 100)
-
-    def rhs(t, w):
-        return (np.cross(inertia * w, w) + tau) / inertia
-
-    sol = solve_ivp(rhs, (0.0, 4.0), w0, method="DOP853", rtol=1e-12, atol=1e-14, t_eval=ts)
-    obs = sol.y.T + 1e-3 * np.random.default_rng(3).standard_normal((100, 3))
+    obs = scipy_omega(inertia, w0, ts, tau) + 1e-3 * np.random.default_rng(3).standard_normal((100, 3))
     fit = fit_inertia(ts, obs, torque=rj.ConstantTorque(jnp.asarray(tau)))
     assert bool(fit.converged) and fit.num_steps < 200, (fit.converged, fit.num_steps)
     z = (np.asarray(fit.inertia) - inertia) / np.asarray(fit.inertia_stderr)
@@ -568,19 +579,8 @@ def test_a_float32_fit_of_a_record_in_clock_time_predicts_at_its_own_times():
     """Times 1.7e9 s since 1970 (float32's spacing there is 128 s): the fit subtracted each window's
     start on the host, but the predictions subtracted it in float32, every time collapsed onto one
     and predict_omega was off by ~2 rad/s. Record: scipy's DOP853 (rtol 1e-12) of Euler's equations."""
-    from scipy.integrate import solve_ivp
-
     elapsed = np.linspace(0.0, 10.0, 240)
-    sol = solve_ivp(
-        lambda t, w: np.cross(I_TRUE * w, w) / I_TRUE,
-        (0.0, 10.0),
-        [0.3, 1.0, 0.4],
-        method="DOP853",
-        rtol=1e-12,
-        atol=1e-14,
-        t_eval=elapsed,
-    )
-    observed, clock = sol.y.T, 1.7e9 + 37.3 + elapsed
+    observed, clock = scipy_omega(I_TRUE, [0.3, 1.0, 0.4], elapsed), 1.7e9 + 37.3 + elapsed
     fit = fit_inertia(clock, observed, method="levenberg-marquardt", dtype=jnp.float32)
     np.testing.assert_allclose(fit.inertia, TRUTH, atol=1e-5)
     assert fit.segment_starts.dtype == np.float64 and fit.segment_starts[0] == clock[0]
@@ -608,20 +608,10 @@ def test_a_tennis_racket_record_of_two_flips_is_fitted_from_the_default_start():
     (0.1846, 0.3261, 0.4894) from which the fit ended on the flat-plate edge (0.049, 0.451, 0.5)
     with residuals 100x the noise. Record: scipy's DOP853 (rtol 1e-12) of Euler's equations,
     I = (1, 2, 3), two flips in 40 s."""
-    from scipy.integrate import solve_ivp
-
     inertia, ts = np.array([1.0, 2.0, 3.0]), np.linspace(0.0, 40.0, 400)
-    sol = solve_ivp(
-        lambda t, w: np.cross(inertia * w, w) / inertia,
-        (0.0, 40.0),
-        [0.01, 1.0, 0.01],
-        method="DOP853",
-        rtol=1e-12,
-        atol=1e-14,
-        t_eval=ts,
-    )
-    assert np.sum(np.diff(np.sign(sol.y[1])) != 0) == 2  # two flips
-    observed = sol.y.T + 0.005 * np.random.default_rng(0).standard_normal((ts.size, 3))
+    exact = scipy_omega(inertia, [0.01, 1.0, 0.01], ts)
+    assert np.sum(np.diff(np.sign(exact[:, 1])) != 0) == 2  # two flips
+    observed = exact + 0.005 * np.random.default_rng(0).standard_normal((ts.size, 3))
     start, _ = estimate_inertia(ts, observed)
     np.testing.assert_allclose(start, inertia / 6.0, atol=0.006)
     fit = fit_inertia(ts, observed, method="levenberg-marquardt", segments="auto")
