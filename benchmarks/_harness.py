@@ -21,6 +21,7 @@ on the first method of a compile group (a new rtol of the same solver is a trace
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import statistics
@@ -337,6 +338,42 @@ METHOD_KEYS = (
     "vmap",
     "float32",
 )
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (a one-line usage error otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def names_from(valid: Sequence[str]) -> Callable[[str], list[str]]:
+    """argparse type: a comma-separated, non-empty list of names from ``valid``."""
+
+    def parse(text: str) -> list[str]:
+        names = [k.strip() for k in text.split(",") if k.strip()]
+        unknown = [k for k in names if k not in valid]
+        if unknown or not names:
+            given = f"unknown {', '.join(unknown)}" if unknown else "no name given"
+            raise argparse.ArgumentTypeError(f"{given}; choose from {','.join(valid)}")
+        return list(dict.fromkeys(names))
+
+    return parse
 
 
 def standard_methods(scene, level: str = "full", include: Sequence[str] | None = None) -> list[Method]:

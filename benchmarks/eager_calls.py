@@ -100,7 +100,9 @@ def _measure_one(name: str) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--one", help="measure this case in this process and print it as JSON")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "eager_calls.md"))
     args = parser.parse_args()

@@ -17,6 +17,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import tempfile
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
@@ -66,20 +67,27 @@ def insert_table(table: str, path: pathlib.Path = PAGE) -> bool:
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument(
         "--no-docs", "--no-readme", action="store_true", help="do not rewrite the table of docs/extremes.md"
     )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     report = RESULTS / "extremes.json"
-    env = dict(os.environ, RIGIDJAX_EXTREMES_REPORT=str(report))
-    result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", *FILES], cwd=ROOT, env=env
-    )
-    if result.returncode != 0:
-        sys.exit(f"the extremes tests failed (exit {result.returncode}); the table was not updated")
-    rows = json.loads(report.read_text())
+    with tempfile.TemporaryDirectory() as scratch:
+        # The tests write their rows beside the results, which change only if every test passed.
+        rows_file = pathlib.Path(scratch) / "rows.json"
+        env = dict(os.environ, RIGIDJAX_EXTREMES_REPORT=str(rows_file))
+        result = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", *FILES],
+            cwd=ROOT,
+            env=env,
+        )
+        if result.returncode != 0:
+            sys.exit(f"the extremes tests failed (exit {result.returncode}); the table was not updated")
+        rows = json.loads(rows_file.read_text())
     order = {name: i for i, name in enumerate(dict.fromkeys(r["area"] for r in rows))}
     rows.sort(key=lambda r: order[r["area"]])
     report.write_text(json.dumps(rows, indent=1) + "\n")

@@ -131,7 +131,9 @@ def _measure_one(name: str, cache: str | None) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--one", help="measure this case in this process and print it as JSON")
     parser.add_argument("--cache", default="", help="with --one: the cache directory ('' for none)")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "first_calls.md"))

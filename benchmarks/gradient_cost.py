@@ -90,9 +90,13 @@ def programs(accuracy, q0, ts):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--n", type=int, default=10_000)
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--accuracies", default="exact,fast,balanced,precise")
+    p.add_argument("--n", type=B.positive_int, default=10_000)
+    p.add_argument("--repeats", type=B.positive_int, default=3)
+    p.add_argument(
+        "--accuracies",
+        type=B.names_from(("exact", "fast", "balanced", "precise")),
+        default=["exact", "fast", "balanced", "precise"],
+    )
     p.add_argument("--out", default=os.path.join(HERE, "results", "gradient_cost.json"))
     a = p.parse_args(argv)
 
@@ -108,7 +112,7 @@ def main(argv=None):
     )
     print(f"N={a.n}, T={B.T_END} s, {meta['devices']}, load {meta['loadavg_start']}", flush=True)
     rows, jacobians = [], {}
-    for accuracy in a.accuracies.split(","):
+    for accuracy in a.accuracies:
         forward, grad, jvp, jac_fwd, jac_rev = programs(accuracy, q0, ts)
         _, t_fwd = B.timed_calls(functools.partial(forward, inertia, omega0), a.repeats)
         (g_i, g_w), t_grad = B.timed_calls(functools.partial(grad, inertia, omega0, weights), a.repeats)

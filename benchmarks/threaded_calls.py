@@ -41,7 +41,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--n", type=int, default=10_000, help="bodies")
     p.add_argument("--accuracies", default="balanced,precise")
     p.add_argument("--rounds", type=int, default=7, help="alternating timed rounds")

@@ -319,11 +319,14 @@ def update_readme(meta, rows, targets, path=README):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--n", type=int, default=10_000, help="number of bodies")
+    p.add_argument("--n", type=B.positive_int, default=10_000, help="number of bodies")
     p.add_argument("--quick", action="store_true", help="fewer sweep points (development)")
-    p.add_argument("--repeats", type=int, default=3, help="timed calls per method after the first")
+    p.add_argument("--repeats", type=B.positive_int, default=3, help="timed calls per method after the first")
     p.add_argument(
-        "--only", default=None, help=f"comma-separated subset of {','.join(B.METHOD_KEYS)},scipy,mujoco"
+        "--only",
+        type=B.names_from((*B.METHOD_KEYS, "scipy", "mujoco")),
+        default=None,
+        help=f"comma-separated subset of {','.join(B.METHOD_KEYS)},scipy,mujoco",
     )
     p.add_argument("--taylor-sensitive", type=int, default=200, help="bodies nearest the separatrix redone")
     p.add_argument("--taylor-random", type=int, default=200, help="random other bodies redone")
@@ -400,7 +403,7 @@ def main(argv=None):
         )
     meta["reference"] = ref_info
 
-    only = None if a.only is None else [k.strip() for k in a.only.split(",") if k.strip()]
+    only = a.only
     keys = None if only is None else [k for k in only if k not in ("scipy", "mujoco")]
     methods = B.standard_methods(scene, "quick" if a.quick else "full", include=keys)
     if (only is None or "scipy" in only) and a.scipy_bodies:
@@ -440,7 +443,8 @@ def main(argv=None):
     write_reports(meta, rows, targets, a.out_prefix, a.no_plot)
     if a.out_prefix == DEFAULT_PREFIX and not a.no_readme and a.only is None and not a.quick:
         update_readme(meta, rows, targets)
-    print(f"total {meta['total_s']:.0f} s; wrote {a.out_prefix}.json/.md/.png", flush=True)
+    written = ".json/.md" if a.no_plot else ".json/.md/.png"
+    print(f"total {meta['total_s']:.0f} s; wrote {a.out_prefix}{written}", flush=True)
 
 
 if __name__ == "__main__":

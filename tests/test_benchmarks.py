@@ -221,3 +221,27 @@ def test_peer_program_samples_the_motion_at_every_time():
     assert sample_cost.errors((moved, q), (reference[..., :3], reference[..., 3:]))[0] == pytest.approx(
         1e-3, rel=1e-2
     )
+
+
+@pytest.mark.parametrize(
+    "script, argv, message",
+    [
+        ("work_precision", ["--only", "bogus"], "argument --only: unknown bogus; choose from fast,"),
+        ("work_precision", ["--only", ","], "argument --only: no name given"),
+        ("work_precision", ["--n", "0"], "argument --n: must be a positive integer, got 0"),
+        ("work_precision", ["--repeats", "0"], "argument --repeats: must be a positive integer, got 0"),
+        ("gradient_cost", ["--accuracies", "bogus"], "argument --accuracies: unknown bogus"),
+        ("gradient_cost", ["--n", "0"], "argument --n: must be a positive integer, got 0"),
+        ("preset_drift", ["--periods", "0"], "argument --periods: must be a positive number, got 0"),
+    ],
+)
+def test_bad_options_are_one_line_usage_errors(script, argv, message, capsys):
+    """They ended in tracebacks from deep in a run ("the batch of bodies is empty", "ts must be
+    strictly increasing"), --only refused scipy and mujoco although its help offered them, and
+    --repeats 0 reported the compiling first call as the median run time."""
+    import importlib
+
+    with pytest.raises(SystemExit) as exit_info:
+        importlib.import_module(script).main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and message in err and "Traceback" not in err

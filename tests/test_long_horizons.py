@@ -101,7 +101,7 @@ def long_runs():
     return inertia, omega, q, ts, runs
 
 
-# Energy-error bounds after 1000 wobble periods (~3e3 s), about 3x what was measured (fast 1.7e-3,
+# Energy-error bounds after 1000 wobble periods (1.04e4 s), about 3x what was measured (fast 1.7e-3,
 # balanced 2.7e-7, precise 1.1e-10, exact 3.4e-16): the same as without the orientation (2.6e-3,
 # 2.8e-7, 1.1e-10), whose equation does not set the step.
 LONG_BOUNDS = {"fast": 5e-3, "balanced": 8e-7, "precise": 3e-10, "exact": 2e-15}
