@@ -875,3 +875,13 @@ def test_a_file_removed_after_writing_does_not_stop_the_summary(tmp_path):
     assert file_size(str(written)) == "2.9 KiB"
     written.unlink()
     assert file_size(str(written)) == "size unknown: No such file or directory"
+
+
+def test_a_drift_below_the_dtype_resolution_says_so(tmp_path):
+    """The Earth in float32 printed its energy and |L| drift as 0.000e+00, which reads as exact
+    conservation; the stored values do not change within float32's resolution."""
+    code, out, err = _run(["simulate", "--scene", "earth", "--dtype", "float32", "--no-plot", "--out", ""])
+    assert code == 0, err
+    for key in ("energy", "angular_momentum_norm"):
+        value = _field(out, f"worst drift {key}")
+        assert value == "0 (below float32's resolution, 1.2e-07)" or float(value) > 0, value

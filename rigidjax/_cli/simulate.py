@@ -277,7 +277,14 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
     ]
     if args.accuracy == "exact":  # no steps to count: the closed form is evaluated at each sample
         lines = [row for row in lines if row[0] not in ("solver steps", "body-steps", "body-steps/s")]
-    lines += [(f"worst drift {key}", f"{value:.3e}") for key, value in summary["worst_drift"].items()]
+    eps = float(np.finfo(plan.dtype).eps)
+    lines += [
+        (
+            f"worst drift {key}",
+            f"{value:.3e}" if value > 0 else f"0 (below {args.dtype}'s resolution, {eps:.1e})",
+        )
+        for key, value in summary["worst_drift"].items()
+    ]
     units = {"omega": "relative to the body's largest |omega|", "orientation": "rad"}
     lines += [
         (f"worst error estimate {key}", f"{w['estimate']:.3e} {units[key]} (body {w['body']:,})")
