@@ -165,7 +165,9 @@ class InertiaFit(eqx.Module):
 
         Each time is predicted from the window it falls in (the first window before
         `segment_starts[0]`): by the closed form, or integrated under the known torque if the fit
-        had one.
+        had one. Under ``jax.jit``, compile ``eqx.filter_jit(fit.predict_omega)`` or a function that
+        calls it (``jax.jit(fit.predict_omega)`` would need to hash the fit's arrays); a fit with a
+        known torque predicts outside ``jit`` only.
 
         **Arguments:**
 
