@@ -111,7 +111,7 @@ def test_near_separatrix_against_30_digit_integration():
 
 def test_symmetric_top_and_period():
     I1, I3, w0 = 2.0, 3.0, np.array([0.3, -0.1, 5.0])
-    ts = np.linspace(0.0, 10.0, 51)
+    ts = np.linspace(0.0, 10.0, 81)  # 81 samples, as test_matches_dop853: its compiled program
     exact = np.asarray(omega_at(jnp.array([I1, I1, I3]), jnp.asarray(w0), jnp.asarray(ts)))
     Omega = (I3 - I1) / I1 * w0[2]
     transverse = (w0[0] + 1j * w0[1]) * np.exp(1j * Omega * ts)
@@ -126,7 +126,7 @@ def test_hairer_lubich_wanner_period_and_half_period_flip():
     omega0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]) / inertia
     period = float(torque_free_period(inertia, omega0))
     assert abs(period - 10.73147) < 5e-6  # the published value, 7 digits
-    ts = jnp.linspace(0.0, 3.0, 7)
+    ts = jnp.linspace(0.0, 3.0, 81)  # 81 samples, as test_matches_dop853: its compiled program
     now = np.asarray(omega_at(inertia, omega0, ts))
     later = np.asarray(omega_at(inertia, omega0, (ts + period)))
     half = np.asarray(omega_at(inertia, omega0, (ts + period / 2)))
@@ -211,8 +211,23 @@ def test_steady_rotations_and_sphere():
         ([1.0, 1.0, 1.0], [1.0, 2.0, 3.0]),
         ([2.0, 2.0, 3.0], [0.6, 0.8, 0.0]),  # in the degenerate plane of a symmetric top
     ]:
-        out = np.asarray(omega_at(jnp.asarray(inertia), jnp.asarray(omega0), jnp.linspace(0.0, 50.0, 11)))
+        # 81 samples, as test_matches_dop853: its compiled program.
+        out = np.asarray(omega_at(jnp.asarray(inertia), jnp.asarray(omega0), jnp.linspace(0.0, 50.0, 81)))
         np.testing.assert_allclose(out, np.broadcast_to(omega0, out.shape), atol=1e-14)
+
+
+def _motion_state(inertia, omega0, q0, t):
+    """omega and q of torque_free_motion side by side, ``(..., 7)``."""
+    omega, q = torque_free_motion(inertia, omega0, q0, t)
+    return jnp.concatenate([omega, q], axis=-1)
+
+
+# d/d(inertia, omega0, t) of _motion_state for _N_BODIES bodies, one time each, in forward and in
+# reverse mode: the derivative tests below share these two programs (the closed form's derivatives
+# take seconds to compile, reverse mode the longer).
+_N_BODIES = 7
+_jacfwd = jax.jit(jax.jacfwd(_motion_state, argnums=(0, 1, 3)))
+_jacrev = jax.jit(jax.jacrev(_motion_state, argnums=(0, 1, 3)))
 
 
 @pytest.mark.parametrize(
@@ -248,17 +263,20 @@ def test_motion_derivatives_at_steady_rotations_are_the_perturbed_motions(inerti
     q0 = np.array([np.cos(0.4), 0.0, np.sin(0.4) * 0.6, np.sin(0.4) * 0.8])
     t = 1.5
 
-    def motion(inertia, omega0):
-        omega, q = torque_free_motion(inertia, omega0, jnp.asarray(q0), jnp.asarray(t))
-        return jnp.concatenate([omega, q])
-
     def reference(inertia, omega0):
         omega, q = dop853_free_body(inertia, omega0, [0.0, t], q0)
         return np.concatenate([omega[-1], q[-1]])
 
     inertia, omega0 = np.asarray(inertia), np.asarray(omega0)
-    forward = jax.jacfwd(motion, argnums=(0, 1))(jnp.asarray(inertia), jnp.asarray(omega0))
-    backward = jax.jacrev(motion, argnums=(0, 1))(jnp.asarray(inertia), jnp.asarray(omega0))
+    # The body in every row of the batch of the reverse-mode test below, at its shapes: the same two
+    # compiled programs (jacfwd, jacrev) serve every case here and that test. Row 0's own block.
+    batch = [np.tile(x, (_N_BODIES, 1)) for x in (inertia, omega0, q0)] + [np.full(_N_BODIES, t)]
+    forward_all, backward_all = (f(*(jnp.asarray(x) for x in batch)) for f in (_jacfwd, _jacrev))
+    forward, backward = ([np.asarray(j)[0, :, 0] for j in jac[:2]] for jac in (forward_all, backward_all))
+    # omega alone: d/d(inertia, omega0) in one program (test_batches_and_gradients runs it too).
+    omega_jacobians = jax.jacfwd(torque_free_omega, argnums=(0, 1))(
+        jnp.asarray(inertia), jnp.asarray(omega0), jnp.asarray(t)
+    )
     h = 1e-5
     for arg, (jac, jac_rev) in enumerate(zip(forward, backward, strict=True)):
         columns = []
@@ -271,9 +289,7 @@ def test_motion_derivatives_at_steady_rotations_are_the_perturbed_motions(inerti
         numeric = np.stack(columns, -1)
         np.testing.assert_allclose(np.asarray(jac), numeric, rtol=0, atol=1e-7)
         np.testing.assert_allclose(np.asarray(jac_rev), np.asarray(jac), rtol=0, atol=1e-14)
-        omega_alone = jax.jacfwd(lambda *x: torque_free_omega(*x, jnp.asarray(t)), argnums=arg)(
-            jnp.asarray(inertia), jnp.asarray(omega0)
-        )
+        omega_alone = omega_jacobians[arg]
         np.testing.assert_allclose(np.asarray(omega_alone), numeric[:3], rtol=0, atol=1e-7)
 
 
@@ -716,8 +732,14 @@ def test_simulate_exact_in_blocks_of_bodies_and_at_two_times(n_times):
     )
     omega_only = rj.simulate(model, rj.State(state.omega), ts, accuracy="exact", chunk_size=4)
     np.testing.assert_allclose(np.asarray(omega_only.omega), np.asarray(whole.omega), rtol=0, atol=1e-14)
+    # The closed form called directly at the seven times in both cases (one compiled program): the two
+    # times are its first and last.
+    seven = jnp.linspace(0.5, 9.5, 7)
+    columns = np.arange(7) if n_times == 7 else np.array([0, 6])
+    np.testing.assert_array_equal(np.asarray(seven - seven[0])[columns], np.asarray(ts - ts[0]))
     omega, q = torque_free_motion(model.inertia[..., None, :], state.omega[..., None, :],
-                                  state.orientation[..., None, :], ts - ts[0])  # fmt: skip
+                                  state.orientation[..., None, :], seven - seven[0])  # fmt: skip
+    omega, q = omega[..., columns, :], q[..., columns, :]
     np.testing.assert_allclose(np.asarray(whole.omega), np.asarray(omega), rtol=0, atol=1e-14)
     np.testing.assert_allclose(np.asarray(whole.orientation), np.asarray(q), rtol=0, atol=1e-14)
     if n_times == 2:
@@ -854,14 +876,9 @@ def test_reverse_mode_matches_forward_mode_and_the_equations_of_motion():
     )
     q0 = random_quaternions(np.random.default_rng(4), len(inertia))
     t = np.array([3.0, 1.0, 2.0, 3.0, 0.5, 2.0, 1.0])
-
-    def state(inertia, omega0, t):
-        omega, q = torque_free_motion(inertia, omega0, jnp.asarray(q0), t)
-        return jnp.concatenate([omega, q], axis=-1)
-
-    args = tuple(jnp.asarray(x) for x in (inertia, omega0, t))
-    forward = jax.jit(jax.jacfwd(state, argnums=(0, 1, 2)))(*args)
-    reverse = jax.jit(jax.jacrev(state, argnums=(0, 1, 2)))(*args)
+    args = tuple(jnp.asarray(x) for x in (inertia, omega0, q0, t))
+    forward = _jacfwd(*args)
+    reverse = _jacrev(*args)
     for name, f, r in zip(("inertia", "omega0", "t"), forward, reverse, strict=True):
         f, r = np.asarray(f), np.asarray(r)
         assert np.all(np.isfinite(r)), name
@@ -871,8 +888,11 @@ def test_reverse_mode_matches_forward_mode_and_the_equations_of_motion():
     for r in reverse:
         assert np.all(np.moveaxis(np.asarray(r), 2, 1)[off_diagonal] == 0)
 
-    values = np.asarray(state(*args))
-    omega, q = values[:, :3], values[:, 3:]
+    # The state by the value tests' program (run_cases: 8 bodies, each at its time in the first of 41
+    # samples; the eighth repeats the first).
+    pad = lambda x: np.concatenate([x, x[:1]])  # noqa: E731
+    omega, q = run_cases(pad(inertia), pad(omega0), pad(q0), np.repeat(pad(t)[:, None], N_TIMES, 1))
+    omega, q = omega[: len(t), 0], q[: len(t), 0]
     I1, I2, I3 = inertia.T
     w1, w2, w3 = omega.T
     euler = np.stack([(I2 - I3) * w2 * w3 / I1, (I3 - I1) * w3 * w1 / I2, (I1 - I2) * w1 * w2 / I3], -1)
