@@ -212,6 +212,19 @@ def _collect(plan: Plan, batch: Batch, b: int, index, traj, derived) -> None:
                 batch.traces["euler"][plot_pos[int(i)]] = euler[row]
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during the block loop, with what the blocks finished before it computed."""
+
+    def __init__(self, batch: Batch, blocks_done: int):
+        super().__init__()
+        self.batch, self.blocks_done = batch, blocks_done
+
+
+def done_bodies(plan: Plan, blocks_done: int) -> np.ndarray:
+    """The indices (ascending) of the bodies of the first ``blocks_done`` blocks."""
+    return np.unique(plan.order[: min(plan.n, blocks_done * plan.block_size)])
+
+
 def simulate_blocks(plan: Plan, args) -> Batch:
     """Every block in turn: simulate (timed), then analyse; a progress line on stderr."""
     batch = _empty_batch(plan, np.dtype(args.save_dtype))
@@ -230,11 +243,16 @@ def simulate_blocks(plan: Plan, args) -> Batch:
 
     show(0, 0.0)
     t_loop = time.perf_counter()
-    for b in range(plan.blocks):
-        t0 = time.perf_counter()
-        index, traj = run_block(plan, args, b, ts)
-        batch.sim_time += time.perf_counter() - t0
-        _collect(plan, batch, b, index, traj, derived)
-        show(b + 1, time.perf_counter() - t_loop)
+    done = 0
+    try:
+        for b in range(plan.blocks):
+            t0 = time.perf_counter()
+            index, traj = run_block(plan, args, b, ts)
+            batch.sim_time += time.perf_counter() - t0
+            _collect(plan, batch, b, index, traj, derived)
+            done = b + 1
+            show(done, time.perf_counter() - t_loop)
+    except KeyboardInterrupt:
+        raise Interrupted(batch, done) from None
     batch.loop_time = time.perf_counter() - t_loop
     return batch

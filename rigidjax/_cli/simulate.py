@@ -30,6 +30,10 @@ The ``.npz`` file (all arrays are NumPy, readable with ``numpy.load`` and no pic
 Samples are stored as float32 by default (``--save-dtype``) and, by default, thinned in time to the
 smallest stride that keeps the stored trajectories under 32 MiB (``--save-every``); all analysis
 (invariants, maxima, periods) uses every sample at the simulation dtype before thinning.
+
+Ctrl-C ends the run with exit status 130 and leaves no file half-written; the bodies of the blocks
+finished before it are kept in ``<out>.partial.npz`` (the same arrays for those bodies, their
+indices in the scene in ``body``, and ``blocks_done`` of ``blocks``).
 """
 
 from __future__ import annotations
@@ -48,7 +52,7 @@ import numpy as np
 
 import rigidjax as rj
 
-from .batch import Batch, Plan, plan_run, run_block, simulate_blocks
+from .batch import Batch, Interrupted, Plan, done_bodies, plan_run, run_block, simulate_blocks
 from .common import (
     FIGURE_EXTENSIONS,
     DefaultsHelpFormatter,
@@ -145,6 +149,44 @@ def _write_npz(plan: Plan, batch: Batch, args, summary: dict, path: str) -> None
         summary_json=np.array(json.dumps(summary)),
     )
     write_npz(path, arrays)
+
+
+def partial_path(out: str) -> str:
+    """Where an interrupted run keeps the bodies it finished: ``<out without .npz>.partial.npz``."""
+    return os.path.splitext(out)[0] + ".partial.npz"
+
+
+def _write_partial(plan: Plan, batch: Batch, blocks_done: int, args) -> None:
+    """The stored samples and per-body results of the bodies of the finished blocks, with their
+    indices in the scene (``body``), beside ``--out``; one line on stderr says where."""
+    bodies = done_bodies(plan, blocks_done)
+    arrays = {"ts": plan.ts[plan.keep], "body": bodies, "omega0": plan.scene.omega0[bodies]}
+    arrays.update({key: value[bodies] for key, value in batch.store.items()})
+    arrays.update({key: value[bodies] for key, value in batch.results.items()})
+    if plan.has_q:
+        arrays["orientation0"] = plan.scene.orientation0[bodies]
+    arrays.update(block_params(plan.scene.params, bodies, plan.n))
+    arrays.update(
+        scene=np.array(args.scene),
+        dtype=np.array(args.dtype),
+        accuracy=np.array(args.accuracy),
+        seed=np.array(args.seed),
+        save_every=np.array(plan.save_every),
+        blocks_done=np.array(blocks_done),
+        blocks=np.array(plan.blocks),
+    )
+    path = partial_path(args.out)
+    try:
+        write_npz(path, arrays)
+    except OSError as error:
+        print(f"rigidjax simulate: could not keep the finished bodies in {path}: {error}", file=sys.stderr)
+        return
+    print(
+        f"rigidjax simulate: the {len(bodies):,} bodies of the {blocks_done} finished block"
+        f"{'s' if blocks_done > 1 else ''} (of {plan.blocks}) are in {path} (their indices in 'body').",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def _matplotlib_or_say_why() -> bool:
@@ -363,6 +405,10 @@ def run(args) -> int:
         batch = simulate_blocks(plan, args)
     except ValueError as error:
         raise UsageError(f"--duration {plan.duration:g}: {error}") from None
+    except Interrupted as stop:
+        if args.out and stop.blocks_done:  # what the finished blocks computed is kept
+            _write_partial(plan, stop.batch, stop.blocks_done, args)
+        raise KeyboardInterrupt from None
     summary, scene_rows = _summary(plan, batch, args, compile_time)
     # A write that fails after the run goes to the temporary directory instead (and exit status 1).
     out_files, misplaced = [], False
