@@ -48,10 +48,12 @@ def main(argv=None):
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--periods", type=B.positive_float, default=1e4)
+    parser.add_argument("--periods", type=float, default=1e4)
     parser.add_argument("--samples", type=B.positive_int, default=2001)
     parser.add_argument("--out", default="benchmarks/results/preset_drift.json")
     args = parser.parse_args(argv)
+    if not 0 < args.periods < float("inf"):
+        parser.error(f"argument --periods: must be a positive number, got {args.periods:g}")
     period = float(rj.torque_free_period(INERTIA, OMEGA0))
     ts = jnp.linspace(0.0, args.periods * period, args.samples)
     omega_ref, q_ref = (np.asarray(x) for x in rj.torque_free_motion(INERTIA, OMEGA0, Q0, ts))

@@ -76,16 +76,6 @@ def check_last_two_axes(x, name: str):
         raise ValueError(f"{name} must have shape (..., 3, 3), got shape {tuple(x.shape)}.")
 
 
-def broadcasts_to(shape, target) -> bool:
-    """Whether an array of ``shape`` broadcasts to ``target`` without changing it (a value returned
-    for one body, checked against that body's shape: a scalar or a batch would otherwise be
-    broadcast silently)."""
-    try:
-        return tuple(np.broadcast_shapes(tuple(shape), tuple(target))) == tuple(target)
-    except ValueError:
-        return False
-
-
 def check_batch_shapes(where: str, *arrays) -> tuple[int, ...]:
     """The broadcast batch shape of ``arrays``, ``(name, array, core)`` triples whose last ``core``
     axes are not batch axes (0 for a scalar, 1 for a vector, 2 for a tensor; ``array`` may be None).

@@ -128,6 +128,17 @@ def _per_body_worst(plan: Plan, batch: Batch) -> np.ndarray:
     return np.max(np.stack(drifts, -1), axis=-1) if drifts else np.zeros(plan.n)
 
 
+def _run_settings(plan: Plan, args) -> dict[str, np.ndarray]:
+    """The settings a stored run was made with."""
+    return {
+        "scene": np.array(args.scene),
+        "dtype": np.array(args.dtype),
+        "accuracy": np.array(args.accuracy),
+        "seed": np.array(args.seed),
+        "save_every": np.array(plan.save_every),
+    }
+
+
 def _write_npz(plan: Plan, batch: Batch, args, summary: dict, path: str) -> None:
     arrays = {
         "ts": plan.ts[plan.keep],
@@ -140,14 +151,7 @@ def _write_npz(plan: Plan, batch: Batch, args, summary: dict, path: str) -> None
         arrays["orientation0"] = plan.scene.orientation0
     arrays.update(plan.scene.params)
     arrays.update({k: v for k, v in batch.results.items() if k != "success"})
-    arrays.update(
-        scene=np.array(args.scene),
-        dtype=np.array(args.dtype),
-        accuracy=np.array(args.accuracy),
-        seed=np.array(args.seed),
-        save_every=np.array(plan.save_every),
-        summary_json=np.array(json.dumps(summary)),
-    )
+    arrays.update(_run_settings(plan, args), summary_json=np.array(json.dumps(summary)))
     write_npz(path, arrays)
 
 
@@ -166,15 +170,7 @@ def _write_partial(plan: Plan, batch: Batch, blocks_done: int, args) -> None:
     if plan.has_q:
         arrays["orientation0"] = plan.scene.orientation0[bodies]
     arrays.update(block_params(plan.scene.params, bodies, plan.n))
-    arrays.update(
-        scene=np.array(args.scene),
-        dtype=np.array(args.dtype),
-        accuracy=np.array(args.accuracy),
-        seed=np.array(args.seed),
-        save_every=np.array(plan.save_every),
-        blocks_done=np.array(blocks_done),
-        blocks=np.array(plan.blocks),
-    )
+    arrays.update(_run_settings(plan, args), blocks_done=np.array(blocks_done), blocks=np.array(plan.blocks))
     path = partial_path(args.out)
     try:
         write_npz(path, arrays)

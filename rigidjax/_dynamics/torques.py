@@ -13,9 +13,10 @@ from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import as_float_array, broadcasts_to, check_last_axis
+from .._checks import as_float_array, check_last_axis
 from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
 from .._repr import module_repr
 from .equations import _components, _cross_components
@@ -253,6 +254,16 @@ class GravityTorque(AbstractTorque):
         dtype = state.omega.dtype
         weight = jnp.asarray(self.mass, dtype) * jnp.asarray(self.gravity, dtype)
         return gravity_torque(state.orientation, weight[..., None] * jnp.asarray(self.com, dtype))
+
+
+def broadcasts_to(shape, target) -> bool:
+    """Whether an array of ``shape`` broadcasts to ``target`` without changing it (a value returned
+    for one body, checked against that body's shape: a scalar or a batch would otherwise be
+    broadcast silently)."""
+    try:
+        return tuple(np.broadcast_shapes(tuple(shape), tuple(target))) == tuple(target)
+    except ValueError:
+        return False
 
 
 def _torque_name(i: int, torque) -> str:

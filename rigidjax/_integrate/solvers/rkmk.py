@@ -30,7 +30,6 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..._checks import (
     as_float_array,
-    broadcasts_to,
     check_batch_shapes,
     check_finite,
     check_last_axis,
@@ -38,6 +37,7 @@ from ..._checks import (
     common_float,
     error_if,
 )
+from ..._dynamics.torques import broadcasts_to
 from ..._kinematics.quaternion import _quat_exp, _quat_kinematics, _quat_multiply
 
 # ---------------------------------------------------------------------------------------------
