@@ -171,11 +171,8 @@ def _write_partial(plan: Plan, batch: Batch, blocks_done: int, args) -> None:
         arrays["orientation0"] = plan.scene.orientation0[bodies]
     arrays.update(block_params(plan.scene.params, bodies, plan.n))
     arrays.update(_run_settings(plan, args), blocks_done=np.array(blocks_done), blocks=np.array(plan.blocks))
-    path = partial_path(args.out)
-    try:
-        write_npz(path, arrays)
-    except OSError as error:
-        print(f"rigidjax simulate: could not keep the finished bodies in {path}: {error}", file=sys.stderr)
+    path = write_or_rescue("simulate", "--out", partial_path(args.out), lambda p: write_npz(p, arrays))
+    if path is None:
         return
     print(
         f"rigidjax simulate: the {len(bodies):,} bodies of the {blocks_done} finished block"
