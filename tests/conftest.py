@@ -133,7 +133,8 @@ def pytest_sessionfinish(session, exitstatus):
 
 
 # Seconds each of the longest units of work took (one cold run on 2 cores): a unit is a test file,
-# except that each notebook's run is a unit of its own (see the scheduler below). The workers take
+# except that each notebook's run and each page's examples are units of their own (see the scheduler
+# below). The workers take
 # the units longest first, which keeps one of them from running alone at the end; the rest follow
 # in collection order.
 _UNIT_SECONDS = {
@@ -164,9 +165,14 @@ _UNIT_SECONDS = {
 }
 
 
-def _notebook_run(nodeid: str) -> str | None:
-    """The notebook a ``test_notebook_runs`` item executes, or None for any other test."""
-    match = re.fullmatch(r"[^:]*test_notebooks\.py::test_notebook_runs\[(.+)\]", nodeid)
+def _own_unit(nodeid: str) -> str | None:
+    """The notebook or documentation page a ``test_notebook_runs`` or ``test_examples_run`` item
+    executes, or None for any other test."""
+    match = re.fullmatch(
+        r"[^:]*(?:test_notebooks\.py::test_notebook_runs|test_doc_examples\.py::test_examples_run)"
+        r"\[(.+)\]",
+        nodeid,
+    )
     return match.group(1) if match else None
 
 
@@ -175,7 +181,7 @@ def pytest_collection_modifyitems(config, items):
     functions and fixtures are compiled once; the longest units go first."""
 
     def rank(item):
-        return -_UNIT_SECONDS.get(_notebook_run(item.nodeid) or item.path.stem, 0)
+        return -_UNIT_SECONDS.get(_own_unit(item.nodeid) or item.path.stem, 0)
 
     items.sort(key=rank)  # stable: the order within each file and among the others is kept
 
@@ -183,9 +189,10 @@ def pytest_collection_modifyitems(config, items):
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """Whole test files to each worker (pytest-xdist's ``loadfile``), except that each notebook's
-    run is a unit of its own: a notebook runs in its own kernel and shares no compiled program with
-    its file, and the notebooks together take longer than any test file, so running them one after
-    another on one worker left the other idle at the end. Units are handed out in collection order
+    run and each documentation page's examples are units of their own: they run in their own
+    processes and share no compiled program with their file, and the notebooks together take longer
+    than any test file, so running them one after another on one worker left the other idle at the
+    end. Units are handed out in collection order
     (``--no-loadscope-reorder``)."""
     if config.getvalue("dist") != "loadfile":
         return None  # an explicit other --dist keeps pytest-xdist's own scheduler
@@ -193,7 +200,7 @@ def pytest_xdist_make_scheduler(config, log):
 
     class FilesAndNotebooks(LoadFileScheduling):
         def _split_scope(self, nodeid):
-            notebook = _notebook_run(nodeid)
-            return nodeid if notebook else super()._split_scope(nodeid)
+            unit = _own_unit(nodeid)
+            return nodeid if unit else super()._split_scope(nodeid)
 
     return FilesAndNotebooks(config, log)
