@@ -211,6 +211,58 @@ def test_invariant_drift_of_a_large_batch_is_the_worst_body(free):
     assert np.max(_line(ax, "energy (worst of 10 bodies)").get_ydata()) == pytest.approx(max(worst, floor))
 
 
+def _with_failed_body(free, copies=1, failed_from=20):
+    """``free`` repeated ``copies`` times, the last body failed from sample ``failed_from`` on (NaN
+    rows and success False, as ``simulate(..., throw=False)`` leaves a body that failed)."""
+    omega = np.concatenate([np.asarray(free.omega)] * copies)
+    orientation = np.concatenate([np.asarray(free.orientation)] * copies)
+    omega[-1, failed_from:] = np.nan
+    orientation[-1, failed_from:] = np.nan
+    success = np.ones(len(omega), bool)
+    success[-1] = False
+    return rj.Trajectory(
+        free.ts, jnp.asarray(omega), jnp.asarray(orientation), free.model, jnp.asarray(success), {}
+    )
+
+
+def test_failed_bodies_are_named_not_hidden(free, tmp_path):
+    """A failed body's NaN rows: the worst-case drift of a large batch drew the healthy bodies only
+    under a label that counted every body, poinsot called a body failed from its first sample one
+    that "does not rotate", and animate failed inside matplotlib on the NaN samples."""
+    many = _with_failed_body(free, copies=5)  # 10 bodies, the last failed
+    [ax] = rplot.invariant_drift(many).axes
+    assert [line.get_label() for line in ax.get_lines()] == [
+        f"{q} (worst of 9 bodies; 1 failed, not drawn)" for q in ("energy", "|L|", "space-frame L")
+    ]
+    [ax] = rplot.invariant_drift(_with_failed_body(free)).axes
+    assert "energy, body 1 (failed: drawn until it did)" in [line.get_label() for line in ax.get_lines()]
+    with pytest.raises(ValueError, match="poinsot: body 1 failed from its first sample"):
+        rplot.poinsot(_with_failed_body(free, failed_from=0), body=1)
+    path = rplot.animate(_with_failed_body(free), tmp_path / "failed.gif", bodies=(0, 1), frames=8)
+    with Image.open(path) as gif:
+        assert gif.n_frames == 8
+    blank = rplot.animate(_with_failed_body(free, failed_from=0), tmp_path / "blank.gif", bodies=1, frames=3)
+    with Image.open(blank) as gif:
+        assert gif.n_frames == 3
+
+
+def test_poinsot_axes_hold_the_whole_energy_ellipsoid():
+    """The limits came from the polhode alone, so a polhode about the major axis (the ellipsoid's
+    shortest) left the ellipsoid sticking out of the box. Reference: the ellipsoid
+    omega . I omega = 2E has semi-axes sqrt(2E / I_k)."""
+    inertia, omega0 = np.array([3.0, 2.5, 1.0]), np.array([5.0, 0.1, 0.1])  # near the major axis
+    traj = rj.simulate(
+        rj.FreeBody(jnp.asarray(inertia)),
+        rj.State(jnp.asarray(omega0), jnp.array([1.0, 0.0, 0.0, 0.0])),
+        jnp.linspace(0, 2, 20),
+        accuracy="exact",
+    )
+    ax = rplot.poinsot(traj).axes[0]
+    semi_axes = np.sqrt(omega0 @ (inertia * omega0) / inertia)
+    for (low, high), semi_axis in zip([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()], semi_axes, strict=True):
+        assert low <= -semi_axis and high >= semi_axis
+
+
 # ---------------------------------------------------------------------------------------------
 # Errors name the argument
 
@@ -283,6 +335,15 @@ def test_animate_checks_its_arguments_before_drawing(free, tmp_path, monkeypatch
         rplot.animate(free, tmp_path / "a.gif", frames=0)
     with pytest.raises(ValueError, match="bodies: give 1 to 6"):
         rplot.animate(free, tmp_path / "a.gif", bodies=[0] * 7)
+    # dpi reached Pillow unchecked (an IndexError after every frame was drawn); fps=True was one
+    # frame per second; a path of None failed in os.fspath without naming the argument.
+    for dpi in (0, -5, "x", float("nan")):
+        with pytest.raises(ValueError, match="dpi must be a positive number"):
+            rplot.animate(free, tmp_path / "a.gif", dpi=dpi)
+    with pytest.raises(ValueError, match="fps must be a positive number, got True"):
+        rplot.animate(free, tmp_path / "a.gif", fps=True)
+    with pytest.raises(TypeError, match="path must be a file path .*got NoneType"):
+        rplot.animate(free, None)
     monkeypatch.setattr(
         importlib.import_module("rigidjax._plot.animation"), "ffmpeg_available", lambda: False
     )

@@ -28,7 +28,13 @@ def ffmpeg_available() -> bool:
 
 def check_animation_path(path, name: str = "path") -> str:
     """``path`` as a string after checking its extension and that ffmpeg is there for ``.mp4``."""
-    path = os.fsdecode(os.fspath(path))
+    try:
+        path = os.fsdecode(os.fspath(path))
+    except TypeError:
+        raise TypeError(
+            f"{name} must be a file path (str or os.PathLike) ending in .gif or .mp4, "
+            f"got {type(path).__name__}."
+        ) from None
     extension = os.path.splitext(path)[1].lower()
     if extension not in EXTENSIONS:
         raise ValueError(
@@ -40,6 +46,10 @@ def check_animation_path(path, name: str = "path") -> str:
             "or write a .gif instead."
         )
     return path
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float | np.number) and not isinstance(value, bool | np.bool_)
 
 
 def _polyline(segments: list[np.ndarray]) -> np.ndarray:
@@ -101,11 +111,15 @@ def animate(trajectory, path, bodies=(0,), *, fps=20, frames=60, dpi=80) -> str:
     - `frames`: the largest number of frames; the samples are thinned to at most this many.
     - `dpi`: resolution of the frames (dots per inch of a 4-inch-high panel).
 
+    A body that failed (``trajectory.success`` False) is drawn until its first failed sample and
+    left blank after it; its panel's title says so.
+
     **Returns:**
 
     `path`, as a string. Raises ``ValueError`` naming `path` for another extension, `bodies` for
     an index outside the batch or more than 6 bodies, `trajectory` when it has no orientations,
-    and `frames` or `fps` when not positive; ``RuntimeError`` for ``.mp4`` without ffmpeg;
+    and `frames`, `fps` or `dpi` when not positive; ``TypeError`` naming `path` when it is not a
+    path; ``RuntimeError`` for ``.mp4`` without ffmpeg;
     ``FileNotFoundError`` or ``PermissionError`` when `path`'s directory is missing or not
     writable. All before any frame is drawn.
     """
@@ -119,8 +133,11 @@ def animate(trajectory, path, bodies=(0,), *, fps=20, frames=60, dpi=80) -> str:
         raise ValueError(f"bodies: give 1 to {MAX_BODIES} body indices, got {len(chosen)}.")
     if not is_positive_int(frames):
         raise ValueError(f"frames must be a positive integer, got {frames!r}.")
-    if not (isinstance(fps, int | float | np.number) and math.isfinite(fps) and fps > 0):
+    if not (_is_number(fps) and math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps!r}.")
+    if not (_is_number(dpi) and math.isfinite(dpi) and dpi > 0):
+        raise ValueError(f"dpi must be a positive number, got {dpi!r}.")
+    success = data.per_body(trajectory.success, trajectory, 0)
 
     t = data.ts(trajectory)
     picks = np.unique(np.round(np.linspace(0, len(t) - 1, min(int(frames), len(t)))).astype(int))
@@ -133,11 +150,12 @@ def animate(trajectory, path, bodies=(0,), *, fps=20, frames=60, dpi=80) -> str:
         ax = fig.add_subplot(rows, columns, k + 1, projection="3d")
         ax.set(xlim=(-1.5, 1.5), ylim=(-1.5, 1.5), zlim=(-1.5, 1.5), xlabel="X", ylabel="Y", zlabel="Z")
         ax.set_box_aspect((1, 1, 1))
-        ax.set_title(f"body {i}", fontsize=9)
+        ax.set_title(f"body {i}" if success[i] else f"body {i} (failed: drawn until it did)", fontsize=9)
         matrices = data.rotation_matrices(data.orientation(trajectory, i)[picks])
         omega = np.einsum("tij,tj->ti", matrices, data.omega(trajectory, i)[picks].astype(np.float64))
-        speed = np.nanmax(np.linalg.norm(omega, axis=-1))
-        omega = omega * (1.4 / speed if np.isfinite(speed) and speed > 0 else 0.0)
+        speeds = np.linalg.norm(omega, axis=-1)
+        speed = speeds[np.isfinite(speeds)].max(initial=0.0)
+        omega = omega * (1.4 / speed if speed > 0 else 0.0)
         outline, length = _shape(trajectory, i)
         if isinstance(trajectory.model, HeavyTop):
             ax.plot([0, 0], [0, 0], [-1.5, 1.5], color="0.5", lw=0.8, ls="--")
@@ -150,10 +168,12 @@ def animate(trajectory, path, bodies=(0,), *, fps=20, frames=60, dpi=80) -> str:
                    shape_line=shape_line, axis_lines=axis_lines, omega_line=omega_line):  # fmt: skip
             rotated = outline @ matrices[f].T
             shape_line.set_data_3d(rotated[:, 0], rotated[:, 1], rotated[:, 2])
+            # Arrays, not lists: a failed body's NaN samples are then left blank (matplotlib masks
+            # NaN in arrays; in a list it fails on them).
             for j, line in enumerate(axis_lines):
                 tip = length * matrices[f][:, j]
-                line.set_data_3d([0, tip[0]], [0, tip[1]], [0, tip[2]])
-            omega_line.set_data_3d([0, omega[f, 0]], [0, omega[f, 1]], [0, omega[f, 2]])
+                line.set_data_3d(*np.stack([np.zeros(3), tip], axis=1))
+            omega_line.set_data_3d(*np.stack([np.zeros(3), omega[f]], axis=1))
 
         updates.append(update)
 

@@ -95,6 +95,11 @@ def poinsot(trajectory, body=0, *, fig=None):
     inertia = data.inertia(trajectory, i)
     two_energy = 2 * data.per_body(trajectory.kinetic_energy(), trajectory, 1)[i][0]
     momentum = data.per_body(trajectory.space_angular_momentum(), trajectory, 2)[i][0]
+    if not np.all(np.isfinite(momentum)):
+        raise ValueError(
+            f"poinsot: body {i} failed from its first sample (trajectory.success is False and its "
+            "state is not finite): there is no motion to draw."
+        )
     if not np.linalg.norm(momentum) > 0:
         raise ValueError(
             f"poinsot: body {i} does not rotate (angular momentum {np.linalg.norm(momentum):.3g}): "
@@ -106,10 +111,11 @@ def poinsot(trajectory, body=0, *, fig=None):
 
     fig = _new_figure(fig, (11, 5))
     ax = fig.add_subplot(1, 2, 1, projection="3d")
-    ax.plot_wireframe(*_energy_ellipsoid(inertia, two_energy), color="0.6", lw=0.3, alpha=0.5)
+    ellipsoid = _energy_ellipsoid(inertia, two_energy)
+    ax.plot_wireframe(*ellipsoid, color="0.6", lw=0.3, alpha=0.5)
     ax.plot(omega[:, 0], omega[:, 1], omega[:, 2], color="C3", lw=1.5, label="polhode")
     ax.scatter(*omega[0], color="C3", s=15)
-    _equal_3d(ax, omega)
+    _equal_3d(ax, np.stack(ellipsoid, axis=-1))  # the polhode lies on the ellipsoid
     ax.set(xlabel="omega_1 (rad/s)", ylabel="omega_2 (rad/s)", zlabel="omega_3 (rad/s)")
     ax.set_title("Polhode on the energy ellipsoid (body frame)" + _body_label(trajectory, i))
 
@@ -276,7 +282,8 @@ def invariant_drift(trajectory, bodies=None, *, ax=None):
     - `trajectory`: a :class:`rigidjax.Trajectory`.
     - `bodies`: the bodies to draw, indices into the flattened batch; by default every body, each
       in its own lines when there are at most 8, otherwise the worst over all bodies at each
-      sample.
+      sample. Bodies that failed (``trajectory.success`` False) are left out of the worst case, and
+      its label counts them; drawn by index, a failed body's lines end where it failed.
     - `ax`: a matplotlib Axes to draw into; a new figure by default.
 
     **Returns:**
@@ -306,13 +313,23 @@ def invariant_drift(trajectory, bodies=None, *, ax=None):
         fig, ax = plt.subplots(figsize=(8, 4.5))
     elif not isinstance(ax, Axes):
         raise TypeError(f"ax must be a matplotlib Axes (or None for a new figure), got {type(ax).__name__}")
+    success = data.per_body(trajectory.success, trajectory, 0)
+    failed = int(np.sum(~success))
     for k, (name, values) in enumerate(series.items()):
         if chosen is None:
-            ax.plot(t, np.maximum(np.nanmax(values, axis=0), floor), color=f"C{k}", lw=1.0,
-                    label=f"{name} (worst of {n} bodies)")  # fmt: skip
+            # A failed body's NaN rows would hide in nanmax: it is counted apart, and drawn by index.
+            drawn = n - failed
+            counted = f"worst of {drawn} {'body' if drawn == 1 else 'bodies'}"
+            counted += f"; {failed} failed, not drawn" if failed else ""
+            if failed < n:
+                worst = np.nanmax(values[success], axis=0)
+                ax.plot(t, np.maximum(worst, floor), color=f"C{k}", lw=1.0, label=f"{name} ({counted})")
+            else:
+                ax.plot([], [], color=f"C{k}", label=f"{name} (all {n} bodies failed)")
             continue
         for j, i in enumerate(chosen):
             label = name if len(chosen) == 1 and n == 1 else f"{name}, body {i}"
+            label += "" if success[i] else " (failed: drawn until it did)"
             ax.plot(t, np.maximum(values[i], floor), color=f"C{k}", lw=1.0, alpha=1.0 - 0.6 * j / len(chosen),
                     ls=("-", "--", ":", "-.")[j % 4], label=label)  # fmt: skip
     ax.set(yscale="log", xlabel="t (s)", ylabel="relative drift", title="Drift of the conserved quantities")
