@@ -558,7 +558,11 @@ def test_save_every_beyond_the_samples_is_an_error(tmp_path, monkeypatch):
     monkeypatch.setattr(cli_simulate, "run_block", _fail_if_run)
     code, out, err = _run(["simulate", "-n", "3", "--samples", "200", "--save-every", "500"])
     _assert_one_line_error(
-        code, out, err, "simulate", "--save-every 500 would store only the first and the last of the 200"
+        code,
+        out,
+        err,
+        "simulate",
+        "--save-every 500 is not below the number of samples (200); give at most 199",
     )
     assert list(tmp_path.iterdir()) == []
 

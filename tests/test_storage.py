@@ -359,14 +359,19 @@ def test_files_whose_arrays_do_not_fit_together(tmp_path, without_runtime_typech
     path = tmp_path / "t.npz"
     traj = _hand_made(rj.FreeBody(jnp.asarray([1.0, 2.0, 3.0])))
     T = traj.ts.shape[0]
-    damaged = {
-        "omega": (np.asarray(traj.omega)[..., :-1, :], rf"omega should have shape \(\.\.\., {T}, 3\)"),
-        "orientation": (6.0 * np.asarray(traj.orientation), "not unit quaternions"),
-        "success": (np.ones(7, bool), "success should be booleans of shape"),
-        "ts": (np.asarray(traj.ts)[::-1], "strictly increasing"),
-        "model__inertia": (np.ones((7, 3)), "model's bodies do not broadcast"),
-    }
-    for key, (value, message) in damaged.items():
+    damaged = [
+        ("omega", np.asarray(traj.omega)[..., :-1, :], rf"omega should have shape \(\.\.\., {T}, 3\)"),
+        ("orientation", 6.0 * np.asarray(traj.orientation), "not unit quaternions"),
+        ("success", np.ones(7, bool), "success should be booleans of shape"),
+        ("ts", np.asarray(traj.ts)[::-1], "strictly increasing"),
+        ("model__inertia", np.ones((7, 3)), "model's bodies do not broadcast"),
+        # A string where a number goes was a raw JAX TypeError without the file's name; a float32
+        # ts beside a float64 omega, or a NaN omega marked successful, loaded silently.
+        ("model__inertia", np.array("1.0"), "'model/inertia' should hold numbers, got dtype <U3"),
+        ("ts", np.asarray(traj.ts, np.float32), r"share omega's dtype \(float64\): ts is float32"),
+        ("omega", np.full(traj.omega.shape, np.nan), "a body marked successful has non-finite omega"),
+    ]
+    for key, value, message in damaged:
         traj.save(path)
         _rewrite(path, **{key: value})
         with pytest.raises(ValueError, match="t.npz.*" + message):

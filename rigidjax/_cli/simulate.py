@@ -381,8 +381,9 @@ def run(args) -> int:
         )
     if args.out and args.save_every is not None and plan.save_every >= plan.samples:
         raise UsageError(
-            f"--save-every {plan.save_every} would store only the first and the last of the "
-            f"{plan.samples} samples; give at most {plan.samples - 1} (or --out '' to store nothing)."
+            f"--save-every {plan.save_every} is not below the number of samples ({plan.samples}); give "
+            f"at most {plan.samples - 1}, which stores the first and the last sample only (or --out '' to "
+            "store nothing)."
         )
     info(
         args,

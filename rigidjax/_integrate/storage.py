@@ -330,6 +330,8 @@ class _Decoder:
 
     def array(self, key: str):
         a = self.raw(key)
+        if a.dtype.kind not in "biufc":
+            raise self.fail(f"{key!r} should hold numbers, got dtype {a.dtype}")
         x = jnp.asarray(a)
         if x.dtype != a.dtype:
             raise ValueError(
@@ -460,6 +462,14 @@ def _check_consistent(fail: Callable[[str], Exception], arrays: dict[str, np.nda
         raise fail(f"the model's bodies do not broadcast to the {batch} bodies of omega")
     if not (np.all(np.isfinite(ts)) and np.all(np.diff(ts) > 0)):
         raise fail("ts should be finite and strictly increasing")
+    pairs = [("ts", ts)] + ([("orientation", q)] if has_q else [])
+    mixed = [f"{name} is {a.dtype}" for name, a in pairs if a.dtype != omega.dtype]
+    if mixed:
+        raise fail(f"its arrays should share omega's dtype ({omega.dtype}): {', '.join(mixed)}")
+    with np.errstate(invalid="ignore"):
+        finite = np.all(np.isfinite(omega), axis=(-2, -1))
+    if np.any(success & ~finite):
+        raise fail("a body marked successful has non-finite omega (a failed body's success is False)")
     if has_q:
         with np.errstate(invalid="ignore"):
             off = (
