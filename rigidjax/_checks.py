@@ -460,8 +460,8 @@ def _asymmetric_message(name: str) -> str:
     )
 
 
-@compiled_when_eager(static_argnames=("name",))
-def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
+@compiled_when_eager(static_argnames=("name", "tensor"))
+def check_inertia(inertia: Inertia, *, name: str = "inertia", tensor: bool | None = None) -> Inertia:
     """Returns ``inertia`` (as a JAX float array) with a run-time check that it is physical.
 
     The checks are those of :func:`is_physical_inertia`. The returned array is wrapped in
@@ -469,11 +469,14 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
     is used. On failure the error message names ``name`` and the problem (non-finite entries, a
     non-symmetric tensor, non-positive moments, or a violated triangle inequality); across a batch the
     most fundamental problem present is reported. Raises ``ValueError`` while tracing for shapes other
-    than ``(..., 3)`` and ``(..., 3, 3)``.
+    than ``(..., 3)`` and ``(..., 3, 3)``. ``tensor``: whether the trailing axes are a tensor (None:
+    a trailing ``(3, 3)`` is one; a scene knows the form of its own inertia).
     """
     inertia = as_float_array(inertia, name)
-    tensor = _check_inertia_shape(inertia, name)
-    code = _inertia_failure(inertia)
+    shape_says = _check_inertia_shape(inertia, name)
+    tensor = shape_says if tensor is None else tensor
+    # Principal moments of shape (..., 3, 3): an axis before them keeps them from reading as tensors.
+    code = _inertia_failure(inertia if tensor == shape_says else inertia[..., None, :])
     what = "tensor" if tensor else "principal moments"
     problems = [
         "",
@@ -492,7 +495,7 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia") -> Inertia:
         f"{name} ({what}) contains NaN or infinite values.",
     ]
     index = jnp.max(code, initial=_OK)  # an empty batch has nothing to report
-    if tensor and inertia.ndim == 2:
+    if tensor and shape_says and inertia.ndim == 2:
         # A (3, 3) array is ambiguous: one tensor, or the principal moments of three bodies (three
         # identical spheres even give a symmetric one). It is read as a tensor; when that tensor is
         # not physical but each row is a valid set of moments, say how to pass a batch of three.
@@ -606,11 +609,11 @@ def check_state(omega0, q0, where: str):
     return omega0, q0
 
 
-def check_model_field(label: str, value, where: str):
-    """Run-time checks of one per-body array of a scene: a physical ``inertia``, finite values,
-    positive masses."""
+def check_model_field(label: str, value, where: str, core: int | None = None):
+    """Run-time checks of one per-body array of a scene: a physical ``inertia`` (``core`` its
+    per-body ndim, None: from its shape), finite values, positive masses."""
     if label == "inertia":
-        return check_inertia(value, name=f"{where}: inertia")
+        return check_inertia(value, name=f"{where}: inertia", tensor=None if core is None else core == 2)
     value = error_if(value, ~jnp.isfinite(value), f"{where}: model field {label!r} contains NaN or inf.")
     if label.split(".")[-1] == "mass":
         value = error_if(value, value <= 0, f"{where}: model field {label!r} must be positive (kg).")
@@ -622,7 +625,7 @@ def check_model(model, where: str):
     leaves, rules = model.body_leaves(), model.leaf_rules()
     checked = []
     for leaf in leaves:
-        value = check_model_field(leaf.label, leaf.get(model), where)
+        value = check_model_field(leaf.label, leaf.get(model), where, leaf.core)
         if leaf.label in rules:
             bad, rule = rules[leaf.label]
             value = error_if(value, bad(value), f"{where}: model field {leaf.label!r} {rule}.")

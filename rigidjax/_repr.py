@@ -94,7 +94,7 @@ def summarize(x, digits: int = 6) -> str:
 
 def dataclass_fields(obj) -> list:
     """``(name, value)`` of each field of a dataclass (an equinox module), in declaration order."""
-    return [(f.name, getattr(obj, f.name, None)) for f in dataclasses.fields(obj)]
+    return [(f.name, getattr(obj, f.name, None)) for f in dataclasses.fields(obj) if f.repr]
 
 
 def fields_repr(name: str, fields, digits: int = 6) -> str:

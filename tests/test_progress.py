@@ -210,6 +210,76 @@ def test_progress_with_faults_throw_false(threads, count):
     _assert_same(one_program, traj)
 
 
+def _alone(model, state0, i, **options):
+    """Body ``i`` of a six-body scene simulated by itself."""
+    one = jax.tree.map(lambda x: x[i] if jnp.ndim(x) and jnp.shape(x)[0] == N else x, model)
+    return rj.simulate(
+        one,
+        rj.State(state0.omega[i], None if state0.orientation is None else state0.orientation[i]),
+        TS,
+        **options,
+    )
+
+
+@pytest.mark.parametrize("scene", ["free", "gyrostat", "free exact", "heavy top exact"])
+def test_blocks_of_three_bodies_keep_their_principal_moments(scene, threads):
+    """Reference: each body simulated by itself. A block of three bodies (six bodies, chunks of
+    three, one block per report) rebuilt its scene from inertia of shape (3, 3), which the scene read
+    as one inertia tensor: every body of the batch came out wrong, marked successful."""
+    rng = np.random.default_rng(1)
+    inertia = jnp.asarray(rng.uniform(2.0, 3.0, (N, 3)))
+    omega0 = jnp.asarray(rng.normal(size=(N, 3)))
+    q0 = jnp.asarray(np.tile([1.0, 0.0, 0.0, 0.0], (N, 1)))
+    options = {"accuracy": "exact"} if scene.endswith("exact") else {}
+    if scene.startswith("free"):
+        model = rj.FreeBody(inertia)
+    elif scene == "gyrostat":
+        model = rj.Gyrostat(inertia, jnp.asarray(rng.normal(size=(N, 3))))
+    else:  # Lagrange tops: I1 = I2, centre of mass on the body z axis
+        inertia = inertia.at[:, 1].set(inertia[:, 0])
+        model = rj.HeavyTop(inertia, 1.0, jnp.array([0.0, 0.0, 0.1]))
+        omega0 = omega0.at[:, 2].multiply(20.0)
+    state0 = rj.State(omega0, q0)
+    threads(1)
+    traj = rj.simulate(model, state0, TS, chunk_size=3, progress=lambda done, total: None, **options)
+    assert bool(np.all(np.asarray(traj.success)))
+    # A body alone takes its own steps: the integrators agree within their tolerance (rtol 1e-8),
+    # the closed forms to roundoff. Misread as a tensor, bodies were off by 0.1 to 30 rad/s.
+    tolerance = 1e-12 if options else 1e-6
+    for i in range(N):
+        alone = _alone(model, state0, i, **options)
+        np.testing.assert_allclose(np.asarray(traj.omega[i]), np.asarray(alone.omega), atol=tolerance)
+        np.testing.assert_allclose(
+            np.asarray(traj.orientation[i]), np.asarray(alone.orientation), atol=tolerance
+        )
+
+
+def test_three_bodies_run_again_keep_their_principal_moments(threads):
+    """Reference: each healthy body simulated by itself. A chunk of three bodies stopped by its
+    faulty body is run again body by body, from a scene of those three bodies' moments, (3, 3),
+    which read as one tensor."""
+    model, state0 = _faulty_scene()
+    threads(1)
+    traj = rj.simulate(model, state0, TS, chunk_size=3, throw=False)
+    assert np.asarray(traj.success).tolist() == [True, True, True, False, True, True]
+    for i in (0, 4, 5):
+        alone = _alone(model, state0, i)
+        np.testing.assert_allclose(np.asarray(traj.omega[i]), np.asarray(alone.omega), atol=1e-6)
+
+
+def test_a_slice_of_three_bodies_stays_three_bodies(tmp_path):
+    """Cut from a batch of six, three bodies' principal moments have the shape of one tensor; the
+    scene keeps counting three bodies, and a file, which would read them back as a tensor, is refused."""
+    model, state0 = _scene()
+    three = jax.tree.map(lambda x: x[:3], model)
+    assert three.inertia.shape == (3, 3) and three.batch_shape() == (3,)
+    traj = rj.simulate(three, rj.State(state0.omega[:3], state0.orientation[:3]), TS, accuracy="exact")
+    assert traj.batch_shape == (3,)
+    with pytest.raises(ValueError, match=r"principal moments of shape \(3, 3\).*inertia\[\.\.\., None, :\]"):
+        traj.save(tmp_path / "three.npz")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_host_threads_only_where_they_can_help(monkeypatch):
     """One thread per core up to one per chunk, on a single CPU device with values to run on;
     one compiled call under jit, for a single sample time and for a trajectory over the size limit."""

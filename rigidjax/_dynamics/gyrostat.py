@@ -9,9 +9,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import as_float_array, check_last_axis, is_full_tensor
+from .._checks import as_float_array, check_last_axis
 from .equations import _cross, _euler_equations, _inertia_times
-from .models import AbstractModel, _inertia_field
+from .models import _INERTIA_NDIM, AbstractModel, _inertia_field, inertia_ndim
 from .torques import _as_torque_tuple, _total_torque
 
 
@@ -51,11 +51,13 @@ class Gyrostat(AbstractModel):
         converter=lambda x: as_float_array(x, "rotor_momentum")
     )
     torques: tuple = eqx.field(converter=_as_torque_tuple, default=())
+    _inertia_ndim: int = _INERTIA_NDIM
 
     def __init__(self, inertia, rotor_momentum, torque=None):
         self.inertia = inertia
         self.rotor_momentum = rotor_momentum
         self.torques = torque
+        self._inertia_ndim = inertia_ndim(inertia)
 
     def __check_init__(self):
         check_last_axis(self.rotor_momentum, 3, "Gyrostat.rotor_momentum")
@@ -101,11 +103,12 @@ class Gyrostat(AbstractModel):
             return super().omega_scale(state, duration, args)
         omega = state.omega
         inertia = self.inertia
-        moments = jnp.linalg.eigvalsh(inertia) if is_full_tensor(inertia) else inertia
+        tensor = self.inertia_core_ndim == 2
+        moments = jnp.linalg.eigvalsh(inertia) if tensor else inertia
         # Ratios of moments only: SI-scale moments would overflow float32 in the products.
         top = jnp.max(moments)
         twice_energy = jnp.sum(omega * _inertia_times(inertia / top, omega))
-        if is_full_tensor(inertia):
+        if tensor:
             return jnp.broadcast_to(jnp.sqrt(twice_energy / (jnp.min(moments) / top)), (3,))
         return jnp.sqrt(twice_energy / (moments / top))
 

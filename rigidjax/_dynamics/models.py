@@ -16,6 +16,7 @@ from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import as_float_array, check_last_axis
@@ -170,7 +171,30 @@ class AbstractModel(eqx.Module):
 
     @property
     def inertia_core_ndim(self) -> int:
-        return 2 if is_full_tensor(self.inertia) else 1
+        """2 when the scene's inertia is a tensor per body, 1 for principal moments: fixed when the
+        scene is built (a batch of three bodies' moments cut from a larger batch, shape ``(3, 3)``,
+        stays three bodies), from the shape for a scene that does not record it."""
+        fixed = getattr(self, "_inertia_ndim", None)
+        return fixed if fixed is not None else inertia_ndim(self.inertia)
+
+
+def inertia_ndim(inertia) -> int:
+    """The per-body ndim of ``inertia`` from its shape: 2 for ``(..., 3, 3)``, else 1. (Constructors
+    call it before their converters check the shape: NumPy's shape, which takes lists too.)"""
+    shape = np.shape(inertia)
+    return 2 if len(shape) >= 2 and shape[-2:] == (3, 3) else 1
+
+
+# Records the inertia's form when a scene is built; slicing or reshaping its batch keeps it.
+_INERTIA_NDIM = eqx.field(static=True, init=False, repr=False)
+
+
+def keep_inertia_ndim(rebuilt: "AbstractModel", original: "AbstractModel") -> "AbstractModel":
+    """``rebuilt``, a scene just built from ``original``'s arrays (and not yet shared), with
+    ``original``'s inertia form: its constructor reads the form from the shape, which takes a slice
+    of three bodies' principal moments, ``(3, 3)``, for one tensor."""
+    object.__setattr__(rebuilt, "_inertia_ndim", original.inertia_core_ndim)
+    return rebuilt
 
 
 def _inertia_field(inertia):
@@ -191,6 +215,11 @@ class FreeBody(AbstractModel):
     inertia: Float[ArrayLike, "*batch 3"] | Float[ArrayLike, "*batch 3 3"] = eqx.field(
         converter=_inertia_field
     )
+    _inertia_ndim: int = _INERTIA_NDIM
+
+    def __init__(self, inertia):
+        self.inertia = inertia
+        self._inertia_ndim = inertia_ndim(inertia)
 
     @property
     def needs_orientation(self) -> bool:
@@ -208,7 +237,7 @@ class FreeBody(AbstractModel):
         return _euler_equations(self.inertia, state.omega)
 
     def omega_scale(self, state, duration, args):
-        if is_full_tensor(self.inertia):
+        if self.inertia_core_ndim == 2:
             return jnp.broadcast_to(jnp.linalg.norm(state.omega), (3,))
         return _polhode_scale(self.inertia, state.omega)
 
@@ -230,10 +259,12 @@ class RigidBody(AbstractModel):
         converter=_inertia_field
     )
     torques: tuple = eqx.field(converter=_as_torque_tuple, default=())
+    _inertia_ndim: int = _INERTIA_NDIM
 
     def __init__(self, inertia, torque=None):
         self.inertia = inertia
         self.torques = torque
+        self._inertia_ndim = inertia_ndim(inertia)
 
     @property
     def needs_orientation(self) -> bool:
@@ -251,7 +282,7 @@ class RigidBody(AbstractModel):
         return _euler_equations(self.inertia, state.omega, _total_torque(self.torques, t, state, args))
 
     def omega_scale(self, state, duration, args):
-        if not self.torques and not is_full_tensor(self.inertia):
+        if not self.torques and self.inertia_core_ndim == 1:
             return _polhode_scale(self.inertia, state.omega)
         return super().omega_scale(state, duration, args)
 
@@ -282,6 +313,7 @@ class HeavyTop(AbstractModel):
     com: Float[Array, "*batch 3"] = eqx.field(converter=lambda x: as_float_array(x, "com"))
     gravity: Float[Array, "*batch"] = eqx.field(converter=lambda x: as_float_array(x, "gravity"))
     torques: tuple = eqx.field(converter=_as_torque_tuple)
+    _inertia_ndim: int = _INERTIA_NDIM
 
     def __init__(self, inertia, mass, com, gravity=9.81, torque=None):
         self.inertia = inertia
@@ -289,6 +321,7 @@ class HeavyTop(AbstractModel):
         self.com = com
         self.gravity = gravity
         self.torques = torque
+        self._inertia_ndim = inertia_ndim(inertia)
 
     def __check_init__(self):
         check_last_axis(self.com, 3, "HeavyTop.com")
@@ -320,7 +353,7 @@ class HeavyTop(AbstractModel):
         """Bound on |omega| from energy: the top can at most turn all of ``V0 - V_min`` into
         kinetic energy, and ``KE >= I_min |omega|^2 / 2``."""
         inertia = self.inertia
-        moments = jnp.linalg.eigvalsh(inertia) if is_full_tensor(inertia) else inertia
+        moments = jnp.linalg.eigvalsh(inertia) if self.inertia_core_ndim == 2 else inertia
         kinetic = 0.5 * jnp.sum(state.omega * _inertia_times(inertia, state.omega))
         drop = self.potential_energy(state.orientation) + self.mass * self.gravity * jnp.linalg.norm(self.com)
         bound = jnp.sqrt(2.0 * (kinetic + jnp.maximum(drop, 0.0)) / jnp.min(moments))

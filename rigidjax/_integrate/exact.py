@@ -22,7 +22,6 @@ from .._checks import (
     error_if,
     evaluated_now,
     float_dtype,
-    is_full_tensor,
     is_traced,
     known_values,
     packed_failures,
@@ -33,7 +32,7 @@ from .._closed_form.frame import phase_unresolved
 from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.gyrostat import Gyrostat
-from .._dynamics.models import FreeBody, HeavyTop
+from .._dynamics.models import FreeBody, HeavyTop, keep_inertia_ndim
 from . import batching
 from .inputs import checked_inputs
 from .trajectory import Trajectory, first_failed_sample
@@ -267,7 +266,7 @@ def _check_lagrange_top(model, state0):
             "accuracy='exact' for a HeavyTop is Lagrange's top under gravity alone; it has no closed "
             "form with extra torques. Use accuracy='precise' (or 'balanced')."
         )
-    if is_full_tensor(model.inertia):
+    if model.inertia_core_ndim == 2:
         raise ValueError(
             "accuracy='exact' for a HeavyTop needs principal moments (..., 3) about the pivot, with "
             "body z the symmetry axis; diagonalise the tensor with rigidjax.principal_axes and express "
@@ -321,7 +320,7 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         # Constants of the user's jit stay constants (values to check now).
         top, omega0, q0, ts = evaluated_now(
             lambda: (
-                HeavyTop(*(jnp.asarray(x, dtype) for x in leaves)),
+                keep_inertia_ndim(HeavyTop(*(jnp.asarray(x, dtype) for x in leaves)), model),
                 *(x.astype(dtype) for x in (state0.omega, state0.orientation, ts)),
             )
         )
@@ -338,7 +337,7 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
             "without torques) and for Lagrange's top (a HeavyTop with I1 = I2 and the centre of mass on "
             f"the body z axis); got {type(model).__name__} with torques or a field."
         )
-    if is_full_tensor(model.inertia):
+    if model.inertia_core_ndim == 2:
         raise ValueError(
             "accuracy='exact' needs principal moments (..., 3); diagonalise the tensor with "
             "rigidjax.principal_axes and rotate omega into those axes first."
@@ -348,7 +347,7 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
     # Constants of the user's jit stay constants (values to check now).
     body, omega0, q0, ts = evaluated_now(
         lambda: (
-            FreeBody(_cast(model.inertia, dtype)),
+            keep_inertia_ndim(FreeBody(_cast(model.inertia, dtype)), model),
             _cast(state0.omega, dtype),
             None if state0.orientation is None else _cast(state0.orientation, dtype),
             _cast(ts, dtype),

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._dynamics.gyrostat import Gyrostat
-from .._dynamics.models import FreeBody, HeavyTop, RigidBody
+from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, RigidBody, inertia_ndim
 from .._dynamics.torques import ConstantTorque, GravityTorque, Torque, ViscousDamping
 from . import batching
 
@@ -136,9 +136,17 @@ class _Encoder:
                 "HeavyTop, Gyrostat) and torques (ConstantTorque, ViscousDamping, GravityTorque) are stored. "
                 "Save the arrays you need yourself (numpy.savez(path, ts=..., omega=...))."
             )
+        if isinstance(module, AbstractModel) and module.inertia_core_ndim != inertia_ndim(module.inertia):
+            raise ValueError(
+                f"Trajectory.save: the model's {where} holds principal moments of shape "
+                f"{tuple(module.inertia.shape)} (a batch cut from a larger one), which a file reads back "
+                "as inertia tensors; give the batch an axis of length 1 before the moments, e.g. "
+                "inertia[..., None, :], with omega and orientation alike."
+            )
         self.arrays[f"{key}/class"] = np.asarray(cls.__name__)
         for field in dataclasses.fields(module):
-            self.value(f"{key}/{field.name}", getattr(module, field.name), f"{where}.{field.name}")
+            if field.init:  # a field the constructor sets itself (the inertia's form) is rebuilt by it
+                self.value(f"{key}/{field.name}", getattr(module, field.name), f"{where}.{field.name}")
 
 
 def encode(traj: eqx.Module) -> dict[str, np.ndarray]:
@@ -364,7 +372,9 @@ class _Decoder:
         if cls is None:
             known = ", ".join(_CLASSES)
             raise self.fail(f"{key} is a {name!r}, which this rigidjax cannot rebuild (it knows {known})")
-        fields = {field.name: self.value(f"{key}/{field.name}") for field in dataclasses.fields(cls)}
+        fields = {
+            field.name: self.value(f"{key}/{field.name}") for field in dataclasses.fields(cls) if field.init
+        }
         kwargs = dict(fields)
         if "torques" in kwargs:  # the scenes take their torques as `torque=`
             kwargs["torque"] = kwargs.pop("torques")
