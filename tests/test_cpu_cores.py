@@ -1,6 +1,8 @@
 """``rigidjax.use_cpu_cores`` and ``--cpu-devices``: the CPU as several JAX devices. The reference
 for the trajectories is the same batch integrated on this process's single device: splitting the
-chunks over devices must not change a bit."""
+chunks over devices must not change a bit where both programs are compiled alike (the suite's
+``--xla_backend_optimization_level=1``, tests/conftest.py; with XLA's default optimisation the
+sharded program can round differently, which the guide states)."""
 
 import json
 import os

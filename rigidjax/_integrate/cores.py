@@ -4,7 +4,8 @@ On a CPU, JAX is one device by default, and one compiled call of ``simulate``'s 
 of while loops, each too small for XLA to spread over threads) runs on one core; ``simulate`` then
 runs its chunks in one block per core, each from its own Python thread (:mod:`.progress`). With
 several devices, ``simulate`` spreads whole chunks over them (``jax.shard_map``) in one call, each
-device runs on its own core, and the results are the same to the bit. JAX fixes its devices at its
+device runs on its own core, and the results are those of one device to roundoff (the sharded
+program is compiled apart: bit for bit where XLA compiles both alike). JAX fixes its devices at its
 first computation, so this is a choice made once per process, before any array is created.
 """
 
