@@ -154,3 +154,23 @@ def test_the_command_on_two_devices_writes_what_one_device_writes(tmp_path):
     timings = ("wall_time_s", "compile_time_s", "analysis_time_s", "body_steps_per_s", "devices")
     one, two = ({k: v for k, v in s.items() if k not in timings} for s in summaries)
     assert one == two and one["bodies"] == 600 and one["failed_bodies"] == 0
+
+
+def test_inputs_on_an_explicit_mesh_axis_are_refused_by_name():
+    """jax.make_mesh makes Explicit axes by default; inputs sharded over one stopped simulate with
+    JAX's raw "Arguments to sort must be unsharded over the sorting dimension"."""
+    code = """
+import rigidjax as rj
+rj.use_cpu_cores(2)
+import jax, jax.numpy as jnp
+from jax.sharding import NamedSharding, PartitionSpec as P
+mesh = jax.make_mesh((2,), ("bodies",))
+omega = jax.device_put(jnp.ones((8, 3)), NamedSharding(mesh, P("bodies")))
+try:
+    rj.simulate(rj.FreeBody(jnp.array([1.0, 2.0, 2.5])), rj.State(omega), jnp.linspace(0.0, 1.0, 3))
+except ValueError as err:
+    print(err)
+"""
+    out = _fresh_process("-c", code)
+    assert out.startswith("simulate: state0.omega is sharded over the Explicit mesh axis 'bodies'")
+    assert "AxisType.Auto" in out

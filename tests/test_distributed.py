@@ -68,7 +68,18 @@ def _worker(process_id, num_processes, port, out):
         "orientation": multihost_utils.process_allgather(traj.orientation, tiled=True),
         "success": multihost_utils.process_allgather(traj.success, tiled=True),
     }
+    # The model's arrays are this process's rows: saving them would write half a scene. Refused, with
+    # the recipe, which then saves the whole trajectory.
+    try:
+        traj.save(out + ".refused.npz")
+        refusal = None
+    except ValueError as err:
+        refusal = str(err)
+    whole = jax.tree.map(lambda x: multihost_utils.process_allgather(x, tiled=True), traj)
+    if process_id == 0:
+        whole.save(out + ".trajectory.npz")
     info = {
+        "refusal": refusal,
         "process_index": jax.process_index(),
         "process_count": jax.process_count(),
         "device_count": jax.device_count(),
@@ -148,7 +159,22 @@ def _one_process():
 
 @pytest.mark.slow
 def test_two_processes_equal_one_process(tmp_path):
+    """Also: a trajectory whose scene is sharded over the processes is not saved from one process's
+    rows (it was a raw JAX RuntimeError); gathered as the message says, it saves and loads whole."""
+    import rigidjax as rj
+
     (omega_ref, q_ref), results = _run_workers(tmp_path, meanwhile=_one_process)
+    for _, info in results:
+        assert "model/inertia is sharded over the devices of several processes" in info["refusal"]
+        assert "process_allgather" in info["refusal"]
+    assert sorted(p.name for p in tmp_path.glob("*.npz")) == [
+        "process0.npz",
+        "process0.npz.trajectory.npz",
+        "process1.npz",
+    ]
+    saved = rj.Trajectory.load(tmp_path / "process0.npz.trajectory.npz")
+    assert saved.model.inertia.shape == (N_BODIES, 3)
+    np.testing.assert_allclose(np.asarray(saved.omega), omega_ref, rtol=0, atol=1e-12)
     # The bodies are distinct, so a batch put together in the wrong order could not pass.
     swapped = np.roll(np.arange(N_BODIES), N_BODIES // 2)
     assert np.min(np.abs(omega_ref - omega_ref[swapped])[:, -1]) > 1e-3

@@ -521,3 +521,28 @@ def test_a_scene_and_a_torque_of_ones_own_batch_per_body():
     np.testing.assert_allclose(
         rj.simulate(magnetised, state, jnp.asarray(ts), accuracy="precise").omega[2], free.omega, atol=1e-7
     )
+
+
+class _MisspelledMagnetorquer(_Magnetorquer):
+    def per_body_ndims(self):
+        return {"dipol": 1}
+
+
+def test_a_torque_of_ones_own_with_fields_that_do_not_fit_its_per_body_ndims(without_runtime_typecheck):
+    """A field with fewer axes than one body's value (a scalar dipole) failed inside the torque's
+    own jnp.cross with "axis -1 is out of bounds"; a name per_body_ndims misspells, with a bare
+    AttributeError; a dipole given as a list, with "isfinite requires ndarray"."""
+    state = rj.State(jnp.full((4, 3), 0.1), jnp.array([1.0, 0.0, 0.0, 0.0]))
+    ts = jnp.array([0.0, 0.5])
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    with pytest.raises(
+        ValueError, match=r"'torques\[0\]\.dipole' has shape \(\): one body's value has 1 axis"
+    ):
+        rj.simulate(rj.RigidBody(inertia, torque=_Magnetorquer(jnp.array(1.0))), state, ts)
+    with pytest.raises(
+        ValueError, match=r"'torques\[0\]\.dipol': the per_body_ndims of torques\[0\] names 'dipol'"
+    ):
+        rj.simulate(rj.RigidBody(inertia, torque=_MisspelledMagnetorquer(jnp.ones(3))), state, ts)
+    as_list = rj.simulate(rj.RigidBody(inertia, torque=_Magnetorquer([1.0, 0.0, 0.0])), state, ts)
+    as_array = rj.simulate(rj.RigidBody(inertia, torque=_Magnetorquer(jnp.array([1.0, 0.0, 0.0]))), state, ts)
+    np.testing.assert_array_equal(as_list.omega, as_array.omega)

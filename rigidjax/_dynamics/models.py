@@ -165,7 +165,7 @@ class AbstractModel(eqx.Module):
     def batch_shape(self) -> tuple[int, ...]:
         shapes = []
         for leaf in self.body_leaves():
-            shape = jnp.shape(leaf.get(self))
+            shape = leaf_shape(self, leaf)
             shapes.append(shape[: len(shape) - leaf.core])
         return jnp.broadcast_shapes(*shapes) if shapes else ()
 
@@ -176,6 +176,25 @@ class AbstractModel(eqx.Module):
         stays three bodies), from the shape for a scene that does not record it."""
         fixed = getattr(self, "_inertia_ndim", None)
         return fixed if fixed is not None else inertia_ndim(self.inertia)
+
+
+def leaf_shape(model: AbstractModel, leaf: BodyLeaf) -> tuple[int, ...]:
+    """The shape of a per-body array of ``model``; a ``ValueError`` naming it when the field that
+    ``per_body_ndims`` names is missing or has fewer axes than one body's value."""
+    try:
+        shape = tuple(np.shape(leaf.get(model)))
+    except AttributeError:
+        owner, _, name = leaf.label.rpartition(".")
+        raise ValueError(
+            f"model field {leaf.label!r}: the per_body_ndims of {owner or type(model).__name__} names "
+            f"{name!r}, which is not one of its fields."
+        ) from None
+    if len(shape) < leaf.core:
+        raise ValueError(
+            f"model field {leaf.label!r} has shape {shape}: one body's value has {leaf.core} "
+            f"{'axis' if leaf.core == 1 else 'axes'} (per_body_ndims), so the field needs at least that many."
+        )
+    return shape
 
 
 def inertia_ndim(inertia) -> int:

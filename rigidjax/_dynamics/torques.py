@@ -231,7 +231,8 @@ class GravityTorque(AbstractTorque):
 
     **Arguments:**
 
-    - `mass`: kg, ``(...)``, positive (a body without mass feels no gravity: use a torque-free scene).
+    - `mass`: kg, ``(...)``, positive (a body without mass feels no gravity: use a torque-free scene);
+      ``(N,)`` for N bodies (unlike a per-body damping coefficient, ``(N, 1)`` is a second batch axis).
     - `com`: body-frame position (m) of the centre of mass relative to the fixed point, ``(..., 3)``.
     - `gravity`: gravitational acceleration (m/s^2), default 9.81.
     """

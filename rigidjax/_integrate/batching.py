@@ -21,6 +21,8 @@ import jax.numpy as jnp
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from .._dynamics.models import leaf_shape
+
 
 def batch_shape(model, *state_arrays, names=("state0.omega", "state0.orientation")) -> tuple[int, ...]:
     """The broadcast batch shape of a scene and state arrays (each ``(..., k)``: one core axis).
@@ -31,12 +33,14 @@ def batch_shape(model, *state_arrays, names=("state0.omega", "state0.orientation
     # Called by the class: equinox binds a method to its Module by building a Module (~40 us of
     # Python per call, as long as the closed form of 10^3 bodies takes).
     for leaf in type(model).body_leaves(model):
-        shape = tuple(jnp.shape(leaf.get(model)))
+        shape = leaf_shape(model, leaf)
         named.append((f"model.{leaf.label}", shape, shape[: len(shape) - leaf.core]))
+        _check_auto_sharding(leaf.get(model), f"model.{leaf.label}")
     for i, x in enumerate(state_arrays):
         if x is not None:
             name = names[i] if i < len(names) else f"state array {i}"
             named.append((name, tuple(x.shape), tuple(x.shape[:-1])))
+            _check_auto_sharding(x, name)
     try:
         return tuple(jnp.broadcast_shapes(*[batch for _, _, batch in named]))
     except ValueError:
@@ -47,6 +51,28 @@ def batch_shape(model, *state_arrays, names=("state0.omega", "state0.orientation
         "batch axes and must broadcast against each other as NumPy's do: e.g. inertia (N, 3) with "
         "omega (N, 3) for N bodies, or one inertia (3,) shared by omega (N, 3)."
     )
+
+
+def _check_auto_sharding(x, name: str) -> None:
+    """A ``ValueError`` naming ``name`` when ``x`` is sharded over an ``Explicit`` mesh axis, which
+    the sorting and the chunks' ``shard_map`` cannot take (JAX's raw errors named neither)."""
+    if not isinstance(x, jax.Array):
+        return
+    sharding = jax.typeof(x).sharding
+    axes = {
+        a
+        for entry in sharding.spec
+        if entry is not None
+        for a in (entry if isinstance(entry, tuple) else (entry,))
+    }
+    kinds = dict(zip(sharding.mesh.axis_names, sharding.mesh.axis_types, strict=True))
+    explicit = sorted(a for a in axes if kinds.get(a) == AxisType.Explicit)
+    if explicit:
+        raise ValueError(
+            f"simulate: {name} is sharded over the Explicit mesh axis {explicit[0]!r} (jax.make_mesh "
+            "makes Explicit axes by default); simulate spreads the bodies itself and needs Auto axes: "
+            f"jax.make_mesh(shape, names, axis_types=(jax.sharding.AxisType.Auto,) * len(names))."
+        )
 
 
 def flatten(x, batch: tuple[int, ...], core_ndim: int = 1):

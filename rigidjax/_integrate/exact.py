@@ -13,8 +13,6 @@ import numpy as np
 
 from .._checks import (
     StaticValue,
-    check_model,
-    check_state,
     check_times,
     check_times_shape,
     checks_done,
@@ -34,7 +32,7 @@ from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.gyrostat import Gyrostat
 from .._dynamics.models import FreeBody, HeavyTop, keep_inertia_ndim
 from . import batching
-from .inputs import checked_inputs
+from .inputs import check_model, check_state, checked_inputs
 from .trajectory import Trajectory, first_failed_sample
 
 __all__ = ["simulate_exact"]

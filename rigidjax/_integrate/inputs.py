@@ -3,12 +3,16 @@ concrete inputs, ``eqx.error_if`` in the user's program for traced ones."""
 
 import diffrax
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._checks import (
-    check_model,
-    check_state,
+    as_float_array,
+    check_finite,
+    check_inertia,
     check_times,
+    check_unit_quaternion,
     checks_done,
     collected_failures,
     error_if,
@@ -21,7 +25,58 @@ from .._checks import (
 from .._kinematics.euler import _euler_from_quat
 from .formulations import lock_distance
 
-__all__ = ["check_options", "checked_inputs"]
+__all__ = ["check_model", "check_options", "check_state", "checked_inputs"]
+
+
+def check_state(omega0, q0, where: str):
+    """The initial state's run-time checks: finite ``omega``, unit ``orientation`` (or None)."""
+    omega0 = check_finite(omega0, "state0.omega", where)
+    if q0 is not None:
+        q0 = check_unit_quaternion(q0, "state0.orientation", where)
+    return omega0, q0
+
+
+def check_model_field(label: str, value, where: str, core: int | None = None):
+    """Run-time checks of one per-body array of a scene: a physical ``inertia`` (``core`` its
+    per-body ndim, None: from its shape), finite values, positive masses."""
+    if label == "inertia":
+        return check_inertia(value, name=f"{where}: inertia", tensor=None if core is None else core == 2)
+    value = as_float_array(value, f"model field {label!r}")
+    value = error_if(value, ~jnp.isfinite(value), f"{where}: model field {label!r} contains NaN or inf.")
+    if label.split(".")[-1] == "mass":
+        value = error_if(value, value <= 0, f"{where}: model field {label!r} must be positive (kg).")
+    return value
+
+
+def check_model(model, where: str):
+    """``model`` with every per-body array run-time checked (:func:`check_model_field`)."""
+    leaves, rules = model.body_leaves(), model.leaf_rules()
+    checked = []
+    for leaf in leaves:
+        value = check_model_field(leaf.label, leaf.get(model), where, leaf.core)
+        if leaf.label in rules:
+            bad, rule = rules[leaf.label]
+            value = error_if(value, bad(value), f"{where}: model field {leaf.label!r} {rule}.")
+        checked.append(value)
+    return _checked_torque_params(model.replace_body_leaves(leaves, checked), where)
+
+
+def _checked_torque_params(model, where: str):
+    """``model`` with the numbers each ``Torque(fn, params=...)`` hands its function checked to be
+    finite: a NaN there would surface only as a step size that collapsed at the first step."""
+    for i, torque in enumerate(getattr(model, "torques", ())):
+        params = getattr(torque, "params", None)
+        if params is None:
+            continue
+        message = f"{where}: model field 'torques[{i}].params' contains NaN or inf."
+
+        def check(x, message=message):
+            if isinstance(x, float) and not np.isfinite(x):
+                raise ValueError(message)
+            return error_if(x, ~jnp.isfinite(x), message) if eqx.is_inexact_array(x) else x
+
+        model = eqx.tree_at(lambda m, i=i: m.torques[i].params, model, jax.tree.map(check, params))
+    return model
 
 
 def checked_inputs(model, omega0, q0, ts, euler_seq, lock_tolerance):

@@ -82,6 +82,16 @@ class _Encoder:
         self.weak_type: list[str] = []
 
     def array(self, key: str, x) -> None:
+        if isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and not x.is_fully_addressable:
+            if not x.is_fully_replicated:
+                raise ValueError(
+                    f"Trajectory.save: {key} is sharded over the devices of several processes (a "
+                    "jax.distributed run), and this process holds only its own rows. Gather the "
+                    "trajectory in every process first, traj = jax.tree.map(lambda x: "
+                    "multihost_utils.process_allgather(x, tiled=True), traj) with "
+                    "jax.experimental.multihost_utils, then save it from one process."
+                )
+            x = x.addressable_data(0)  # every process holds all of it
         try:
             a = np.asarray(x)
         except jax.errors.TracerArrayConversionError as err:
@@ -123,7 +133,7 @@ class _Encoder:
         cls = type(module)
         if isinstance(module, Torque):
             raise ValueError(
-                f"Trajectory.save: the model's {where} is a Torque(fn), which wraps arbitrary Python "
+                f"Trajectory.save: {where} is a Torque(fn), which wraps arbitrary Python "
                 "code that a .npz file cannot store, so this trajectory cannot be saved faithfully. "
                 "Describe the torque with ConstantTorque, ViscousDamping or GravityTorque if it is one "
                 "of those, or save the arrays yourself: numpy.savez(path, ts=np.asarray(traj.ts), "
@@ -131,14 +141,14 @@ class _Encoder:
             )
         if _CLASSES.get(cls.__name__) is not cls:
             raise ValueError(
-                f"Trajectory.save: the model's {where} is a {cls.__module__}.{cls.__qualname__}, which "
+                f"Trajectory.save: {where} is a {cls.__module__}.{cls.__qualname__}, which "
                 "rigidjax cannot rebuild from a file; only its own scenes (FreeBody, RigidBody, "
                 "HeavyTop, Gyrostat) and torques (ConstantTorque, ViscousDamping, GravityTorque) are stored. "
                 "Save the arrays you need yourself (numpy.savez(path, ts=..., omega=...))."
             )
         if isinstance(module, AbstractModel) and module.inertia_core_ndim != inertia_ndim(module.inertia):
             raise ValueError(
-                f"Trajectory.save: the model's {where} holds principal moments of shape "
+                f"Trajectory.save: {where} holds principal moments of shape "
                 f"{tuple(module.inertia.shape)} (a batch cut from a larger one), which a file reads back "
                 "as inertia tensors; give the batch an axis of length 1 before the moments, e.g. "
                 "inertia[..., None, :], with omega and orientation alike."

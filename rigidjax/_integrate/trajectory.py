@@ -87,8 +87,10 @@ class Trajectory(eqx.Module):
         None. Raises ``FileNotFoundError``, ``IsADirectoryError`` or ``PermissionError`` naming the
         path when it cannot be written, and ``ValueError`` when the model cannot be stored
         faithfully (a :class:`rigidjax.Torque` wraps Python code; custom scenes and torques are not
-        rigidjax's to rebuild): save the arrays with ``numpy.savez`` yourself then. Both before
-        anything is written.
+        rigidjax's to rebuild): save the arrays with ``numpy.savez`` yourself then, or when an array
+        is sharded over several processes (a ``jax.distributed`` run: gather it in every process
+        with ``multihost_utils.process_allgather`` first, then save from one). All before anything
+        is written.
         """
         path = storage.check_writable(path)
         storage.write_atomic(path, storage.encode(self))
