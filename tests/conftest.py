@@ -147,7 +147,9 @@ _UNIT_SECONDS = {
     "test_forward_mode": 59,
     "test_bad_input_sweep": 57,
     "test_gyrostat": 57,
+    "docs/guides/fitting.md": 70,
     "06_speed_vs_accuracy.ipynb": 56,
+    "docs/guides/plotting.md": 45,
     "test_progress": 53,
     "test_kinematics": 52,
     "test_unrolled_dopri8": 49,
@@ -162,6 +164,7 @@ _UNIT_SECONDS = {
     "test_extreme_bodies": 30,
     "test_splitting": 26,
     "04_heavy_top.ipynb": 25,
+    "docs/guides/scenes.md": 23,
 }
 
 
