@@ -8,9 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import dop853, log_log_slope
+from helpers import dop853, dop853_free_body, log_log_slope
 
 from rigidjax import matrix_from_quat, quat_normalize, quat_rotate, torque_free_omega
+from rigidjax._integrate.solvers.rkmk import rigid_body_vector_field
 from rigidjax.solvers import LiePoissonSplitting, free_body_vector_field, split_free_body, splitting_step
 
 # Asymmetric body, well away from the separatrix (L^2 - 2 E I2 = 2.5 - ... clearly nonzero).
@@ -483,3 +484,69 @@ def test_solvers_without_parameters_for_simulate():
             0.05,
             (TOP_L0, TOP_Q0),
         )
+
+
+# ---------------------------------------------------------------------------------------------
+# Backward in time, and simulate's chunks of three bodies.
+
+
+def _backward(solver, vector_field, y0, dt):
+    """``diffeqsolve`` from t = 0 back to t = -1, sampled at -0.37 (inside a step) and -1."""
+    return diffrax.diffeqsolve(
+        diffrax.ODETerm(vector_field),
+        solver,
+        0.0,
+        -1.0,
+        -dt,
+        y0,
+        stepsize_controller=diffrax.ConstantStepSize(),
+        saveat=diffrax.SaveAt(ts=jnp.array([-0.37, -1.0])),
+    ).ys
+
+
+def test_backward_in_time_is_the_motion_backward():
+    """diffeqsolve from a later to an earlier time runs forward in -t with the terms wrapped; the
+    splittings and RKMK step by their own maps, so they returned the motion forward in time (the
+    state at +1 s as that at -1 s). Reference: scipy's DOP853 integrating backward, on the model's
+    equations (tests/helpers.py)."""
+    from rigidjax.solvers import RKMK
+
+    ts = np.array([-0.37, -1.0])
+    free_w, free_q = dop853_free_body(np.asarray(INERTIA), np.asarray(OMEGA0), ts, np.asarray(Q0), tol=1e-13)
+    accel = jax.jit(lambda w, q: TOP.angular_acceleration(0.0, State(w, q), None))
+    top_w, top_q = dop853(
+        lambda t, w, q: np.asarray(accel(jnp.asarray(w), jnp.asarray(q))), TOP_OMEGA0, ts, TOP_Q0, tol=1e-13
+    )
+    L, q = _backward(LiePoissonSplitting(INERTIA, order=4), free_body_vector_field(INERTIA), (L0, Q0), 0.01)
+    np.testing.assert_allclose(L / INERTIA, free_w, atol=1e-8)
+    np.testing.assert_allclose(q, free_q, atol=1e-8)
+    top_vf = heavy_top_vector_field(TOP.inertia, TOP.mass, TOP.com, TOP.gravity)
+    L, q = _backward(HeavyTopSplitting.from_model(TOP, order=4), top_vf, (TOP_L0, TOP_Q0), 0.001)
+    np.testing.assert_allclose(L / TOP.inertia, top_w, atol=1e-7)
+    np.testing.assert_allclose(q, top_q, atol=1e-8)
+    model_vf = rigid_body_vector_field(lambda t, w, q, args: TOP.angular_acceleration(t, State(w, q), args))
+    w, q = _backward(RKMK("dopri5"), model_vf, (TOP_OMEGA0, TOP_Q0), 0.001)
+    np.testing.assert_allclose(w, top_w, atol=1e-8)
+    np.testing.assert_allclose(q, top_q, atol=1e-9)
+
+
+@pytest.mark.parametrize("scene", ["free", "heavy top"])
+def test_simulate_with_a_splitting_on_three_bodies(scene):
+    """Three states of one body: the chunk's moments, (3, 3), reached the splitting, which refused
+    them as one inertia tensor. Reference: each body simulated alone (the steps are fixed: the same
+    arithmetic)."""
+    import rigidjax as rj
+
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    omega0 = jnp.array([[1.0, 0.1, 0.5], [0.2, 1.0, -0.3], [0.4, -0.2, 2.0]])
+    q0 = jnp.tile(Q0, (3, 1))
+    if scene == "free":
+        model, solver = rj.FreeBody(inertia), LiePoissonSplitting(order=4)
+    else:
+        model, solver = rj.HeavyTop(inertia, 1.0, jnp.array([0.0, 0.0, 0.1])), HeavyTopSplitting(order=4)
+    ts = jnp.linspace(0.0, 1.0, 5)
+    traj = rj.simulate(model, rj.State(omega0, q0), ts, solver=solver, dt0=0.01)
+    for i in range(3):
+        alone = rj.simulate(model, rj.State(omega0[i], q0[i]), ts, solver=solver, dt0=0.01)
+        np.testing.assert_allclose(traj.omega[i], alone.omega, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(traj.orientation[i], alone.orientation, rtol=0, atol=1e-13)

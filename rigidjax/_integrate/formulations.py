@@ -33,6 +33,7 @@ from .solvers.splitting import (
     LiePoissonSplitting,
     _free_body_vector_field,
     _heavy_top_vector_field,
+    with_model_parameters,
 )
 
 
@@ -260,8 +261,8 @@ class SplittingODE(eqx.Module):
     def chunk_solver(self, solver, values, leaves):
         moments, top = self._parameters(values, leaves)
         if top is None:
-            return LiePoissonSplitting(moments, self.order)
-        return HeavyTopSplitting(moments, *top, order=self.order)
+            return with_model_parameters(LiePoissonSplitting(order=self.order), moments)
+        return with_model_parameters(HeavyTopSplitting(order=self.order), moments, *top)
 
     def event(self):
         return None

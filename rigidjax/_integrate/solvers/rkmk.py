@@ -114,11 +114,21 @@ def _combine(coeffs, ks, h):
     return None if total is None else h * total
 
 
-def _rkmk(accel, t0, omega0, q0, h, args, tableau, f0=None):
+def signed_step(terms, t0, t1):
+    """The step from ``t0`` to ``t1`` in the caller's time. ``diffeqsolve`` from a later to an
+    earlier time integrates forward in ``-t`` with its terms wrapped (``diffrax.WrapTerm``, direction
+    -1): solvers that step by their own maps instead of the term's ``contr`` must flip it."""
+    return getattr(terms, "direction", 1) * (t1 - t0)
+
+
+def _rkmk(accel, t0, omega0, q0, h, args, tableau, f0=None, stage_dt=None):
     """One RKMK step. Returns ``(omega1, q1, theta1, (err_omega, err_q), f0, f1)`` where ``f0``,
-    ``f1`` are ``d(omega)/dt`` at the start and at the new point (FSAL)."""
+    ``f1`` are ``d(omega)/dt`` at the start and at the new point (FSAL). ``stage_dt``: the step in
+    ``accel``'s own time, for the stages' times (default ``h``; a diffrax term wrapped for
+    integration backward in time runs forward in ``-t``)."""
     a_rows, b, b_err, c, _ = _TABLEAUX[tableau]
     dtype = omega0.dtype
+    stage_dt = h if stage_dt is None else stage_dt
     h = jnp.asarray(h).astype(dtype)
     k_w, k_th = [], []
     omega_i = theta_i = None
@@ -132,7 +142,7 @@ def _rkmk(accel, t0, omega0, q0, h, args, tableau, f0=None):
             omega_i = omega0 + _combine(row, k_w, h)
             theta_i = _combine(row, k_th, h)
             q_i = _quat_multiply(q0, _quat_exp(theta_i))
-            f_i = accel(t0 + c[i] * h, omega_i, q_i, args)
+            f_i = accel(t0 + c[i] * stage_dt, omega_i, q_i, args)
             k_th.append(_dexpinv(theta_i, omega_i))
         k_w.append(jnp.asarray(f_i, dtype))
     # FSAL: the last row of a is b, so the last stage point is the solution.
@@ -232,13 +242,14 @@ class _GeodesicHermiteInterpolation(diffrax.AbstractLocalInterpolation):
     theta1: Any
     f0: Any
     f1: Any
+    direction: Any
 
     def _at(self, t):
         omega0, q0 = self.y0
         omega1, _ = self.y1
         dt = self.t1 - self.t0
         s = jnp.asarray((t - self.t0) / jnp.where(dt == 0, 1.0, dt), omega0.dtype)
-        dt = jnp.asarray(dt, omega0.dtype)
+        dt = jnp.asarray(self.direction * dt, omega0.dtype)  # the slopes are per unit of the caller's time
         h00 = (1 + 2 * s) * (1 - s) ** 2
         h10 = s * (1 - s) ** 2
         h01 = s * s * (3 - 2 * s)
@@ -295,8 +306,10 @@ class RKMK(diffrax.AbstractAdaptiveSolver):
         f0 = jax.lax.cond(
             made_jump, lambda: jnp.asarray(accel(t0, omega0, q0, args), omega0.dtype), lambda: solver_state
         )
-        omega1, q1, theta1, err, f0, f1 = _rkmk(accel, t0, omega0, q0, t1 - t0, args, self.tableau, f0)
-        dense_info = dict(y0=y0, y1=(omega1, q1), theta1=theta1, f0=f0, f1=f1)
+        h = signed_step(terms, t0, t1)
+        omega1, q1, theta1, err, f0, f1 = _rkmk(accel, t0, omega0, q0, h, args, self.tableau, f0, t1 - t0)
+        direction = getattr(terms, "direction", 1)
+        dense_info = dict(y0=y0, y1=(omega1, q1), theta1=theta1, f0=f0, f1=f1, direction=direction)
         return (omega1, q1), err, dense_info, f1, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):

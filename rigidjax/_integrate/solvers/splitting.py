@@ -53,6 +53,7 @@ from ..._dynamics.inertia import check_inertia
 from ..._dynamics.torques import gravity_torque
 from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
 from ..._numerics import short_norm
+from .rkmk import signed_step
 
 _YOSHIDA_W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 _YOSHIDA_W0 = 1.0 - 2.0 * _YOSHIDA_W1
@@ -243,13 +244,26 @@ class SubStepInterpolation(diffrax.AbstractLocalInterpolation):
     y0: Any
     y1: Any
     solver: diffrax.AbstractSolver
+    direction: Any
 
     def evaluate(self, t0, t1=None, left: bool = True):
         del left
         if t1 is not None:
             return jax.tree.map(jnp.subtract, self.evaluate(t1), self.evaluate(t0))
         L0, q0 = self.y0
-        return self.solver.map_over(L0, q0, jnp.asarray(t0 - self.t0).astype(L0.dtype))
+        return self.solver.map_over(L0, q0, jnp.asarray(self.direction * (t0 - self.t0)).astype(L0.dtype))
+
+
+def with_model_parameters(solver, *parameters):
+    """A splitting for one chunk of :func:`rigidjax.simulate`: the model's parameters (checked
+    there; principal moments ``(n, 3)``, which for three bodies have the shape of one tensor) in
+    place of the solver's own, without the constructor's checks."""
+    names = ("inertia",) if isinstance(solver, LiePoissonSplitting) else ("inertia", "mass", "com", "gravity")
+    solver = eqx.tree_at(
+        lambda s: [getattr(s, n) for n in names], solver, list(parameters), is_leaf=lambda x: x is None
+    )
+    object.__setattr__(solver, "_moments_from_model", True)  # a fresh copy, not yet shared
+    return solver
 
 
 class LiePoissonSplitting(diffrax.AbstractSolver):
@@ -268,6 +282,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
 
     inertia: Array | None
     splitting_order: int = eqx.field(static=True, default=2)
+    _moments_from_model: bool = eqx.field(static=True, default=False, repr=False)
 
     term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
@@ -288,6 +303,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
             inertia = check_inertia(inertia, name="LiePoissonSplitting: inertia")
         self.inertia = inertia
         self.splitting_order = order
+        self._moments_from_model = False
 
     def order(self, terms):
         return self.splitting_order
@@ -303,9 +319,10 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         del solver_state, made_jump
         L0, q0 = y0
         _require_parameters(self, "LiePoissonSplitting", "LiePoissonSplitting(inertia, order)")
-        _check_principal(self.inertia, "LiePoissonSplitting")
-        y1 = self.map_over(L0, q0, jnp.asarray(t1 - t0).astype(L0.dtype))
-        dense_info = dict(y0=y0, y1=y1, solver=self)
+        if not self._moments_from_model:
+            _check_principal(self.inertia, "LiePoissonSplitting")
+        y1 = self.map_over(L0, q0, jnp.asarray(signed_step(terms, t0, t1)).astype(L0.dtype))
+        dense_info = dict(y0=y0, y1=y1, solver=self, direction=getattr(terms, "direction", 1))
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
@@ -470,6 +487,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     com: Array | None
     gravity: Array | None
     splitting_order: int = eqx.field(static=True, default=2)
+    _moments_from_model: bool = eqx.field(static=True, default=False, repr=False)
 
     term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
@@ -481,6 +499,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
             # The scene's parameters come from the model (rigidjax.simulate).
             self.inertia = self.mass = self.com = self.gravity = None
             self.splitting_order = order
+            self._moments_from_model = False
             return
         if inertia is None or mass is None or com is None:
             raise ValueError(
@@ -496,6 +515,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         check_last_axis(self.com, 3, "com")
         self.gravity = gravity
         self.splitting_order = order
+        self._moments_from_model = False
 
     @classmethod
     def from_model(cls, model, order: int = 2) -> "HeavyTopSplitting":
@@ -526,9 +546,10 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         _require_parameters(
             self, "HeavyTopSplitting", "HeavyTopSplitting(inertia, mass, com, gravity, order)"
         )
-        _check_principal(self.inertia, "HeavyTopSplitting as a diffrax solver")
-        y1 = self.map_over(L0, q0, jnp.asarray(t1 - t0).astype(L0.dtype))
-        dense_info = dict(y0=y0, y1=y1, solver=self)
+        if not self._moments_from_model:
+            _check_principal(self.inertia, "HeavyTopSplitting as a diffrax solver")
+        y1 = self.map_over(L0, q0, jnp.asarray(signed_step(terms, t0, t1)).astype(L0.dtype))
+        dense_info = dict(y0=y0, y1=y1, solver=self, direction=getattr(terms, "direction", 1))
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
