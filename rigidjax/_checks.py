@@ -565,11 +565,42 @@ def float_dtype(*xs):
 
 
 def check_times_shape(ts, name: str = "ts"):
-    """``ts`` as an array, with a trace-time ``ValueError`` unless it is 1-D with at least one time."""
-    ts = ts if isinstance(ts, jax.Array) else jnp.asarray(ts)
-    if ts.ndim != 1 or ts.shape[0] < 1:
-        raise ValueError(f"{name} must be a 1-D array of at least one time, got shape {tuple(ts.shape)}.")
-    return ts
+    """``ts`` as a JAX array, with trace-time errors: a ``TypeError`` unless its values are real
+    numbers (complex times lost their imaginary part, booleans ran as 0 and 1 s, text failed inside
+    NumPy), a ``ValueError`` unless it is 1-D with at least one time or where times that increase as
+    given collapse in JAX's dtype (float64 NumPy times with 64-bit mode off)."""
+    if isinstance(ts, jax.Array):
+        given = ts
+    else:
+        try:
+            given = np.asarray(ts)
+        except (TypeError, ValueError):
+            given = np.asarray(None)
+    if not (jnp.issubdtype(given.dtype, jnp.floating) or jnp.issubdtype(given.dtype, jnp.integer)):
+        raise TypeError(
+            f"{name} must be real sample times in seconds (integers or floats), got "
+            f"{type(ts).__name__} of dtype {given.dtype}."
+        )
+    if given.ndim != 1 or given.shape[0] < 1:
+        raise ValueError(f"{name} must be a 1-D array of at least one time, got shape {tuple(given.shape)}.")
+    return given if isinstance(given, jax.Array) else times_in_dtype(given, None)
+
+
+def times_in_dtype(ts, dtype):
+    """``ts`` as a JAX array in ``dtype`` (None: JAX's own for it); a ``ValueError`` where times that
+    increase as given round to equal or decreasing ones there (float64 times 1e5 + 1e-3 apart in
+    float32: the check of increasing times then blamed the user's times)."""
+    cast = jnp.asarray(ts, dtype)
+    if cast.dtype != ts.dtype and ts.shape[0] > 1 and not is_traced(ts):
+        given, run = np.asarray(ts), np.asarray(cast)
+        if np.all(np.diff(given) > 0) and not np.all(np.diff(run) > 0):
+            raise ValueError(
+                f"simulate: ts increase in {given.dtype} but not once cast to {run.dtype}, the dtype of "
+                "the run (of the model and state0, or JAX's 32-bit mode): neighbouring times round to "
+                "the same value. Give the model and state0 in float64 (with jax_enable_x64), or measure "
+                "the times from ts[0]."
+            )
+    return cast
 
 
 def check_times(ts, where: str, name: str = "ts"):

@@ -578,6 +578,30 @@ def test_scene_structural_errors(without_runtime_typecheck, extreme):
     )
 
 
+@pytest.mark.parametrize("accuracy", ["fast", "exact"])
+def test_sample_times_that_are_not_real_numbers_or_collapse_are_named(accuracy, without_runtime_typecheck):
+    """Complex times lost their imaginary part and booleans ran as 0 and 1 s, silently; text and
+    None failed inside NumPy or JAX without naming ts. float64 times that collapse in a float32 run
+    were blamed as "not strictly increasing" by the closed form and in 32-bit mode."""
+    body = rj.FreeBody(I3)
+    for ts, kind in (
+        (np.array([0.0, 1 + 5j, 2 + 7j]), "complex128"),
+        (np.array([False, True]), "bool"),
+        ("0 1 2", "<U5"),
+        (None, "object"),
+        (["0", "1"], "<U1"),
+    ):
+        with pytest.raises(TypeError, match=rf"^ts must be real sample times in seconds .*dtype {kind}"):
+            rj.simulate(body, rj.State(W, Q), ts, accuracy=accuracy)
+    collapse = "ts increase in float64 but not once cast to float32"
+    times = np.array([1e5, 1e5 + 1e-3, 1e5 + 2e-3])
+    f32 = np.float32
+    with pytest.raises(ValueError, match=collapse):
+        rj.simulate(rj.FreeBody(f32(I3)), rj.State(f32(W), f32(Q)), times, accuracy=accuracy)
+    with jax.enable_x64(False), pytest.raises(ValueError, match=collapse):
+        rj.simulate(rj.FreeBody(f32(I3)), rj.State(f32(W), f32(Q)), times, accuracy=accuracy)
+
+
 _TS_FIT = np.linspace(0.0, 10.0, 41)
 # Records of a torque-free body by scipy (no program to compile while the tests are collected).
 _W_FIT, _Q_FIT = dop853_free_body(I3, W, _TS_FIT, Q)

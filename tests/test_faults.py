@@ -66,6 +66,22 @@ def test_one_bad_body_in_a_shared_step_chunk_keeps_the_others():
     _check_isolated(traj, 17)
 
 
+def test_a_failed_body_has_no_quaternion_drift_to_report():
+    """The failed body's quaternion drift was the solver's record of its steps before the failure,
+    a clean-looking number beside the NaN of its other invariants."""
+    ts = jnp.linspace(0.0, 1.0, 3)
+    q = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (2, 3, 1))
+    omega = jnp.ones((2, 3, 3)).at[1, 2].set(jnp.nan)
+    traj = rj.Trajectory(
+        ts, omega, q.at[1, 2].set(jnp.nan), rj.FreeBody(jnp.asarray(INERTIA)), jnp.array([True, False]),
+        {"quaternion_norm_error": jnp.array([1e-15, 1e-15])},
+    )  # fmt: skip
+    invariants = traj.invariants()
+    assert float(invariants["quaternion_norm"][0]) == 1e-15
+    for name in ("quaternion_norm", "energy", "angular_momentum_norm"):
+        assert np.isnan(float(invariants[name][1])), name
+
+
 @pytest.mark.slow
 def test_a_nan_torque_is_named_with_body_and_time_not_as_max_steps():
     model, state = _scene(50, bad=17)

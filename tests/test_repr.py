@@ -73,6 +73,19 @@ def test_a_batch_of_ten_thousand_bodies_is_one_short_line():
     assert "f32[10000,3]" in repr(rj.Gyrostat(inertia.astype(np.float32), np.zeros((n, 3), np.float32)))
 
 
+def test_a_trajectory_of_jax_vmap_is_one_line():
+    """jax.vmap of simulate stacks a time axis per body: the repr formatted ts[0], now an array, and
+    raised."""
+    traj = jax.vmap(
+        lambda w: rj.simulate(rj.FreeBody(jnp.array([1.0, 2.0, 3.0])), rj.State(w), jnp.linspace(0, 1, 11))
+    )(jnp.array([[0.3, 1.0, 0.2], [1.0, 0.1, 0.1]]))
+    assert traj.ts.shape == (2, 11)
+    assert repr(traj) == (
+        "Trajectory(FreeBody, batch_shape=(2,), 11 samples, t=0 to 1 s, float64, omega only, "
+        "2/2 bodies succeeded)"
+    )
+
+
 def test_reprs_of_traced_models_show_shapes_only():
     seen = []
 

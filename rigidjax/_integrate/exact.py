@@ -24,6 +24,7 @@ from .._checks import (
     known_values,
     packed_failures,
     raise_collected,
+    times_in_dtype,
 )
 from .._closed_form.barrier import _materialised
 from .._closed_form.frame import phase_unresolved
@@ -315,6 +316,8 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         ts = check_times_shape(ts)
         leaves = (model.inertia, model.mass, model.com, model.gravity)
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
+        if ts.dtype != dtype:
+            ts = times_in_dtype(ts, dtype)
         # Constants of the user's jit stay constants (values to check now).
         top, omega0, q0, ts = evaluated_now(
             lambda: (
@@ -342,6 +345,8 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         )
     ts = check_times_shape(ts)
     dtype = float_dtype(state0.omega, state0.orientation, model.inertia)
+    if ts.dtype != dtype:
+        ts = times_in_dtype(ts, dtype)
     # Constants of the user's jit stay constants (values to check now).
     body, omega0, q0, ts = evaluated_now(
         lambda: (

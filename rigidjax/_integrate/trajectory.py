@@ -144,13 +144,14 @@ class Trajectory(eqx.Module):
         torques = getattr(self.model, "torques", ())
         if torques:
             model += "[" + ", ".join(type(t).__name__ for t in torques) + "]"
-        parts = [model, f"batch_shape={self.batch_shape}", f"{self.ts.shape[0]} samples"]
+        parts = [model, f"batch_shape={self.batch_shape}", f"{self.ts.shape[-1]} samples"]
         try:
             ts, success = np.asarray(self.ts), np.asarray(self.success)
         except jax.errors.TracerArrayConversionError:  # inside jit: shapes only
             ts = success = None
         if ts is not None and ts.size:
-            parts.append(f"t={ts[0]:g} to {ts[-1]:g} s")
+            # One time axis, or one per body where jax.vmap of simulate stacked them.
+            parts.append(f"t={np.min(ts[..., 0]):g} to {np.max(ts[..., -1]):g} s")
         parts.append(str(self.omega.dtype))
         parts.append("omega only" if self.orientation is None else "with orientation")
         if success is not None:
@@ -211,7 +212,8 @@ class Trajectory(eqx.Module):
         same, with orientation, ``|L(t) - L(0)| / |L(0)|``),
         ``vertical_angular_momentum`` (heavy top, relative to |L(0)|), ``quaternion_norm``
         (``| |q| - 1 |`` before the output was normalised; for ``accuracy="exact"``, whose output
-        nothing normalises, ``| |q| - 1 |`` of the samples).
+        nothing normalises, ``| |q| - 1 |`` of the samples). NaN for a body that failed
+        (``success`` False), whose samples stop being a motion where it failed.
         """
         out = {}
         model = self.model
@@ -241,5 +243,6 @@ class Trajectory(eqx.Module):
             q_norm = self.stats.get("quaternion_norm_error")
             if q_norm is None:
                 q_norm = jnp.max(jnp.abs(jnp.linalg.norm(self.orientation, axis=-1) - 1), axis=-1)
-            out["quaternion_norm"] = q_norm
+            # The solver's own record keeps the steps before the failure: a clean-looking value.
+            out["quaternion_norm"] = jnp.where(self.success, q_norm, jnp.nan)
         return out
