@@ -9,9 +9,11 @@ under it), ``L`` turns about body axis ``i`` by ``-theta`` (``dL/dt = L x omega`
 ``q <- q ⊗ (cos(theta/2), sin(theta/2) e_i)``. Each sub-flow is therefore a rotation: ``|L|``
 is kept to roundoff, and so is the space-frame angular momentum ``R(q) L`` (the rotation
 applied to ``q`` undoes the one applied to ``L``); only each step's rounding accumulates, as a
-random walk (``|L|`` of a tumbling body over 4e5 steps: 3e-14 relative in float64, 8e-5 in
-float32). ``q`` is normalised at the start of each step, against the steady drift of ``|q|`` that
-the rotations' roundoff would otherwise accumulate. The energy is not conserved exactly
+random walk (``|L|`` of tumbling bodies over 4e5 steps of 0.01 s: up to 1e-13 relative in
+float64, 3e-6 to 8e-5 in float32; the rotations are written as ``L + (c - 1) L + s L x e_i`` with
+``c - 1 = -2 sin^2(theta/2)``, since a rounded ``cos`` of a small angle repeats its error every
+step). ``q`` is normalised at the start of each step, against the steady drift of ``|q|`` that the
+rotations' roundoff would otherwise accumulate. The energy is not conserved exactly
 but its error stays bounded (the map is symplectic), with no secular drift.
 
 Order 2 is the Strang composition ``H1(h/2) H2(h/2) H3(h) H2(h/2) H1(h/2)``; order 4 composes it
@@ -63,18 +65,23 @@ def _axis_flow(inertia, L, q, h, i: int):
     """Exact flow of ``H_i = L_i^2 / (2 I_i)`` for a time ``h``."""
     j, k = (i + 1) % 3, (i + 2) % 3
     theta = h * L[..., i] / inertia[..., i]
-    c, s = jnp.cos(theta), jnp.sin(theta)
+    half = 0.5 * theta
+    sin_half, cos_half = jnp.sin(half), jnp.cos(half)
+    # The rotation as L + (c - 1) L + s L x e_i with c - 1 = -2 sin^2(theta/2): the rounded cos of a
+    # small angle missed c^2 + s^2 = 1 by the same amount at every step of a steady tumble, and |L|
+    # drifted linearly (float32, 4e5 steps of 0.01 s: 2e-3; now 3e-6).
+    s = 2.0 * sin_half * cos_half
+    c_minus_1 = -2.0 * sin_half * sin_half
     Lj, Lk = L[..., j], L[..., k]
     parts = [None, None, None]
     parts[i] = L[..., i]
-    parts[j] = c * Lj + s * Lk
-    parts[k] = c * Lk - s * Lj
+    parts[j] = Lj + (c_minus_1 * Lj + s * Lk)
+    parts[k] = Lk + (c_minus_1 * Lk - s * Lj)
     L_new = jnp.stack(parts, axis=-1)
-    half = 0.5 * theta
     zero = jnp.zeros_like(half)
     vec = [zero, zero, zero]
-    vec[i] = jnp.sin(half)
-    r = jnp.stack([jnp.cos(half)] + vec, axis=-1)
+    vec[i] = sin_half
+    r = jnp.stack([cos_half] + vec, axis=-1)
     return L_new, _quat_multiply(q, r)
 
 
