@@ -788,6 +788,31 @@ def test_the_fixed_step_runs_and_rkmk_step_name_their_arguments(without_runtime_
         step(lambda t, w, q, a: w * jnp.nan, 0.0, W, Q, 0.1)
 
 
+def test_the_fixed_step_solvers_options(without_runtime_typecheck):
+    """dt0=np.float32(0.01) was refused and dt0=True ran with 1 s steps; a traced dt0 was a raw
+    ConcretizationTypeError; max_steps below the grid's steps was ignored; order=4.0 was stored as
+    a float and np.int64(4) warned three times; HeavyTopSplitting.from_model of a free body was an
+    AttributeError."""
+    solver = rj.solvers.LiePoissonSplitting(order=4)
+    body, state, ts = rj.FreeBody(I3), rj.State(W, Q), jnp.linspace(0.0, 1.0, 3)
+    as_float = rj.simulate(body, state, ts, solver=solver, dt0=0.0078125)
+    as_numpy = rj.simulate(body, state, ts, solver=solver, dt0=np.float32(0.0078125))  # exact in float32
+    np.testing.assert_array_equal(as_numpy.omega, as_float.omega)
+    with pytest.raises(TypeError, match="dt0 must be a step in seconds, got True"):
+        rj.simulate(body, state, ts, solver=solver, dt0=True)
+    with pytest.raises(ValueError, match="dt0 must be concrete"):
+        jax.jit(lambda dt: rj.simulate(body, state, ts, solver=solver, dt0=dt).omega)(0.01)
+    with pytest.raises(ValueError, match=r"dt0 takes 128 steps over ts, more than max_steps=5"):
+        rj.simulate(body, state, ts, solver=solver, dt0=0.0078125, max_steps=5)
+    with pytest.raises(ValueError, match=r"order must be 2 or 4, got 4\.0"):
+        rj.solvers.LiePoissonSplitting(order=4.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert rj.solvers.LiePoissonSplitting(I3, order=np.int64(4)).splitting_order == 4
+    with pytest.raises(ValueError, match="from_model needs a HeavyTop, got a FreeBody"):
+        rj.solvers.HeavyTopSplitting.from_model(body)
+
+
 def test_fit_rejects_complex_data():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # (the warning, not a fit: this stays cheap)

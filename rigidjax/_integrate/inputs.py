@@ -154,6 +154,8 @@ def check_options(*, flags, objects, dt0, lock_tolerance):
             "diffrax.RecursiveCheckpointAdjoint(), DirectAdjoint() or ForwardMode()."
         )
     if dt0 is not None:
+        if isinstance(dt0, bool | np.bool_):
+            raise TypeError(f"simulate: dt0 must be a step in seconds, got {dt0!r}.")
         if np.ndim(dt0) != 0:
             raise ValueError(f"simulate: dt0 must be a single step (s), got shape {np.shape(dt0)}.")
         values = known_values((dt0,))

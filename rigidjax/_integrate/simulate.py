@@ -88,9 +88,14 @@ def _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given):
         raise ValueError(f"ts must be a 1-D array of at least one time, got shape {ts_np.shape}.")
     if np.any(np.diff(ts_np) <= 0) or not np.all(np.isfinite(ts_np)):
         raise ValueError("ts must be finite and strictly increasing; ts[0] is the initial time.")
-    if isinstance(dt0, jax.Array | np.ndarray) and np.ndim(dt0) == 0:
-        dt0 = float(dt0)
-    if not (isinstance(dt0, int | float) and np.isfinite(dt0) and dt0 > 0):
+    if isinstance(dt0, jax.core.Tracer):
+        raise ValueError(
+            f"simulate with {name}: dt0 must be concrete (it fixes the number of steps); do not trace "
+            "it under jit or differentiate with respect to it."
+        )
+    if isinstance(dt0, jax.Array | np.ndarray | np.number) and np.ndim(dt0) == 0:
+        dt0 = dt0.item()
+    if isinstance(dt0, bool) or not (isinstance(dt0, int | float) and np.isfinite(dt0) and dt0 > 0):
         raise ValueError(f"dt0 must be a positive number (it fixes the number of steps), got {dt0!r}.")
     grid, n_steps = driver.fixed_step_grid(ts_np, float(dt0))
     return formulation, grid, n_steps
@@ -325,6 +330,12 @@ def simulate(
     # The user's adjoint, or the one that works in the mode of differentiation (driver.default_adjoint).
     adjoint_chosen = adjoint is None
     adjoint = driver.default_adjoint(model, state0, ts, args) if adjoint_chosen else adjoint
+    if fixed_step and max_steps is not None and n_steps > max_steps:
+        raise ValueError(
+            f"simulate: the fixed step dt0 takes {n_steps} steps over ts, more than max_steps={max_steps}; "
+            "raise max_steps (or leave it out: a fixed step takes exactly its grid's steps) or take a "
+            "larger dt0."
+        )
     if max_steps is None:
         # DirectAdjoint runs nested scans sized by max_steps: its cost grows with the limit.
         direct = isinstance(adjoint, diffrax.DirectAdjoint)

@@ -115,9 +115,11 @@ def _checked_n_steps(n_steps, where: str) -> int:
     return int(n_steps)
 
 
-def _check_order(order):
-    if order not in (2, 4):
+def _check_order(order) -> int:
+    """``order`` as a Python int (2 or 4: NumPy integers included, 4.0 and True not)."""
+    if isinstance(order, bool | np.bool_) or not isinstance(order, int | np.integer) or order not in (2, 4):
         raise ValueError(f"order must be 2 or 4, got {order!r}.")
+    return int(order)
 
 
 def _checked_state(where, inertia, L, q, h, names=("L", "q", "h"), **extra):
@@ -295,8 +297,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
 
     def __init__(self, inertia=None, order: int = 2):
-        if order not in (2, 4):
-            raise ValueError(f"order must be 2 or 4, got {order!r}.")
+        order = _check_order(order)
         if inertia is not None:
             inertia = as_float_array(inertia, "inertia")
             if jnp.ndim(inertia) == 0:
@@ -500,8 +501,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
 
     def __init__(self, inertia=None, mass=None, com=None, gravity=9.81, order: int = 2):
-        if order not in (2, 4):
-            raise ValueError(f"order must be 2 or 4, got {order!r}.")
+        order = _check_order(order)
         if inertia is None and mass is None and com is None:
             # The scene's parameters come from the model (rigidjax.simulate).
             self.inertia = self.mass = self.com = self.gravity = None
@@ -527,6 +527,11 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     @classmethod
     def from_model(cls, model, order: int = 2) -> "HeavyTopSplitting":
         """The splitting for a :class:`rigidjax.HeavyTop` without extra torques."""
+        if not all(hasattr(model, field) for field in ("inertia", "mass", "com", "gravity")):
+            raise ValueError(
+                f"HeavyTopSplitting.from_model needs a HeavyTop, got a {type(model).__name__}; for a "
+                "torque-free body use LiePoissonSplitting(model.inertia)."
+            )
         if getattr(model, "torques", ()):
             raise ValueError(
                 "HeavyTopSplitting integrates gravity only; the model has extra torques. Use "
