@@ -108,6 +108,11 @@ def test_a_directory_as_the_output_stem_is_named(tmp_path, capsys, no_fit):
         ("t,wx,wy,wz\n" + "".join(f"{t},1,2,3\n" for t in range(5)), "too few samples"),
         ("t,wx,wy,wz\n", "no data rows"),
         ("t,qw,qx,qy,qz\n0,1,0,0,0\n", "orientation records"),
+        # A stray comma shifted the row's later values into the wrong columns, silently; a cell
+        # 1_000 was read as 1000; a repeated column name used its first column.
+        ("t,wx,wy,wz\n" + "".join(f"{t},1,2,3\n" for t in range(5)) + "5,,1,2,3\n", "has 5 cell(s)"),
+        ("t,wx,wy,wz\n" + "".join(f"{t},1_000,2,3\n" for t in range(12)), "'1_000' is not a number"),
+        ("t,wx,wy,wz,wx\n" + "".join(f"{t},1,2,3,4\n" for t in range(12)), "column(s) wx more than once"),
     ],
 )
 def test_malformed_files_are_named(tmp_path, capsys, text, message):
@@ -349,3 +354,20 @@ def test_fit_program_is_kept_between_invocations(tmp_path):
     assert "Persistent compilation cache hit for 'jit__run'" in second_log
     strip_time = [line for line in first_out.splitlines() if "including compile" not in line]
     assert strip_time == [line for line in second_out.splitlines() if "including compile" not in line]
+
+
+def test_a_fit_the_record_does_not_support_is_flagged():
+    """The command printed a steady spin's arbitrary moments (infinite standard errors) and a record
+    in milliseconds fitted as a near-sphere with tiny errors, both as "converged", without a word;
+    its JSON wrote Infinity, which JSON does not have."""
+    from rigidjax._cli.common import finite_or_none
+    from rigidjax._cli.fit import _fit_warnings
+
+    noise = np.array([1e-3, 1e-3, 1e-3])
+    assert _fit_warnings(np.array([1e-3, 1e-3, 1e-3]), 1.2 * noise, noise) == []
+    [undetermined] = _fit_warnings(np.array([np.inf, 1e-3, np.inf]), noise, noise)
+    assert "does not determine every moment" in undetermined
+    [misfit] = _fit_warnings(np.array([1e-7, 1e-7, 1e-7]), np.array([1.0, 1.0, 3.1]) * noise, noise)
+    assert "3.1 times the record's noise estimate" in misfit and "time unit" in misfit
+    text = json.dumps(finite_or_none({"stderr": [0.1, float("inf")], "loss": float("nan")}), allow_nan=False)
+    assert json.loads(text) == {"stderr": [0.1, None], "loss": None}

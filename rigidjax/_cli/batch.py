@@ -99,6 +99,21 @@ def _check_memory(args, n: int, samples: int, block_size: int) -> None:
         )
 
 
+def _kept(samples: int, every: int) -> int:
+    """The samples ``--save-every every`` stores: every ``every``-th from the first, and the last."""
+    return -(-samples // every) + (1 if (samples - 1) % every else 0)
+
+
+def _save_every_within_budget(samples: int, per_sample: int) -> int:
+    """The smallest K whose stored samples fit ``SAVE_BUDGET_BYTES`` (the first and the last
+    always: K = samples - 1 when nothing smaller fits)."""
+    largest = max(1, samples - 1)
+    every = min(max(1, math.ceil(samples * per_sample / SAVE_BUDGET_BYTES)), largest)
+    while every < largest and _kept(samples, every) * per_sample > SAVE_BUDGET_BYTES:
+        every += 1
+    return every
+
+
 def plan_run(args) -> Plan:
     n_default, duration_default, samples_default = SCENE_DEFAULTS[args.scene]
     n = args.bodies if args.bodies is not None else n_default
@@ -122,7 +137,7 @@ def plan_run(args) -> Plan:
     has_q = scene.orientation0 is not None
     per_sample = n * (3 + (7 if has_q else 0)) * np.dtype(args.save_dtype).itemsize
     if args.save_every is None:  # at least the first and the last sample, whatever their size
-        save_every = min(max(1, math.ceil(samples * per_sample / SAVE_BUDGET_BYTES)), max(1, samples - 1))
+        save_every = _save_every_within_budget(samples, per_sample)
     else:
         save_every = args.save_every
     return Plan(

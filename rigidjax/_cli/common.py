@@ -11,6 +11,8 @@ import sys
 import tempfile
 from collections.abc import Callable
 
+import numpy as np
+
 import rigidjax as rj
 
 from .._integrate.progress import StatusLine as StatusLine
@@ -141,8 +143,14 @@ def positive_int(text: str) -> int:
 
 
 def rng_seed(text: str) -> int:
-    """argparse type: a seed of ``numpy.random.default_rng``, an integer >= 0."""
-    return _integer_at_least(text, 0, "a non-negative integer")
+    """argparse type: a seed of ``numpy.random.default_rng``, an integer from 0 to 2^64 - 1 (the
+    .npz stores it as one number; a larger one would need pickling)."""
+    seed = _integer_at_least(text, 0, "a non-negative integer")
+    if seed >= 2**64:
+        raise argparse.ArgumentTypeError(
+            f"must be below 2^64 (stored in the output as one number), got {text}"
+        )
+    return seed
 
 
 def positive_float(text: str) -> float:
@@ -170,3 +178,15 @@ def file_size(path: str) -> str:
     except OSError as error:
         return f"size unknown: {error.strerror or error}"
     return f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
+
+
+def finite_or_none(value):
+    """``value`` with every non-finite float, also inside lists and dicts, as None: JSON has no
+    NaN or Infinity (Python writes them, and strict parsers refuse the file)."""
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_or_none(v) for v in value]
+    if isinstance(value, float | np.floating) and not math.isfinite(value):
+        return None
+    return value

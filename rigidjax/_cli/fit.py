@@ -25,6 +25,7 @@ from .common import (
     StatusLine,
     UsageError,
     check_output,
+    finite_or_none,
     plain,
     positive_int,
     write_figure,
@@ -72,6 +73,9 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
             f"{path}: missing column(s) {', '.join(missing)}; the header must name t, wx, wy, wz "
             f"(found: {', '.join(names) or 'nothing'})."
         )
+    repeated = [c for c in OMEGA_COLUMNS if names.count(c) > 1]
+    if repeated:
+        raise DataError(f"{path}: the header names column(s) {', '.join(repeated)} more than once.")
     index = [names.index(c) for c in OMEGA_COLUMNS]
     data = []
     for line, cells in enumerate(rows[1:], start=2):
@@ -79,7 +83,9 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
         if not any(c.strip() for c in cells):
             continue  # a blank or comment line
         row = len(data) + 1
-        if len(cells) <= max(index):
+        # Fewer cells than the columns read, or more non-empty ones than the header names (a stray
+        # comma shifts every later value of the row into the wrong column).
+        if len(cells) <= max(index) or any(c.strip() for c in cells[len(names) :]):
             raise DataError(
                 f"{path}: data row {row} (line {line}) has {len(cells)} cell(s); the header names "
                 f"{len(names)} columns."
@@ -125,6 +131,26 @@ def _without_comment(cells: list[str]) -> list[str]:
     return cells
 
 
+def _fit_warnings(stderr, rms, noise) -> list[str]:
+    """What the numbers say against trusting the fit: moments the record does not determine, and
+    residuals well above the record's own noise (a wrong wobble frequency)."""
+    out = []
+    if not np.all(np.isfinite(stderr)):
+        out.append(
+            "the record does not determine every moment (infinite standard errors): a spin about one "
+            "principal axis, or a wobble below the noise, fixes no inertia ratio; the values shown for "
+            "those moments are arbitrary."
+        )
+    ratio = np.max(rms / np.maximum(noise, np.finfo(float).tiny))
+    if np.all(np.isfinite(noise)) and np.all(noise > 0) and ratio > 2:
+        out.append(
+            f"the residuals are {ratio:.1f} times the record's noise estimate: the fit explains the record "
+            "worse than its noise, most often a wrong wobble frequency. Check the time unit (seconds) "
+            "and try --segments auto."
+        )
+    return out
+
+
 def _number(path: str, row: int, column: str, text: str) -> float:
     """One cell as a float: empty or ``nan`` is a missing sample (NaN); text that is not a number
     is a :class:`DataError` naming the row and the column."""
@@ -132,6 +158,8 @@ def _number(path: str, row: int, column: str, text: str) -> float:
     if not text or text.lower() == "nan":
         return float("nan")
     try:
+        if "_" in text:  # Python's float reads 1_000 as 1000; a CSV cell with one is not a number
+            raise ValueError
         return float(text)
     except ValueError:
         raise DataError(
@@ -350,13 +378,18 @@ def run(args) -> int:
         + (f"  (first of {w0.shape[0]} windows)" if w0.shape[0] > 1 else "")
     )
     rms = np.asarray(fit.residual_rms)
+    noise = np.asarray(fit.noise_estimate)
     robust = "" if args.loss == "squared" else ", robust: 1.4826 median |residual|"
     lines.append(f"residual rms (rad/s{robust}): " + ", ".join(f"{r:.3g}" for r in rms))
+    lines.append("noise estimate (rad/s, from the record alone): " + ", ".join(f"{r:.3g}" for r in noise))
     lines.append(
         f"{'converged' if bool(fit.converged) else 'NOT converged'} after {fit.num_steps} iterations "
         f"({fit.method}, {seconds:.1f} s including compile)"
     )
     print("\n".join(lines))
+    warnings = _fit_warnings(err, rms, noise)
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
 
     result = {
         "data": args.data,
@@ -370,14 +403,15 @@ def run(args) -> int:
         "segment_starts": np.asarray(fit.segment_starts).tolist(),
         "loss": float(fit.loss),
         "residual_rms": rms.tolist(),
+        "noise_estimate": noise.tolist(),
+        "warnings": warnings,
         "converged": bool(fit.converged),
         "iterations": fit.num_steps,
         "method": fit.method,
         "loss_function": args.loss,
         "seconds": seconds,
     }
-    result = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
-    text = json.dumps(result, indent=2)
+    text = json.dumps(finite_or_none(result), indent=2, allow_nan=False)
     json_written = write_or_rescue("fit", "--out", json_path, lambda path: write_text(path, text))
     written = [json_written] if json_written else []
     misplaced = json_written != json_path

@@ -59,6 +59,7 @@ from .common import (
     UsageError,
     check_output,
     file_size,
+    finite_or_none,
     info,
     positive_float,
     positive_int,
@@ -151,7 +152,9 @@ def _write_npz(plan: Plan, batch: Batch, args, summary: dict, path: str) -> None
         arrays["orientation0"] = plan.scene.orientation0
     arrays.update(plan.scene.params)
     arrays.update({k: v for k, v in batch.results.items() if k != "success"})
-    arrays.update(_run_settings(plan, args), summary_json=np.array(json.dumps(summary)))
+    arrays.update(
+        _run_settings(plan, args), summary_json=np.array(json.dumps(finite_or_none(summary), allow_nan=False))
+    )
     write_npz(path, arrays)
 
 
@@ -278,6 +281,12 @@ def _devices_text(count: int) -> str:
     return f"{count} {kind} devices (each block's chunks spread over them; --cpu-devices on a CPU)"
 
 
+def _drift_text(value: float, dtype: str, eps: float) -> str:
+    if not np.isfinite(value):  # NaN: every body failed (the failed ones are left out of the worst)
+        return "n/a (no body finished)"
+    return f"{value:.3e}" if value > 0 else f"0 (below {dtype}'s resolution, {eps:.1e})"
+
+
 def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, out_files, t_start) -> None:
     blocks, block_size, padded = plan.blocks, plan.block_size, plan.padded
     mean_steps = batch.steps_total / max(1, blocks * math.ceil(block_size / max(batch.chunk_size, 1)))
@@ -316,7 +325,7 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
     lines += [
         (
             f"worst drift {key}",
-            f"{value:.3e}" if value > 0 else f"0 (below {args.dtype}'s resolution, {eps:.1e})",
+            _drift_text(value, args.dtype, eps),
         )
         for key, value in summary["worst_drift"].items()
     ]
