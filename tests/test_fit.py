@@ -314,6 +314,26 @@ def test_estimate_is_a_good_start():
     assert np.nanmax(np.abs(smoothed - exact)) < 0.05
 
 
+@pytest.mark.parametrize("noise", [0.0, 1e-3, 0.1])
+@pytest.mark.parametrize("full_tensor", [False, True])
+def test_a_steady_rotation_does_not_determine_the_inertia(noise, full_tensor):
+    """A rotation at constant angular velocity about a principal axis satisfies Euler's torque-free
+    equations for every inertia (omega x (I omega) = 0 for any diagonal I: checked below for two
+    unlike bodies), so no estimate from such a record means anything: a ValueError, not the
+    arbitrary moments returned before (0.499, 0.25, 0.25 for any body)."""
+    ts = np.linspace(0.0, 10.0, 400)
+    steady = np.array([0.0, 0.0, 2.0])
+    for moments in (np.array([1.0, 2.0, 2.5]), np.array([3.0, 1.0, 2.0])):
+        assert np.all(np.cross(steady, moments * steady) == 0.0)
+    record = steady + noise * np.random.default_rng(3).normal(size=(ts.size, 3))
+    with pytest.raises(ValueError, match="omega_observed does not determine the inertia"):
+        estimate_inertia(ts, record, full_tensor=full_tensor)
+    # A wobble of 10 times the noise (or of 1e-6 rad/s without noise) is estimated.
+    wobble = max(10.0 * noise, 1e-6)
+    wobbling = np.asarray(rj.torque_free_omega(I_TRUE, jnp.array([0.0, wobble, 2.0]), jnp.asarray(ts)))
+    estimate_inertia(ts, wobbling + noise * np.random.default_rng(4).normal(size=(ts.size, 3)))
+
+
 @pytest.mark.parametrize("duration, samples", [(20.0, 800), (20.0, 200), (60.0, 2400)])
 def test_noise_estimate_is_the_noise_added(duration, samples):
     """The noise per component estimated from a record is the Gaussian noise added to it (1e-3 of a

@@ -76,7 +76,9 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     principal moments (or six tensor entries). The right singular vector of the smallest singular
     value is the estimate, normalised to trace 1 and made physical (second moments floored at a small
     positive value). A starting point for :func:`fit_inertia`, not a final answer: noise biases it,
-    and so does the smoothing (about 1 % on noise-free records).
+    and so does the smoothing (about 1 % on noise-free records). A record whose angular velocity is
+    constant to within its noise in every component is refused with a ``ValueError``: a steady
+    rotation about a principal axis satisfies the torque-free equations for any inertia.
 
     **Arguments:**
 
@@ -115,7 +117,34 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     estimate = _estimate(ts, omega, full_tensor=full_tensor, half_width=half_width)
     if estimate.inertia is None:
         raise ValueError(f"estimate_inertia: {_NO_EQUATIONS}; widen half_width (now {estimate.half_width}).")
+    _require_a_wobble(estimate)
     return estimate.inertia, estimate.smoothed
+
+
+def _require_a_wobble(estimate: "_Estimate"):
+    """A ``ValueError`` when the smoothed record does not vary beyond one sample's noise in any
+    component: a rotation at constant angular velocity (about a principal axis) satisfies the
+    torque-free equations for every inertia, so the estimate would be arbitrary."""
+    smoothed = estimate.smoothed[np.all(np.isfinite(estimate.smoothed), axis=1)]
+    if smoothed.shape[0] == 0:
+        return
+    variation = np.std(smoothed, axis=0)
+    size = float(np.sqrt(np.mean(np.sum(smoothed * smoothed, axis=1))))
+    noise = np.nan_to_num(estimate.noise, nan=0.0)
+    # The floor: a record computed in float64 at constant angular velocity still varies by rounding.
+    threshold = np.maximum(noise, 1e-13 * size)
+    if np.all(variation <= threshold):
+        raise ValueError(
+            "estimate_inertia: omega_observed does not determine the inertia: its angular velocity is "
+            f"constant to within the record's noise (variation {_vector(variation)} rad/s per component, "
+            f"noise {_vector(noise)} rad/s). A rotation at constant angular velocity, about a principal "
+            "axis, satisfies Euler's torque-free equations for any moments; a record with a wobble (or a "
+            "known torque, with fit_inertia) determines them."
+        )
+
+
+def _vector(values) -> str:
+    return "(" + ", ".join(f"{v:.2g}" for v in values) + ")"
 
 
 _NO_EQUATIONS = (
