@@ -959,3 +959,72 @@ def test_a_run_where_every_body_failed_reports_no_drift_and_writes_strict_json()
     assert rng_seed(str(2**64 - 1)) == 2**64 - 1
     with pytest.raises(argparse.ArgumentTypeError, match="below 2\\^64"):
         rng_seed(str(2**70))
+
+
+@pytest.mark.parametrize(
+    "bodies, blocks, planned, why",
+    [
+        (10, 6, 5, "more would hold only padding"),
+        (12, 4, 3, "blocks of 3 hold 4"),
+        (10, 5, 5, None),
+    ],
+)
+def test_a_number_of_blocks_other_than_asked_says_why(bodies, blocks, planned, why):
+    """``--blocks 6`` for 10 bodies ran 5 blocks of 2 (equal blocks: a sixth would hold only copies)
+    and the header did not say that the request was changed."""
+    import argparse
+
+    from rigidjax._cli.batch import plan_run
+    from rigidjax._cli.simulate import _blocks_note
+
+    args = argparse.Namespace(
+        scene="free",
+        bodies=bodies,
+        duration=1.0,
+        samples=10,
+        seed=0,
+        accuracy="balanced",
+        blocks=blocks,
+        save_every=None,
+        save_dtype="float32",
+        dtype="float64",
+        out="",
+    )
+    plan = plan_run(args)
+    assert plan.blocks == planned and plan.blocks * plan.block_size >= bodies
+    note = _blocks_note(plan, args)
+    if why is None:
+        assert note == ""
+    else:
+        assert note.startswith(f" (not --blocks {blocks}: ") and why in note
+
+
+def test_one_body_is_one_body():
+    code, out, err = _run(
+        ["simulate", "--scene", "free", "-n", "1", "--blocks", "3", "--duration", "0.1", "--samples", "5"]
+        + ["--out", "", "--no-plot"]
+    )
+    assert code == 0, err
+    assert "1 block of 1 body (not --blocks 3: " in err, err
+    assert _field(out, "bodies") == "1 (1 block of 1)"
+    assert not re.search(r"(?<![/\d,])1 bodies", out + err) and "block(s)" not in out + err
+
+
+@pytest.mark.parametrize("command", ["simulate", "fit", "bench"])
+def test_every_option_with_a_default_shows_it_in_the_help(command):
+    """``rigidjax bench --help`` and ``rigidjax fit --help`` did not show the defaults of --repeats,
+    --dtype, --seed, --loss, --method or --steps (nor what --loss and --method do)."""
+    import argparse
+
+    from rigidjax._cli.parser import build_parser
+
+    subparsers = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    parser = subparsers.choices[command]
+    text = parser.format_help()
+    for action in parser._actions:
+        if action.default in (None, False, argparse.SUPPRESS) or not action.option_strings:
+            continue
+        help_text = parser._get_formatter()._get_help_string(action) or ""
+        assert "(default" in help_text, (action.option_strings, help_text)
+        assert help_text.count("(default") - help_text.count("%(default)") == 1, help_text
+    assert "(default 300)" not in text and "default: False" not in text

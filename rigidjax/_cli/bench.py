@@ -16,7 +16,6 @@ omega error ``|omega - omega_ref| / |omega_ref|`` and orientation error angle (r
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import sys
@@ -29,6 +28,7 @@ import numpy as np
 import rigidjax as rj
 
 from .common import (
+    DocstringHelpFormatter,
     StatusLine,
     UsageError,
     bar,
@@ -199,10 +199,10 @@ def add_parser(subparsers) -> None:
         "bench",
         help="time and error of each accuracy setting of rigidjax.simulate on tennis-racket bodies",
         description=plain(__doc__),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=DocstringHelpFormatter,
     )
-    p.add_argument("-n", "--bodies", type=positive_int, default=300, help="number of bodies (default 300)")
-    p.add_argument("--duration", type=positive_float, default=20.0, help="T in seconds (default 20)")
+    p.add_argument("-n", "--bodies", type=positive_int, default=300, help="number of bodies")
+    p.add_argument("--duration", type=positive_float, default=20.0, help="T in seconds")
     p.add_argument(
         "--methods",
         default=",".join(METHODS),

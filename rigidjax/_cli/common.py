@@ -24,12 +24,18 @@ FIGURE_EXTENSIONS = (".png", ".pdf", ".svg")
 
 
 class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows an option's default in its help, except when there is none to show (``None``)."""
+    """Shows an option's default in its help, except when there is none to show (``None``, a flag
+    that is off) or the help already states it."""
 
     def _get_help_string(self, action):
-        if action.default is None:
+        if action.default is None or action.default is False or "(default" in (action.help or ""):
             return action.help
         return super()._get_help_string(action)
+
+
+class DocstringHelpFormatter(argparse.RawDescriptionHelpFormatter, DefaultsHelpFormatter):
+    """:class:`DefaultsHelpFormatter` for a command whose description is its module's docstring,
+    kept line for line."""
 
 
 def plain(docstring: str) -> str:
@@ -162,6 +168,11 @@ def positive_float(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
     return value
+
+
+def counted(n: int, one: str, many: str) -> str:
+    """``n`` with the noun it counts: ``counted(1, "body", "bodies")`` is ``"1 body"``."""
+    return f"{n:,} {one if n == 1 else many}"
 
 
 def info(args, message: str) -> None:

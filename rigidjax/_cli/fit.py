@@ -8,7 +8,6 @@ are missing samples. The fitted inertia is printed with its standard errors, and
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
@@ -22,6 +21,7 @@ import numpy as np
 import rigidjax as rj
 
 from .common import (
+    DocstringHelpFormatter,
     StatusLine,
     UsageError,
     check_output,
@@ -236,18 +236,34 @@ def add_parser(subparsers) -> None:
         "fit",
         help="fit the inertia of a torque-free body to a CSV record of body-frame omega",
         description=plain(__doc__),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=DocstringHelpFormatter,
     )
     p.add_argument("data", help="CSV file with a header row and columns t, wx, wy, wz")
     p.add_argument(
         "--segments",
         default="1",
-        help="multiple shooting: number of windows, or 'auto' (about one wobble period each). Default 1.",
+        help="multiple shooting: number of windows, or 'auto' (about one wobble period each)",
     )
     p.add_argument("--full-tensor", action="store_true", help="fit a full tensor (sensor axes not principal)")
-    p.add_argument("--loss", default="squared", choices=("squared", "huber", "soft_l1", "cauchy"))
-    p.add_argument("--method", default="optax", choices=("optax", "levenberg-marquardt"))
-    p.add_argument("--steps", type=positive_int, default=None, help="iteration limit")
+    p.add_argument(
+        "--loss",
+        default="squared",
+        choices=("squared", "huber", "soft_l1", "cauchy"),
+        help="loss of the residuals; the robust ones (huber, soft_l1, cauchy) limit the pull of outliers",
+    )
+    p.add_argument(
+        "--method",
+        default="optax",
+        choices=("optax", "levenberg-marquardt"),
+        help="optimiser: optax (L-BFGS with a strong-Wolfe line search) or levenberg-marquardt "
+        "(Gauss-Newton with damping: fewer iterations, faster once compiled)",
+    )
+    p.add_argument(
+        "--steps",
+        type=positive_int,
+        default=None,
+        help="iteration limit (default: 2000 for optax, 200 for levenberg-marquardt)",
+    )
     p.add_argument("--trace", type=float, default=None, help="known trace of the inertia (kg m^2)")
     p.add_argument(
         "--known-moment",

@@ -16,6 +16,8 @@ import numpy as np
 
 import rigidjax as rj
 
+from .common import counted
+
 GRAVITY = 9.81  # m/s^2
 
 # The rigid Earth (SI): principal moments near the real ones, sidereal rotation rate.
@@ -244,7 +246,8 @@ def _free_scene(n: int, rng: np.random.Generator) -> Scene:
             rows.append(
                 (
                     f"spun near {name}",
-                    f"{int(sel.sum()):,} bodies, {int(flipped[sel].sum()):,} flipped ({note})",
+                    f"{counted(int(sel.sum()), 'body', 'bodies')}, {int(flipped[sel].sum()):,} flipped "
+                    f"({note})",
                 )
             )
         intermediate = axis == 1

@@ -58,6 +58,7 @@ from .common import (
     DefaultsHelpFormatter,
     UsageError,
     check_output,
+    counted,
     file_size,
     finite_or_none,
     info,
@@ -163,6 +164,18 @@ def partial_path(out: str) -> str:
     return os.path.splitext(out)[0] + ".partial.npz"
 
 
+def _blocks_note(plan: Plan, args) -> str:
+    """Why the run has another number of blocks than ``--blocks`` asked for, or nothing."""
+    if args.blocks is None or args.blocks == plan.blocks:
+        return ""
+    why = (
+        "three bodies' principal moments would read as one inertia tensor, so blocks of 3 hold 4"
+        if math.ceil(plan.n / min(args.blocks, plan.n)) == 3
+        else "the blocks are equal, and more would hold only padding"
+    )
+    return f" (not --blocks {args.blocks}: {why})"
+
+
 def _write_partial(plan: Plan, batch: Batch, blocks_done: int, args) -> None:
     """The stored samples and per-body results of the bodies of the finished blocks, with their
     indices in the scene (``body``), beside ``--out``; one line on stderr says where."""
@@ -178,8 +191,9 @@ def _write_partial(plan: Plan, batch: Batch, blocks_done: int, args) -> None:
     if path is None:
         return
     print(
-        f"rigidjax simulate: the {len(bodies):,} bodies of the {blocks_done} finished block"
-        f"{'s' if blocks_done > 1 else ''} (of {plan.blocks}) are in {path} (their indices in 'body').",
+        f"rigidjax simulate: the {counted(len(bodies), 'body', 'bodies')} of the "
+        f"{counted(blocks_done, 'finished block', 'finished blocks')} (of {plan.blocks}) are in {path} "
+        "(their indices in 'body').",
         file=sys.stderr,
         flush=True,
     )
@@ -300,15 +314,16 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
     padding = f", last padded with {copies} cop{'y' if copies == 1 else 'ies'}" if copies else ""
     lines = [
         ("scene", f"{args.scene}: {plan.scene.description}"),
-        ("bodies", f"{plan.n:,} ({blocks} block{'s' if blocks > 1 else ''} of {block_size:,}{padding})"),
+        ("bodies", f"{plan.n:,} ({counted(blocks, 'block', 'blocks')} of {block_size:,}{padding})"),
         ("dtype", args.dtype),
         ("accuracy", method),
         ("samples", f"{plan.samples:,} over {duration_text}"),
         ("devices", _devices_text(summary["devices"])),
         (
             "solver steps",
-            f"{batch.steps_total:,} (summed over chunks of <= {batch.chunk_size:,} bodies sharing one step "
-            f"size; mean {mean_steps:,.0f} per chunk)",
+            f"{batch.steps_total:,} (summed over chunks of <= "
+            f"{counted(batch.chunk_size, 'body', 'bodies')} sharing one step size; "
+            f"mean {mean_steps:,.0f} per chunk)",
         ),
         ("body-steps", f"{batch.body_steps:,} (steps x bodies of each chunk, padding copies included)"),
         ("wall time", f"{batch.sim_time:.2f} s (all blocks, excluding compile)"),
@@ -396,7 +411,8 @@ def run(args) -> int:
         )
     info(
         args,
-        f"rigidjax simulate: {plan.scene.description}; {plan.blocks} block(s) of {plan.block_size:,} bodies, "
+        f"rigidjax simulate: {plan.scene.description}; {counted(plan.blocks, 'block', 'blocks')} of "
+        f"{counted(plan.block_size, 'body', 'bodies')}{_blocks_note(plan, args)}, "
         f"{args.dtype}, accuracy {args.accuracy}",
     )
     info(args, "compiling (first call: block 0 over a time span of a milliradian of rotation)...")
@@ -442,8 +458,8 @@ def run(args) -> int:
         else:
             what, advice = "the integration failed", "--accuracy fast or a shorter --duration"
         print(
-            f"rigidjax simulate: {what} for {summary['failed_bodies']} bodies (NaN rows from the first "
-            f"failed sample on, success=False in the npz); try {advice}.",
+            f"rigidjax simulate: {what} for {counted(summary['failed_bodies'], 'body', 'bodies')} (NaN "
+            f"rows from the first failed sample on, success=False in the npz); try {advice}.",
             file=sys.stderr,
         )
         return 1
