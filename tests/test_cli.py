@@ -1007,6 +1007,8 @@ def test_one_body_is_one_body():
     assert code == 0, err
     assert "1 block of 1 body (not --blocks 3: " in err, err
     assert _field(out, "bodies") == "1 (1 block of 1)"
+    # The error estimate's second solve is in the wall time, not in the steps counted.
+    assert "over the wall time of both solves" in _field(out, "body-steps/s")
     assert not re.search(r"(?<![/\d,])1 bodies", out + err) and "block(s)" not in out + err
 
 
