@@ -95,11 +95,17 @@ def check_batch_shapes(where: str, *arrays) -> tuple[int, ...]:
         ) from None
 
 
+def is_tensor_shape(shape) -> bool:
+    """The shape rule of an inertia: ``(..., 3, 3)`` is a tensor per body, anything else (checked
+    where it matters) principal moments ``(..., 3)``."""
+    return len(shape) >= 2 and tuple(shape[-2:]) == (3, 3)
+
+
 def is_full_tensor(inertia, name: str = "inertia") -> bool:
     """True when ``inertia`` is a ``(..., 3, 3)`` tensor, False for principal moments ``(..., 3)``;
     a ``ValueError`` naming ``name`` for any other shape."""
     shape = jnp.shape(inertia)
-    if len(shape) >= 2 and shape[-2:] == (3, 3):
+    if is_tensor_shape(shape):
         return True
     if len(shape) >= 1 and shape[-1] == 3:
         return False

@@ -29,6 +29,7 @@ from .._checks import (
     collected_failures,
     common_float,
     error_if,
+    is_tensor_shape,
     known_values,
     packed_failures,
 )
@@ -58,7 +59,7 @@ def _checked(inertia, omega0, t, where):
     # Principal moments, per body: check_inertia would read a trailing (3, 3) as ONE tensor, and a
     # diagonal tensor passed here (three "bodies" with zero moments) then ran as steady rotations.
     name = f"{where}: inertia"
-    if inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3):
+    if is_tensor_shape(inertia.shape):
         name += (
             " (principal moments (..., 3): a trailing (3, 3) is three bodies' moments here, not a "
             "tensor; diagonalise a tensor with rigidjax.principal_axes)"

@@ -15,11 +15,12 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import as_float_array, check_last_axis
+from .._checks import as_float_array, check_last_axis, is_tensor_shape
 from .._kinematics.quaternion import _quat_rotate
 from .._repr import dataclass_fields, fields_repr, summarizing
 from .equations import _euler_equations, _inertia_times, is_full_tensor
@@ -200,20 +201,27 @@ def leaf_shape(model: AbstractModel, leaf: BodyLeaf) -> tuple[int, ...]:
 def inertia_ndim(inertia) -> int:
     """The per-body ndim of ``inertia`` from its shape: 2 for ``(..., 3, 3)``, else 1. (Constructors
     call it before their converters check the shape: NumPy's shape, which takes lists too.)"""
-    shape = np.shape(inertia)
-    return 2 if len(shape) >= 2 and shape[-2:] == (3, 3) else 1
+    return 2 if is_tensor_shape(np.shape(inertia)) else 1
 
 
 # Records the inertia's form when a scene is built; slicing or reshaping its batch keeps it.
 _INERTIA_NDIM = eqx.field(static=True, init=False, repr=False)
 
 
+def replace_static(module: eqx.Module, **fields) -> eqx.Module:
+    """A copy of ``module`` with the static ``fields`` replaced (``eqx.tree_at`` reaches only the
+    leaves); the copy is a new object, so no other holder of ``module`` sees the change."""
+    copy = jax.tree_util.tree_map(lambda leaf: leaf, module)
+    for name, value in fields.items():
+        object.__setattr__(copy, name, value)
+    return copy
+
+
 def keep_inertia_ndim(rebuilt: "AbstractModel", original: "AbstractModel") -> "AbstractModel":
-    """``rebuilt``, a scene just built from ``original``'s arrays (and not yet shared), with
-    ``original``'s inertia form: its constructor reads the form from the shape, which takes a slice
-    of three bodies' principal moments, ``(3, 3)``, for one tensor."""
-    object.__setattr__(rebuilt, "_inertia_ndim", original.inertia_core_ndim)
-    return rebuilt
+    """``rebuilt``, a scene built from ``original``'s arrays, with ``original``'s inertia form: its
+    constructor reads the form from the shape, which takes a slice of three bodies' principal
+    moments, ``(3, 3)``, for one tensor."""
+    return replace_static(rebuilt, _inertia_ndim=original.inertia_core_ndim)
 
 
 def _inertia_field(inertia):

@@ -50,8 +50,10 @@ from ..._checks import (
     common_float,
     compiled_when_eager,
     error_if,
+    is_tensor_shape,
 )
 from ..._dynamics.inertia import check_inertia
+from ..._dynamics.models import replace_static
 from ..._dynamics.torques import gravity_torque
 from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
 from ..._numerics import short_norm
@@ -271,8 +273,7 @@ def with_model_parameters(solver, *parameters):
     solver = eqx.tree_at(
         lambda s: [getattr(s, n) for n in names], solver, list(parameters), is_leaf=lambda x: x is None
     )
-    object.__setattr__(solver, "_moments_from_model", True)  # a fresh copy, not yet shared
-    return solver
+    return replace_static(solver, _moments_from_model=True)
 
 
 class LiePoissonSplitting(diffrax.AbstractSolver):
@@ -306,7 +307,7 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
                     f"LiePoissonSplitting's first argument is the inertia; got the scalar {inertia}. "
                     "For the order write LiePoissonSplitting(order=4)."
                 )
-            if not (inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)):
+            if not is_tensor_shape(inertia.shape):
                 check_last_axis(inertia, 3, "inertia")
             inertia = check_inertia(inertia, name="LiePoissonSplitting: inertia")
         self.inertia = inertia
@@ -513,7 +514,7 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
                 "HeavyTopSplitting needs all of inertia, mass and com, or none of them (simulate)."
             )
         inertia = as_float_array(inertia, "inertia")
-        if not (inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)):
+        if not is_tensor_shape(inertia.shape):
             check_last_axis(inertia, 3, "inertia")
         self.inertia = check_inertia(inertia, name="HeavyTopSplitting: inertia")
         mass, com, gravity = _checked_top_parameters(mass, com, gravity, "HeavyTopSplitting")
