@@ -39,6 +39,7 @@ from ..._checks import (
 )
 from ..._dynamics.torques import broadcasts_to
 from ..._kinematics.quaternion import _quat_exp, _quat_kinematics, _quat_multiply
+from .direction import time_direction
 
 # ---------------------------------------------------------------------------------------------
 # Lie-group pieces
@@ -112,13 +113,6 @@ def _combine(coeffs, ks, h):
             term = a * k
             total = term if total is None else total + term
     return None if total is None else h * total
-
-
-def signed_step(terms, t0, t1):
-    """The step from ``t0`` to ``t1`` in the caller's time. ``diffeqsolve`` from a later to an
-    earlier time integrates forward in ``-t`` with its terms wrapped (``diffrax.WrapTerm``, direction
-    -1): solvers that step by their own maps instead of the term's ``contr`` must flip it."""
-    return getattr(terms, "direction", 1) * (t1 - t0)
 
 
 def _rkmk(accel, t0, omega0, q0, h, args, tableau, f0=None, stage_dt=None):
@@ -306,9 +300,9 @@ class RKMK(diffrax.AbstractAdaptiveSolver):
         f0 = jax.lax.cond(
             made_jump, lambda: jnp.asarray(accel(t0, omega0, q0, args), omega0.dtype), lambda: solver_state
         )
-        h = signed_step(terms, t0, t1)
+        direction = time_direction(terms)
+        h = direction * (t1 - t0)  # in the caller's time
         omega1, q1, theta1, err, f0, f1 = _rkmk(accel, t0, omega0, q0, h, args, self.tableau, f0, t1 - t0)
-        direction = getattr(terms, "direction", 1)
         dense_info = dict(y0=y0, y1=(omega1, q1), theta1=theta1, f0=f0, f1=f1, direction=direction)
         return (omega1, q1), err, dense_info, f1, diffrax.RESULTS.successful
 

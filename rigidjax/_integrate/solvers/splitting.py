@@ -57,7 +57,7 @@ from ..._dynamics.models import replace_static
 from ..._dynamics.torques import gravity_torque
 from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
 from ..._numerics import short_norm
-from .rkmk import signed_step
+from .direction import time_direction
 
 _YOSHIDA_W1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 _YOSHIDA_W0 = 1.0 - 2.0 * _YOSHIDA_W1
@@ -330,8 +330,9 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         _require_parameters(self, "LiePoissonSplitting", "LiePoissonSplitting(inertia, order)")
         if not self._moments_from_model:
             _check_principal(self.inertia, "LiePoissonSplitting")
-        y1 = self.map_over(L0, q0, jnp.asarray(signed_step(terms, t0, t1)).astype(L0.dtype))
-        dense_info = dict(y0=y0, y1=y1, solver=self, direction=getattr(terms, "direction", 1))
+        direction = time_direction(terms)
+        y1 = self.map_over(L0, q0, jnp.asarray(direction * (t1 - t0)).astype(L0.dtype))
+        dense_info = dict(y0=y0, y1=y1, solver=self, direction=direction)
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
@@ -561,8 +562,9 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
         )
         if not self._moments_from_model:
             _check_principal(self.inertia, "HeavyTopSplitting as a diffrax solver")
-        y1 = self.map_over(L0, q0, jnp.asarray(signed_step(terms, t0, t1)).astype(L0.dtype))
-        dense_info = dict(y0=y0, y1=y1, solver=self, direction=getattr(terms, "direction", 1))
+        direction = time_direction(terms)
+        y1 = self.map_over(L0, q0, jnp.asarray(direction * (t1 - t0)).astype(L0.dtype))
+        dense_info = dict(y0=y0, y1=y1, solver=self, direction=direction)
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
