@@ -902,8 +902,10 @@ def _fmt(x, spec=".1e"):
 
 def format_table(rows: Sequence[dict]) -> str:
     """A markdown table, one row per method."""
+    calls = {len(r.get("run_s_all") or ()) for r in rows}
+    timing = "run s (one call)" if calls == {1} else "run s (median)"  # --repeats 1 has no median
     head = (
-        "| method | setting | dtype | run s (median) | compile s | max rel ω err | median rel ω err "
+        f"| method | setting | dtype | {timing} | compile s | max rel ω err | median rel ω err "
         "| p99 rel ω err | max angle err rad | median angle err | max rel energy drift | errors on |"
     )
     lines = [head, "|" + " --- |" * 12]

@@ -160,7 +160,8 @@ def worker(spec: dict) -> dict:
         )
     del traj
 
-    # Repeats: fewer when one call is slow (the brief: 1 repeat when a call takes > ~5 min).
+    # Repeats: fewer when one call is slow (one repeat when a call takes more than ~7 min); each
+    # row records its repeats.
     est_run = max(first_s - sum(compile_events.values()), 1e-6)
     repeats = int(spec["repeats"])
     budget = float(spec.get("repeat_budget_s", 420.0))
