@@ -399,6 +399,16 @@ def test_random_tops_against_dop853():
         (1.635, [np.sqrt(2 * G * 0.3 * (1 + np.cos(1.635))) * (1 + 1.3e-5), 0.0, 1e-3], 0.3, 1e-7),
         # Hanging 6.8e-9 rad off the vertical with a fast spin (a pole 1e-17 from a turning circle).
         (6.8e-9, [1.16e-3, -1.59e-3, 17.97], -0.3, 2e-9),
+        # Released almost at rest: a standing top falls and swings within ~eps of the downward
+        # vertical, a hanging one within ~eps of the upward one, where the pole's distance from the
+        # turning circle (~eps^2) is far below the numbers it was formed from (the closed form was
+        # off by 0.1-2 rad there, marked successful).
+        (0.4, [1e-6, 0.0, 1e-6], 0.3, 2e-9),
+        (0.4, [1e-8, 0.0, 1e-8], 0.3, 2e-9),
+        (0.4, [1e-4, 0.0, 1e-4], -0.3, 2e-9),
+        (0.4, [1e-8, 0.0, 1e-8], -0.3, 2e-9),
+        # Standing 1e-8 rad from the upward vertical, tilting away from it at 3 rad/s.
+        (1e-8, [3.0, 0.0, 50.0], 0.3, 2e-9),
     ],
 )
 def test_near_separatrix_and_near_the_poles(theta, w0, com_z, tol):

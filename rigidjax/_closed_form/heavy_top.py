@@ -40,6 +40,11 @@ top exactly at a pole without a wobble (the linearised tilt: two circular modes 
 threshold, a growing and a decaying one below it and at rest upright). A top started exactly at
 a pole with a finite wobble (``theta0 = 0``, ``omega0`` not along the axis) has exact values and
 finite derivatives, but the derivative with respect to the tilt of ``q0`` is not the motion's.
+A top with ``w3 = 0`` and ``L_z = 0`` (released from rest, or swinging in a vertical plane: both
+halves have ``b + k a = 0``, one pole a turning circle and the other the third root) has exact
+values, but its derivative with respect to ``omega0`` is not the motion's: the phase integral of the
+half whose pole is the third root is a placeholder there (``n' = 0``, its value multiplied by ``b + k
+a = 0``), and the reached half's pole form carries no derivative of ``b + k a``.
 Reverse mode transposes every sample's Jacobian (:mod:`.derivatives`). Only ``com_z`` and the mean
 of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``, ``com_y`` (zero) and
 ``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
@@ -189,6 +194,9 @@ def _body(A, C, weight_l, omega0, q0):
     # that starts on the pole has reached it, also below the sleeping threshold, where G0 (the
     # largest root of the resolvent) is 0 and says nothing of the third root.
     third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
+    near, far, third = _pole_distances(
+        near, far, third, dist0, x_s, x_o, g0, coeff, perp2 + beta * k * dist0, a * k, beta * k
+    )
     closest = jnp.minimum(near, far)
     reached = (coeff == 0) & ((closest * jnp.abs(beta) < third) | (closest == 0))
     phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
@@ -200,6 +208,41 @@ def _body(A, C, weight_l, omega0, q0):
         start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
         pole_gap=2 * jnp.minimum(up, down),
     )  # fmt: skip
+
+
+def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, beta_k):
+    """``near`` and ``far`` (``1 + k u`` on the start circle and on the other) and ``third``
+    (``|beta (1 + k u3)|``), each solved for directly where it is far smaller than the numbers it was
+    formed from.
+
+    A top that swings close to a pole has a turning circle, or the cubic's third root, at a distance
+    ``d`` from it far below ``dist0``, the offsets ``x`` and ``G0``: ``dist0 + k x`` and
+    ``beta dist0 + k G0`` cancel (``d ~ 1e-20`` from ``~1e-16`` terms for a tilt of 1e-8 rad), and the
+    half's phase, which steps by about ``pi`` at each pass, came out wrong by up to radians. In
+    ``d = 1 + k u`` the cubic is ``F(d) = d (2 - d)(alpha_k - beta_k d) - (coeff - a_k d)^2`` with
+    ``F(0) = -(b + k a)^2``, its coefficients formed without cancellation: Newton steps from the
+    cancelled value find its small root (a turning circle's ``d >= 0``, the third root's ``d < 0``)
+    to roundoff, the other roots being at least the nutation amplitude away."""
+
+    def polished(d, refine, sign):
+        d = jnp.where(refine, d, 0.0)
+        for _ in range(3):
+            value = d * (2 - d) * (alpha_k - beta_k * d) - (coeff - a_k * d) ** 2
+            slope = (2 - 2 * d) * (alpha_k - beta_k * d) - d * (2 - d) * beta_k + 2 * a_k * (coeff - a_k * d)
+            step = _safe_div(value, slope)
+            d = jnp.where(refine & jnp.isfinite(step), sign * jnp.maximum(sign * (d - step), 0.0), d)
+        return d
+
+    pole_side = jnp.minimum(near, far)
+    refine = pole_side < 1e-3 * jnp.maximum(dist0, jnp.maximum(jnp.abs(x_s), jnp.abs(x_o)))
+    d = polished(pole_side, refine, 1.0)
+    near = jnp.where(refine & (near <= far), d, near)
+    far = jnp.where(refine & (far < near), d, far)
+    weight = jnp.abs(beta_k)
+    refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0))) & ~refine
+    d3 = polished(-_safe_div(third, weight), refine_third, -1.0)
+    third = jnp.where(refine_third, weight * jnp.abs(d3), third)
+    return near, far, third
 
 
 def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, rho0):
