@@ -717,27 +717,21 @@ def test_a_duration_beyond_the_step_limit_is_one_line(tmp_path):
         np.testing.assert_allclose(data["omega"][:, -1], data["omega0"], rtol=1e-6)  # no time to move
 
 
-@pytest.mark.parametrize("duration", [1e-300, 1.0, 1e20])
-def test_the_compiling_call_is_short_and_its_times_distinct(duration):
+def _simulate_args(**options):
+    """The parsed options of ``rigidjax simulate --scene free`` that planning a run reads."""
     import argparse
 
+    defaults = dict(scene="free", bodies=3, duration=1.0, samples=10, seed=0, accuracy="balanced",
+                    blocks=None, save_every=None, save_dtype="float32", dtype="float64", out="")  # fmt: skip
+    return argparse.Namespace(**{**defaults, **options})
+
+
+@pytest.mark.parametrize("duration", [1e-300, 1.0, 1e20])
+def test_the_compiling_call_is_short_and_its_times_distinct(duration):
     from rigidjax._cli.batch import plan_run
     from rigidjax._cli.simulate import _warm_up_times
 
-    args = argparse.Namespace(
-        scene="free",
-        bodies=3,
-        duration=duration,
-        samples=10,
-        seed=0,
-        accuracy="balanced",
-        blocks=None,
-        save_every=None,
-        save_dtype="float32",
-        dtype="float64",
-        out="rigidjax_simulate.npz",
-    )
-    plan = plan_run(args)
+    plan = plan_run(_simulate_args(bodies=3, duration=duration, out="rigidjax_simulate.npz"))
     ts = _warm_up_times(plan)
     fastest = np.max(np.linalg.norm(plan.scene.omega0, axis=-1))
     assert ts.shape == (10,) and np.all(np.diff(ts) > 0) and ts[0] == 0.0
@@ -972,24 +966,10 @@ def test_a_run_where_every_body_failed_reports_no_drift_and_writes_strict_json()
 def test_a_number_of_blocks_other_than_asked_says_why(bodies, blocks, planned, why):
     """``--blocks 6`` for 10 bodies ran 5 blocks of 2 (equal blocks: a sixth would hold only copies)
     and the header did not say that the request was changed."""
-    import argparse
-
     from rigidjax._cli.batch import plan_run
     from rigidjax._cli.simulate import _blocks_note
 
-    args = argparse.Namespace(
-        scene="free",
-        bodies=bodies,
-        duration=1.0,
-        samples=10,
-        seed=0,
-        accuracy="balanced",
-        blocks=blocks,
-        save_every=None,
-        save_dtype="float32",
-        dtype="float64",
-        out="",
-    )
+    args = _simulate_args(bodies=bodies, blocks=blocks)
     plan = plan_run(args)
     assert plan.blocks == planned and plan.blocks * plan.block_size >= bodies
     note = _blocks_note(plan, args)
