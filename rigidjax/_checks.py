@@ -396,6 +396,18 @@ def _check_inertia_shape(inertia, name: str) -> bool:
 _OK, _TRIANGLE, _NOT_POSITIVE, _NOT_SYMMETRIC, _NOT_FINITE = 0, 1, 2, 3, 4
 
 
+def _scaled_to_one(values, axis):
+    """``values`` times the power of two that brings their largest ``|value|`` over ``axis`` into
+    ``[1, 2)`` (exact; unchanged where all are 0), which keeps sums such as the trace from overflowing
+    (moments near the float range summed to inf, and the triangle inequality then passed for any
+    moments). Two factors, each a normal number: XLA on CPU flushes a subnormal factor such as
+    ``2^-1023`` to zero."""
+    largest = jnp.max(jnp.abs(values), axis=axis, keepdims=True)
+    exponent = jnp.floor(jnp.log2(jnp.where(largest > 0, largest, 1.0)))
+    half = jnp.floor(exponent / 2)
+    return values * jnp.exp2(-half) * jnp.exp2(half - exponent)
+
+
 def _inertia_failure(inertia, zero_allowed: bool = False):
     """Per-body failure code (0 = physical) of principal moments or a tensor, shape ``(...)``. With
     ``zero_allowed``, zero moments pass (a part: a point mass, a thin rod), negative ones do not."""
@@ -404,6 +416,7 @@ def _inertia_failure(inertia, zero_allowed: bool = False):
     if _check_inertia_shape(inertia, "inertia"):
         finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
         safe = jnp.where(finite[..., None, None], inertia, jnp.eye(3, dtype=inertia.dtype))
+        safe = _scaled_to_one(safe, axis=(-2, -1))
         scale = jnp.max(jnp.abs(safe), axis=(-2, -1))
         asym = jnp.max(jnp.abs(safe - _swap(safe)), axis=(-2, -1))
         symmetric = asym <= _SYMMETRY_EPS * tol_eps * scale
@@ -423,6 +436,7 @@ def _inertia_failure(inertia, zero_allowed: bool = False):
     else:
         finite = jnp.all(jnp.isfinite(inertia), axis=-1)
         moments = jnp.where(finite[..., None], inertia, jnp.ones_like(inertia))
+        moments = _scaled_to_one(moments, axis=-1)
         symmetric = jnp.ones_like(finite)
         positive = jnp.all(moments >= 0 if zero_allowed else moments > 0, axis=-1)
         trace = short_sum(moments)

@@ -478,3 +478,22 @@ def test_float32_stays_float32():
         np.ones(2, f32), np.zeros((2, 3), f32), np.ones((2, 3), f32), np.stack([np.eye(3, dtype=f32)] * 2)
     )
     assert all(o.dtype == jnp.float32 for o in out)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_triangle_inequality_holds_near_the_float_range(dtype):
+    """Moments near the largest float: their sum overflowed to inf, and the triangle inequality
+    passed for any moments ([1e307, 1e307, 1.79e308] accepted; in float32 [1e37, 1e37, 3.3e38],
+    within a factor 4 of the Earth's moments in kg m^2). Reference: the inequality in exact
+    rational arithmetic."""
+    from fractions import Fraction
+
+    big = float(np.finfo(dtype).max)
+    for moments in ([0.06 * big, 0.06 * big, 0.99 * big], [0.4 * big, 0.4 * big, 0.7 * big]):
+        moments = np.asarray(moments, dtype)
+        exact = [Fraction(float(m)) for m in moments]
+        physical = exact[0] + exact[1] >= exact[2]
+        for inertia in (moments, np.diag(moments)):
+            assert bool(is_physical_inertia(jnp.asarray(inertia))) == physical, (moments, physical)
+            if not physical:
+                expect_error(lambda inertia=inertia: check_inertia(jnp.asarray(inertia)), "triangle")

@@ -70,9 +70,12 @@ def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
 
     Gradients are finite everywhere, including at ``I1 = I2`` and ``I1 = I2 = I3``: the eigenvector
     derivative drops the ``1 / (I_j - I_i)`` terms of moments that coincide to within roundoff. The
-    gradient of the moments, and of any function of the output that does not depend on the choice of
-    basis within a degenerate plane (a spectral function such as ``sum(moments)`` or
-    ``det(tensor)``), is then correct; derivatives of the axes themselves are not defined there.
+    gradient of symmetric functions of the moments (``sum(moments)``, their product, ``sum(moments**2)``)
+    is then correct; derivatives of the axes themselves are not defined there, and neither is
+    correct a function that rebuilds a matrix from both outputs, such as the inverse tensor
+    ``axes @ diag(1 / moments) @ axes.T`` (at a symmetric top its derivative along an off-diagonal
+    perturbation within the degenerate plane came out 0, not -2): compute such a function from the
+    tensor itself (``jnp.linalg.inv``).
     """
     (tensor,) = common_float(tensor, names=["tensor"])
     check_last_two_axes(tensor, "tensor")
