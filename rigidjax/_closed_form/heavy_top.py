@@ -236,8 +236,9 @@ def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, 
     pole_side = jnp.minimum(near, far)
     refine = pole_side < 1e-3 * jnp.maximum(dist0, jnp.maximum(jnp.abs(x_s), jnp.abs(x_o)))
     d = polished(pole_side, refine, 1.0)
-    near = jnp.where(refine & (near <= far), d, near)
-    far = jnp.where(refine & (far < near), d, far)
+    start_on_pole_side = near <= far
+    near = jnp.where(refine & start_on_pole_side, d, near)
+    far = jnp.where(refine & ~start_on_pole_side, d, far)
     weight = jnp.abs(beta_k)
     refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0))) & ~refine
     d3 = polished(-_safe_div(third, weight), refine_third, -1.0)
