@@ -96,8 +96,7 @@ def check_batch_shapes(where: str, *arrays) -> tuple[int, ...]:
 
 
 def is_tensor_shape(shape) -> bool:
-    """The shape rule of an inertia: ``(..., 3, 3)`` is a tensor per body, anything else (checked
-    where it matters) principal moments ``(..., 3)``."""
+    """An inertia's shape rule: ``(..., 3, 3)`` is a tensor per body, else principal moments."""
     return len(shape) >= 2 and tuple(shape[-2:]) == (3, 3)
 
 
@@ -397,11 +396,9 @@ _OK, _TRIANGLE, _NOT_POSITIVE, _NOT_SYMMETRIC, _NOT_FINITE = 0, 1, 2, 3, 4
 
 
 def _scaled_to_one(values, axis):
-    """``values`` times the power of two that brings their largest ``|value|`` over ``axis`` into
-    ``[1, 2)`` (exact; unchanged where all are 0), which keeps sums such as the trace from overflowing
-    (moments near the float range summed to inf, and the triangle inequality then passed for any
-    moments). Two factors, each a normal number: XLA on CPU flushes a subnormal factor such as
-    ``2^-1023`` to zero."""
+    """``values`` times the power of two that brings the largest ``|value|`` over ``axis`` into
+    ``[1, 2)``, exactly: a trace near the float range overflowed, and any moments passed the triangle
+    test. Two normal factors: XLA on CPU flushes a subnormal one such as ``2^-1023`` to zero."""
     largest = jnp.max(jnp.abs(values), axis=axis, keepdims=True)
     exponent = jnp.floor(jnp.log2(jnp.where(largest > 0, largest, 1.0)))
     half = jnp.floor(exponent / 2)
