@@ -1020,5 +1020,24 @@ def test_samples_too_sparse_to_show_the_turning_point_are_not_compared():
     code, out, err = _run([*argv, "--out", "", "--no-error-estimate"])
     assert code == 0, err
     comparison = _field(out, "closed form")
-    assert comparison.startswith("nothing to compare; 4 more reach it between samples too far apart"), out
+    assert comparison.startswith("nothing to compare: 4 reach their turning point between samples too far"), (
+        out
+    )
     assert _field(out, "max theta error") == "none to compare"
+
+
+@pytest.mark.parametrize(
+    "accuracy, dtype, second",
+    [
+        ("balanced", "float64", "second, finer solve"),
+        ("balanced", "float32", "second, finer solve, in float64"),
+        ("exact", "float64", "second evaluation, at inputs perturbed by a rounding unit"),
+        ("exact", "float32", "second evaluation, in float64"),
+    ],
+)
+def test_the_wall_time_names_the_error_estimates_second_run(accuracy, dtype, second):
+    """It said "second, finer solve" also for the closed form, which is evaluated again at perturbed
+    inputs (or in float64 for a float32 run: rigidjax._integrate.error_estimate)."""
+    from rigidjax._cli.simulate import _second_run
+
+    assert _second_run(_simulate_args(accuracy=accuracy, dtype=dtype)) == second

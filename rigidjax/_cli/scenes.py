@@ -141,20 +141,19 @@ def _heavy_top_scene(n: int, rng: np.random.Generator, symmetric: bool = False) 
         err = np.abs(theta_max - theta_max_pred)[reached]
         n_ok, n_reached = int(np.sum(ok)), int(np.sum(reached))
         unresolved = int(np.sum(within_run & ~reached))
-        sparse = (
-            f"; {unresolved:,} more reach it between samples too far apart to show it ({spacing:.3g} s, "
-            "over an eighth of their nutation period: more --samples)"
-            if unresolved
-            else ""
+        between = (
+            f"between samples too far apart to show it ({spacing:.3g} s, over an eighth of their "
+            "nutation period: more --samples)"
         )
         if n_reached:
             comparison = (
                 f"{n_reached:,} of {n_ok:,} reach their turning point within the run, "
                 f"{int(fell_pred[reached].sum()):,} of them predicted to fall; simulation agrees for "
-                f"{agree:,} of {n_reached:,} (symmetric-top turning point, I_perp = (I1+I2)/2){sparse}"
+                f"{agree:,} of {n_reached:,} (symmetric-top turning point, I_perp = (I1+I2)/2)"
+                + (f"; {unresolved:,} more reach it {between}" if unresolved else "")
             )
         elif unresolved:
-            comparison = f"nothing to compare{sparse}"
+            comparison = f"nothing to compare: {unresolved:,} reach their turning point {between}"
         else:
             comparison = (
                 f"no top reaches its turning point within the run (half a nutation period, the "

@@ -164,6 +164,14 @@ def partial_path(out: str) -> str:
     return os.path.splitext(out)[0] + ".partial.npz"
 
 
+def _second_run(args) -> str:
+    """What the error estimate runs a second time (a float32 run: in float64)."""
+    wider = ", in float64" if args.dtype == "float32" else ""
+    if args.accuracy == "exact":
+        return "second evaluation" + (wider or ", at inputs perturbed by a rounding unit")
+    return "second, finer solve" + wider
+
+
 def _blocks_note(plan: Plan, args) -> str:
     """Why the run has another number of blocks than ``--blocks`` asked for, or nothing."""
     if args.blocks is None or args.blocks == plan.blocks:
@@ -329,7 +337,7 @@ def _print_summary(plan: Plan, batch: Batch, args, summary: dict, scene_rows, ou
         (
             "wall time",
             f"{batch.sim_time:.2f} s (all blocks, excluding compile"
-            + ("; with the error estimate's second, finer solve)" if args.error_estimate else ")"),
+            + (f"; with the error estimate's {_second_run(args)})" if args.error_estimate else ")"),
         ),
         (
             "compile time",
