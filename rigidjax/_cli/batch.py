@@ -99,9 +99,10 @@ def _check_memory(args, n: int, samples: int, block_size: int) -> None:
         )
 
 
-def _kept(samples: int, every: int) -> int:
-    """The samples ``--save-every every`` stores: every ``every``-th from the first, and the last."""
-    return -(-samples // every) + (1 if (samples - 1) % every else 0)
+def _stored_samples(samples: int, every: int) -> np.ndarray:
+    """The indices of the samples ``--save-every every`` stores: every ``every``-th from the first,
+    and the last (the final state)."""
+    return np.union1d(np.arange(0, samples, every), [samples - 1])
 
 
 def _save_every_within_budget(samples: int, per_sample: int) -> int:
@@ -109,7 +110,7 @@ def _save_every_within_budget(samples: int, per_sample: int) -> int:
     always: K = samples - 1 when nothing smaller fits)."""
     largest = max(1, samples - 1)
     every = min(max(1, math.ceil(samples * per_sample / SAVE_BUDGET_BYTES)), largest)
-    while every < largest and _kept(samples, every) * per_sample > SAVE_BUDGET_BYTES:
+    while every < largest and len(_stored_samples(samples, every)) * per_sample > SAVE_BUDGET_BYTES:
         every += 1
     return every
 
@@ -151,7 +152,7 @@ def plan_run(args) -> Plan:
         np.linspace(0.0, duration, samples),
         np.dtype(args.dtype),
         save_every,
-        np.union1d(np.arange(0, samples, save_every), [samples - 1]),  # the final state too
+        _stored_samples(samples, save_every),
     )
 
 
