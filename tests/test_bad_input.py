@@ -371,6 +371,12 @@ def test_is_physical_inertia_answers_instead_of_raising():
 def test_euler_rates_throw_false_propagates_nan():
     out = rj.euler_rates(ANG, with_value(W, nan), throw=False)
     assert np.all(np.isnan(out))
+    # The rates do not depend on phi, and an infinite omega made infinite rates: both came back
+    # as numbers (phi NaN gave the rates of a healthy body) instead of NaN.
+    nan_phi = np.array([[nan, 0.7, 0.3], [0.1, 0.7, 0.3]])
+    out = jax.vmap(lambda a, w: rj.euler_rates(a, w, throw=False))(nan_phi, np.ones((2, 3)))
+    assert np.all(np.isnan(out[0])) and np.all(np.isfinite(out[1]))
+    assert np.all(np.isnan(rj.euler_rates(np.array([0.1, 0.7, 0.3]), np.array([inf, 0.0, 0.0]), throw=False)))
 
 
 # ----------------------------------------------------------------------------------------------

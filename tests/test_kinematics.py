@@ -258,6 +258,31 @@ def test_quat_from_matrix_and_matrix_from_quat_match_scipy():
     np.testing.assert_allclose(rj.matrix_from_quat(1.01 * scipy_quat(rot)), rot.as_matrix(), atol=1e-14)
 
 
+def test_quat_from_matrix_derivative_where_two_branches_tie():
+    """At an exact quarter turn about an axis (or a third of a turn about a diagonal) two of
+    Shepperd's candidates are equal; the derivative averaged them (0 instead of -0.35 along a
+    further turn about x, and the Euler angles' theta' came out 0 instead of 1). References: the
+    round trip's Jacobian is the unit sphere's tangent projector I - q q^T, and central differences
+    of scipy's quaternion and ZXZ angles along a further rotation."""
+    round_trip = jax.jacfwd(lambda q: rj.quat_from_matrix(rj.matrix_from_quat(q)))
+    for q in (np.full(4, 0.5), np.array([1.0, 1.0, 0.0, 0.0]) / np.sqrt(2.0)):
+        np.testing.assert_allclose(round_trip(q), np.eye(4) - np.outer(q, q), atol=1e-14)
+    quarter_turn_x = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    hat_x = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+    def turned(t):  # a further rotation by t about space x
+        return Rotation.from_rotvec([t, 0.0, 0.0]).as_matrix() @ quarter_turn_x
+
+    h = 1e-6
+    for ours, theirs in (
+        (rj.quat_from_matrix, lambda m: scipy_quat(Rotation.from_matrix(m))),
+        (rj.euler_from_matrix, lambda m: Rotation.from_matrix(m).as_euler("ZXZ")),
+    ):
+        _, tangent = jax.jvp(ours, (quarter_turn_x,), (hat_x @ quarter_turn_x,))
+        central = (theirs(turned(h)) - theirs(turned(-h))) / (2 * h)
+        np.testing.assert_allclose(tangent, central, atol=1e-8)
+
+
 def test_quat_multiply_conjugate_rotate():
     p, r = ROTATIONS, Rotation.random(N, rng=np.random.default_rng(5))
     pq, rq = scipy_quat(p), scipy_quat(r)

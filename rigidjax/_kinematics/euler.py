@@ -449,4 +449,12 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
     if throw:
         angles = check_finite(angles, "angles", "euler_rates")
         omega = check_finite(omega, "omega", "euler_rates")
-    return _raise_if_unreachable(*_compiled_rates_and_lock(angles, omega, seq=seq), seq, throw)
+    rates = _raise_if_unreachable(*_compiled_rates_and_lock(angles, omega, seq=seq), seq, throw)
+    if throw:
+        return rates
+    # The rates do not depend on phi, and an infinite omega gives infinite rates: without this a
+    # non-finite input could come back as finite or infinite rates rather than NaN.
+    finite = jnp.isfinite(angles).all(axis=-1, keepdims=True) & jnp.isfinite(omega).all(
+        axis=-1, keepdims=True
+    )
+    return jnp.where(finite, rates, jnp.nan)

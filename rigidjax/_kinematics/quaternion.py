@@ -121,7 +121,10 @@ def _quat_from_matrix(R: Matrix) -> QuaternionOut:
     # Four candidate "4 * component^2" values; the largest is well away from zero (>= 1).
     diag = jnp.stack([trace, r00 - r11 - r22, r11 - r00 - r22, r22 - r00 - r11], axis=-1)
     k = jnp.argmax(diag, axis=-1)
-    big = jnp.sqrt(jnp.maximum(1.0 + jnp.max(diag, axis=-1), 1e-30)) * 2.0  # = 4 |q_k|
+    # The chosen entry itself, not jnp.max: at a tie (an exact quarter turn about an axis) max's
+    # derivative is the mean of the tied entries', which is not the derivative of the chosen one.
+    chosen = jnp.take_along_axis(diag, k[..., None], axis=-1)[..., 0]
+    big = jnp.sqrt(jnp.maximum(1.0 + chosen, 1e-30)) * 2.0  # = 4 |q_k|
     s21, s02, s10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
     a01, a02, a12 = R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1]
     d = big * big / 4.0
