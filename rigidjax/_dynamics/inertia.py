@@ -25,23 +25,20 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
 from .._checks import (  # noqa: F401 (re-exported)
-    _check_inertia_shape,
     as_float_array,
     check_batch_shapes,
     check_finite,
-    check_inertia,
     check_last_axis,
     check_last_two_axes,
-    check_part_inertia,
     check_rotation_matrix,
     common_float,
     compiled_when_eager,
     error_if,
     is_full_tensor,
-    is_physical_inertia,
 )
 from .._numerics import _eigh3, _swap
 from .._types import Inertia, Matrix, MatrixOut, Scalar, ScalarOut, Vector, VectorOut
+from .inertia_checks import check_inertia, check_part_inertia, is_physical_inertia  # noqa: F401
 
 
 @jax.jit  # one program for the eager calls the decorator passes through as they are (lists)
@@ -74,7 +71,7 @@ def principal_axes(tensor: Matrix) -> tuple[VectorOut, MatrixOut]:
     is then correct; derivatives of the axes themselves are not defined there, and neither is
     correct a function that rebuilds a matrix from both outputs, such as the inverse tensor
     ``axes @ diag(1 / moments) @ axes.T`` (at a symmetric top its derivative along an off-diagonal
-    perturbation within the degenerate plane came out 0, not -2): compute such a function from the
+    perturbation within the degenerate plane is 0, not -2): compute such a function from the
     tensor itself (``jnp.linalg.inv``).
     """
     (tensor,) = common_float(tensor, names=["tensor"])
@@ -116,7 +113,7 @@ def parallel_axis(inertia_com: Inertia, mass: Scalar, displacement: Vector) -> M
     inertia_com, mass, displacement = common_float(
         inertia_com, mass, displacement, names=["inertia_com", "mass", "displacement"]
     )
-    tensor = _check_inertia_shape(inertia_com, "inertia_com")
+    tensor = is_full_tensor(inertia_com, "inertia_com")
     check_last_axis(displacement, 3, "displacement")
     where = "parallel_axis"
     check_batch_shapes(

@@ -8,14 +8,14 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import (
+from .._checks import is_positive_int
+from .._dynamics.inertia_checks import (
     _NOT_FINITE,
     _NOT_POSITIVE,
     _NOT_SYMMETRIC,
     _OK,
     _TRIANGLE,
     _inertia_failure,
-    is_positive_int,
 )
 from .data import _align_signs, _real_array, omega_from_orientations
 from .estimate import _NO_EQUATIONS, _dominant_period, _estimate, _torque_estimate

@@ -316,8 +316,7 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         ts = check_times_shape(ts)
         leaves = (model.inertia, model.mass, model.com, model.gravity)
         dtype = float_dtype(state0.omega, state0.orientation, *leaves)
-        if ts.dtype != dtype:
-            ts = times_in_dtype(ts, dtype)
+        ts = times_in_dtype(ts, dtype)
         # Constants of the user's jit stay constants (values to check now).
         top, omega0, q0, ts = evaluated_now(
             lambda: (
@@ -345,8 +344,7 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
         )
     ts = check_times_shape(ts)
     dtype = float_dtype(state0.omega, state0.orientation, model.inertia)
-    if ts.dtype != dtype:
-        ts = times_in_dtype(ts, dtype)
+    ts = times_in_dtype(ts, dtype)
     # Constants of the user's jit stay constants (values to check now).
     body, omega0, q0, ts = evaluated_now(
         lambda: (

@@ -10,7 +10,6 @@ import numpy as np
 from .._checks import (
     as_float_array,
     check_finite,
-    check_inertia,
     check_times,
     check_unit_quaternion,
     checks_done,
@@ -22,6 +21,7 @@ from .._checks import (
     packed_failures,
     raise_collected,
 )
+from .._dynamics.inertia_checks import check_inertia
 from .._kinematics.euler import _euler_from_quat
 from .formulations import lock_distance
 

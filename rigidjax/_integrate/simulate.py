@@ -84,8 +84,6 @@ def _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given):
             f"simulate with {name}: ts must be concrete (they fix the number of steps); do not trace "
             "them under jit."
         ) from err
-    if ts_np.ndim != 1 or ts_np.shape[0] < 1:
-        raise ValueError(f"ts must be a 1-D array of at least one time, got shape {ts_np.shape}.")
     if np.any(np.diff(ts_np) <= 0) or not np.all(np.isfinite(ts_np)):
         raise ValueError("ts must be finite and strictly increasing; ts[0] is the initial time.")
     if isinstance(dt0, jax.core.Tracer):
@@ -295,6 +293,7 @@ def simulate(
         return _raise_if_exact_failed(traj) if throw else nan_from_first_failure(traj)
     if accuracy not in PRESETS:  # also with a fixed-step solver, which ignores it: a typo is named
         raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
+    ts = check_times_shape(ts)
     fixed_step = isinstance(solver, STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
@@ -317,7 +316,6 @@ def simulate(
         if state0.orientation is None:
             raise ValueError("representation='euler' needs an initial orientation in state0.")
         is_proper_sequence(euler_seq)  # validates the sequence name
-    ts = check_times_shape(ts)
     dtype = float_dtype(
         state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
     )
