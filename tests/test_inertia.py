@@ -280,6 +280,14 @@ def test_wrong_shapes_raise_value_error():
         shape_error(lambda shape=shape: is_physical_inertia(np.ones(shape)), "inertia")
 
 
+def test_tensor_true_needs_a_tensor_shape():
+    """tensor=True with moments of shape (3,) or (4, 3) checked them as moments and passed."""
+    for shape in [(3,), (4, 3)]:
+        with pytest.raises(ValueError, match=r"my_inertia: tensor=True needs shape \(\.\.\., 3, 3\)"):
+            check_inertia(np.ones(shape), name="my_inertia", tensor=True)
+    np.testing.assert_array_equal(check_inertia(np.eye(3), tensor=True), np.eye(3))
+
+
 def test_check_inertia_float32():
     rng = np.random.default_rng(6)
     disc = np.asarray(thin_disc(2.0, 0.3))
