@@ -31,6 +31,8 @@ Arrays carry bodies on leading axes (``L`` is ``(..., 3)``, ``q`` is ``(..., 4)`
 ``(..., 3)`` broadcasts against them), so a batch needs no ``vmap`` (though ``vmap`` works too).
 """
 
+import abc
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -165,20 +167,26 @@ def _unit(q):
     return q / short_norm(q, keepdims=True)
 
 
-def _splitting_step(inertia, L, q, h, order: int = 2):
+def _composed(strang, L, q, h, order: int):
+    """The second-order map ``strang(L, q, h)`` from a unit ``q``: itself (order 2) or Yoshida's
+    triple jump of it (order 4)."""
     q = _unit(q)
     if order == 2:
-        return _strang(inertia, L, q, h)
+        return strang(L, q, h)
     if order == 4:
         # A loop over the three weights rather than three inlined Strang maps: the inlined form,
         # vmapped inside a loop, hung the XLA CPU runtime (jax on this machine) at run time.
         weights = jnp.array([_YOSHIDA_W1, _YOSHIDA_W0, _YOSHIDA_W1], dtype=L.dtype)
 
         def sub(state, w):
-            return _strang(inertia, *state, w * h), None
+            return strang(*state, w * h), None
 
         return jax.lax.scan(sub, (L, q), weights)[0]
     raise ValueError(f"order must be 2 or 4, got {order!r}.")
+
+
+def _splitting_step(inertia, L, q, h, order: int = 2):
+    return _composed(functools.partial(_strang, inertia), L, q, h, order)
 
 
 def _check_principal(inertia, who: str):
@@ -276,7 +284,40 @@ def with_model_parameters(solver, *parameters):
     return replace_static(solver, _moments_from_model=True)
 
 
-class LiePoissonSplitting(diffrax.AbstractSolver):
+class _SplittingSolver(diffrax.AbstractSolver):
+    """A splitting's map as a fixed-step diffrax solver: ``map_over`` steps ``(L, q)`` by a signed
+    time (backward when diffrax integrates from a later to an earlier time) and gives the dense
+    output too (:class:`SubStepInterpolation`); ``_check_parameters`` fails a solver without them."""
+
+    term_structure: ClassVar = diffrax.AbstractTerm
+    interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
+
+    @abc.abstractmethod
+    def map_over(self, L, q, h): ...
+
+    @abc.abstractmethod
+    def _check_parameters(self): ...
+
+    def order(self, terms):
+        return self.splitting_order
+
+    def init(self, terms, t0, t1, y0, args):
+        return None
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        del solver_state, made_jump
+        L0, q0 = y0
+        self._check_parameters()
+        direction = time_direction(terms)
+        y1 = self.map_over(L0, q0, jnp.asarray(direction * (t1 - t0)).astype(L0.dtype))
+        dense_info = dict(y0=y0, y1=y1, solver=self, direction=direction)
+        return y1, None, dense_info, None, diffrax.RESULTS.successful
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+
+class LiePoissonSplitting(_SplittingSolver):
     """The Lie–Poisson splitting map as a fixed-step diffrax solver for a free rigid body.
 
     The state is the pytree ``(L, q)`` (body angular momentum ``(..., 3)``, unit quaternion
@@ -293,9 +334,6 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     inertia: Array | None
     splitting_order: int = eqx.field(static=True, default=2)
     _moments_from_model: bool = eqx.field(static=True, default=False, repr=False)
-
-    term_structure: ClassVar = diffrax.AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
 
     def __init__(self, inertia=None, order: int = 2):
         order = _check_order(order)
@@ -314,29 +352,14 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         self.splitting_order = order
         self._moments_from_model = False
 
-    def order(self, terms):
-        return self.splitting_order
-
-    def init(self, terms, t0, t1, y0, args):
-        return None
-
     def map_over(self, L, q, h):
         """The splitting map over a time ``h`` from ``(L, q)``."""
         return _splitting_step(self.inertia.astype(L.dtype), L, q, h, self.splitting_order)
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        del solver_state, made_jump
-        L0, q0 = y0
+    def _check_parameters(self):
         _require_parameters(self, "LiePoissonSplitting", "LiePoissonSplitting(inertia, order)")
         if not self._moments_from_model:
             _check_principal(self.inertia, "LiePoissonSplitting")
-        direction = time_direction(terms)
-        y1 = self.map_over(L0, q0, jnp.asarray(direction * (t1 - t0)).astype(L0.dtype))
-        dense_info = dict(y0=y0, y1=y1, solver=self, direction=direction)
-        return y1, None, dense_info, None, diffrax.RESULTS.successful
-
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
 
 
 def free_body_vector_field(inertia):
@@ -392,17 +415,7 @@ def heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
 
 
 def _heavy_top_splitting_step(inertia, weight_com, L, q, h, order: int = 2):
-    q = _unit(q)
-    if order == 2:
-        return _heavy_top_strang(inertia, weight_com, L, q, h)
-    if order == 4:
-        weights = jnp.array([_YOSHIDA_W1, _YOSHIDA_W0, _YOSHIDA_W1], dtype=L.dtype)
-
-        def sub(state, w):
-            return _heavy_top_strang(inertia, weight_com, *state, w * h), None
-
-        return jax.lax.scan(sub, (L, q), weights)[0]
-    raise ValueError(f"order must be 2 or 4, got {order!r}.")
+    return _composed(functools.partial(_heavy_top_strang, inertia, weight_com), L, q, h, order)
 
 
 def _checked_top_parameters(mass, com, gravity, where):
@@ -474,7 +487,7 @@ def split_heavy_top(
     return jax.lax.fori_loop(0, n_steps, body, (L0, q0))
 
 
-class HeavyTopSplitting(diffrax.AbstractSolver):
+class HeavyTopSplitting(_SplittingSolver):
     """The heavy-top Lie–Poisson splitting as a fixed-step diffrax solver.
 
     The state is the pytree ``(L, q)`` (body angular momentum about the pivot ``(..., 3)``, unit
@@ -498,9 +511,6 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
     gravity: Array | None
     splitting_order: int = eqx.field(static=True, default=2)
     _moments_from_model: bool = eqx.field(static=True, default=False, repr=False)
-
-    term_structure: ClassVar = diffrax.AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., SubStepInterpolation]] = SubStepInterpolation
 
     def __init__(self, inertia=None, mass=None, com=None, gravity=9.81, order: int = 2):
         order = _check_order(order)
@@ -541,12 +551,6 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
             )
         return cls(model.inertia, model.mass, model.com, model.gravity, order)
 
-    def order(self, terms):
-        return self.splitting_order
-
-    def init(self, terms, t0, t1, y0, args):
-        return None
-
     def map_over(self, L, q, h):
         """The splitting map over a time ``h`` from ``(L, q)``."""
         weight_com = heavy_top_weight_com(self.mass, self.com, self.gravity, L.dtype)
@@ -554,21 +558,12 @@ class HeavyTopSplitting(diffrax.AbstractSolver):
             self.inertia.astype(L.dtype), weight_com, L, q, h, self.splitting_order
         )
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        del solver_state, made_jump
-        L0, q0 = y0
+    def _check_parameters(self):
         _require_parameters(
             self, "HeavyTopSplitting", "HeavyTopSplitting(inertia, mass, com, gravity, order)"
         )
         if not self._moments_from_model:
             _check_principal(self.inertia, "HeavyTopSplitting as a diffrax solver")
-        direction = time_direction(terms)
-        y1 = self.map_over(L0, q0, jnp.asarray(direction * (t1 - t0)).astype(L0.dtype))
-        dense_info = dict(y0=y0, y1=y1, solver=self, direction=direction)
-        return y1, None, dense_info, None, diffrax.RESULTS.successful
-
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
 
 
 def heavy_top_vector_field(inertia, mass, com, gravity=9.81):
