@@ -192,6 +192,12 @@ PID = diffrax.PIDController(rtol=1e-7, atol=1e-7)
     ("options", "jit"),
     [
         pytest.param({"solver": diffrax.Tsit5(), "stepsize_controller": PID}, False, id="PIDController"),
+        # Steps held at dtmax: the second run took the same steps (an estimate of 2e-15 for 2e-9).
+        pytest.param(
+            {"solver": diffrax.Tsit5(), "stepsize_controller": diffrax.PIDController(1e-3, 1e-3, dtmax=0.1)},
+            False,
+            id="PIDController-dtmax",
+        ),
         pytest.param(
             {"solver": diffrax.Tsit5(), "stepsize_controller": diffrax.ConstantStepSize(), "dt0": 0.02},
             False,
@@ -201,8 +207,9 @@ PID = diffrax.PIDController(rtol=1e-7, atol=1e-7)
     ],
 )
 def test_user_step_control_and_jit(options, jit):
-    """A PIDController's second run is at tolerances / 100, a ConstantStepSize's at dt0 / 2
-    (Richardson); under the user's jit the estimate is computed inside the program."""
+    """A PIDController's second run is at tolerances / 100 (and dtmax / 100^(1/order)), a
+    ConstantStepSize's at dt0 / 2 (Richardson); under the user's jit the estimate is computed
+    inside the program."""
     traj, exact, floor = _tumbling_with(options, jit)
     estimate = traj.error_estimate()
     _check(estimate["omega"], _omega_error(traj.omega, np.asarray(exact.omega)), floor, "omega")

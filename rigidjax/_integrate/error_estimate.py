@@ -4,7 +4,9 @@ solution of the same problem.
 The batch is solved twice: as asked (the result the user gets) and once more, more accurately:
 
 - an adaptive step (a preset, or a user's ``PIDController``): both tolerances divided by
-  :data:`TOLERANCE_FACTOR` (never below ten roundoff units), the same solver. The finer solution's
+  :data:`TOLERANCE_FACTOR` (never below ten roundoff units), the same solver, and a controller's
+  ``dtmax`` and ``dtmin`` by ``TOLERANCE_FACTOR^(1/order)`` (steps held at a bound are then finer
+  too, by what lowers a step's error as much as the tolerances do). The finer solution's
   error is then a small fraction of the first's (for Dopri8 about ``100^(-8/9)``, 1/60; for Tsit5
   about 1/40), so their difference is the first solution's error to a few per cent;
 - a fixed step (``rigidjax.solvers``' RKMK and splittings, or ``ConstantStepSize``): half the step.
@@ -209,7 +211,17 @@ def _finer_adaptive(kwargs, dtype, fine_eps):
     if isinstance(controller, diffrax.PIDController):
         finer = (_tighter(controller.rtol, floor), _tighter(controller.atol, floor))
         _check_finer((controller.rtol, controller.atol), finer, dtype)
-        kwargs["stepsize_controller"] = eqx.tree_at(lambda c: (c.rtol, c.atol), controller, finer)
+        controller = eqx.tree_at(lambda c: (c.rtol, c.atol), controller, finer)
+        # Steps held at dtmax (or dtmin) would be the same in both runs, and their difference would
+        # miss the error (2e-15 for a true 2e-9): the bounds shrink by what makes a step's error
+        # TOLERANCE_FACTOR smaller at the solver's order.
+        solver = kwargs["solver"] or PRESETS[kwargs["accuracy"]][0]()
+        shrink = TOLERANCE_FACTOR ** (1.0 / solver.order(None))
+        for bound in ("dtmax", "dtmin"):
+            if getattr(controller, bound) is not None:
+                smaller = getattr(controller, bound) / shrink
+                controller = eqx.tree_at(lambda c, bound=bound: getattr(c, bound), controller, smaller)
+        kwargs["stepsize_controller"] = controller
         return kwargs, 1.0
     if isinstance(controller, diffrax.ConstantStepSize):
         if kwargs["dt0"] is None:
