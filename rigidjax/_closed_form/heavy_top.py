@@ -58,6 +58,7 @@ from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
 from .frame import largest_phase
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
+from .heavy_pole import epsilon_step, pole_root_terms
 
 
 def _safe_div(num, den):
@@ -174,7 +175,8 @@ def _body(A, C, weight_l, omega0, q0):
     dn0 = jnp.where(g_s > 0, safe_sqrt(_safe_div(g0, g_s)), 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
-    rho0 = _start_phase(sn0, cn0, dn0, p, _quarter_period(m, p))
+    quarter = _quarter_period(m, p)
+    rho0 = _start_phase(sn0, cn0, dn0, p, quarter)
     # The two halves (k = +1: w + iz, pole u = -1; k = -1: x + iy, pole u = 1) on a leading axis of
     # every array: their arithmetic is written, traced and compiled once.
     batch = jnp.broadcast_shapes(u0.shape, a.shape, beta.shape, g0.shape)
@@ -206,7 +208,7 @@ def _body(A, C, weight_l, omega0, q0):
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
         start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
-        pole_gap=2 * jnp.minimum(up, down),
+        pole_gap=2 * jnp.minimum(up, down), rho0=rho0, quarter=quarter,
     )  # fmt: skip
 
 
@@ -310,6 +312,19 @@ def _half(half, body, t, now, reduced):
     delta_v = _theta_phase(x0 + reduced, parts) - _theta_phase(x0, parts)
     rate_safe = jnp.where(valid, rate, 1.0)
     integral = jnp.where(valid, slope * t + wave / rate_safe * delta_v, _safe_div(t, near))
+    # b + k a = 0 with the pole on a root of the cubic: the terms that carry d(b + k a) (:mod:`.heavy_pole`),
+    # evaluated only for a batch that holds such a half.
+    on_root = (coeff == 0) & (amp > 0) & (rate > 0)
+
+    def root_terms():
+        step = epsilon_step(now, body["start"], body["rho0"], reduced, body["m"], body["p"], body["quarter"])
+        return pole_root_terms(now, body["start"], step, reduced, rate, body["m"], body["p"], near, far)
+
+    zero = jnp.zeros_like(integral)
+    third, pole_r, pole_r_dot = (
+        jax.lax.stop_gradient(x) for x in _select_some(on_root, root_terms, (integral, zero, zero))
+    )
+    integral = jnp.where(on_root & ~half["reached"], third, integral)
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
     # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
     # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
@@ -332,6 +347,7 @@ def _half(half, body, t, now, reduced):
     )
     regular_coeff = jnp.where(half["reached"], 0.0, coeff)
     phase = 0.5 * (spin * t + regular_coeff * integral)
+    phase_rate = 0.5 * (spin + _safe_div(regular_coeff, 2 * modulus * modulus))
     sin_phase, cos_phase = _sin_cos(phase)
     rotor = jax.lax.complex(cos_phase, sin_phase)
     regular = (_unit(half["z0"]), modulus, modulus_rate)
@@ -350,7 +366,10 @@ def _half(half, body, t, now, reduced):
     direction = _unit(_times(j0, z0) + _times(_safe_div(1.0, rate) * jdot0, drift))
     pole = (direction, scale * j_now, scale * jdot_now * rate)
     chosen = [jnp.where(half["reached"], x, y) for x, y in zip(pole, regular, strict=True)]
-    return chosen[0] * rotor, chosen[1], chosen[2], udot, phase
+    # A reached pole: the half is (S + i (b + k a) R) e to first order, (b + k a) R zero in value.
+    shift = jnp.where(half["reached"] & on_root, coeff, 0.0)
+    first = (shift * pole_r, shift * pole_r_dot, phase_rate)
+    return chosen[0] * rotor, chosen[1], chosen[2], udot, phase, first
 
 
 def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t, *, phases=False):
@@ -411,7 +430,7 @@ def lagrange_top_at(body: dict, t):
     halves = jax.tree.map(
         lambda x: x.reshape((2,) + (1,) * (samples - x.ndim + 1) + x.shape[1:]), body["halves"]
     )
-    ph, mod, mod_rate, udot, angle = _half(halves, body, t, now, v)
+    ph, mod, mod_rate, udot, angle, first = _half(halves, body, t, now, v)
     # Held in memory: read by every component of omega and q (each would recompute them otherwise).
     ph_re, ph_im, mod, mod_rate, udot = _materialised((jnp.real(ph), jnp.imag(ph), mod, mod_rate, udot))
     (ph_p, ph_m), (mod_p, mod_m), (rate_p, rate_m) = jax.lax.complex(ph_re, ph_im), mod, mod_rate
@@ -429,6 +448,12 @@ def lagrange_top_at(body: dict, t):
     ratio = jnp.where(down_pole, at_down, jnp.where(up_pole, at_up, regular))
     transverse = ratio * ph_m * jnp.conj(ph_p)
     transverse = jax.lax.complex(-jnp.imag(transverse) / 2, jnp.real(transverse) / 2)  # times i/2
+    q, transverse = jax.lax.cond(
+        jnp.any(up_pole | down_pole),
+        _pole_first_order,
+        lambda q, transverse, *_: (list(q), transverse),
+        q, transverse, (ph_p, ph_m), mod, mod_rate, first, up_pole | down_pole,
+    )  # fmt: skip
     # A top sleeping at a pole up to a wobble below eps^(2/3): the linearised motion, zero in value
     # at the equilibrium and carrying the derivatives that start a wobble (the pole form's direction
     # of the wobble is undefined there). The tilt T = X + iY of the symmetry axis (T = -2i (x+iy)(w+iz))
@@ -442,6 +467,13 @@ def lagrange_top_at(body: dict, t):
     def sleeping(q, transverse):
         q = list(q)
         zeta, big_w, tilt_rate_up, tilt_rate_down = _sleeping(*tilt_args)
+        # The other half's modulus is constant to first order (its elliptic form's derivatives are
+        # those of roots a roundoff apart, times roundoff: O(1) noise for a top 1e-16 off the pole).
+        held_p, held_m = jax.lax.stop_gradient(mod_p), jax.lax.stop_gradient(mod_m)
+        q[0] = jnp.where(sleep_up, held_p * jnp.real(ph_p), q[0])
+        q[3] = jnp.where(sleep_up, held_p * jnp.imag(ph_p), q[3])
+        q[1] = jnp.where(sleep_down, held_m * jnp.real(ph_m), q[1])
+        q[2] = jnp.where(sleep_down, held_m * jnp.imag(ph_m), q[2])
         q[1] = jnp.where(sleep_up, jnp.real(zeta), q[1])
         q[2] = jnp.where(sleep_up, jnp.imag(zeta), q[2])
         q[0] = jnp.where(sleep_down, jnp.real(big_w), q[0])
@@ -463,6 +495,32 @@ def lagrange_top_at(body: dict, t):
     )
     phase = largest_phase(v, angle[0], angle[1], modes)
     return omega, jnp.stack(q, axis=-1), jnp.broadcast_to(phase, transverse.shape)[..., None]
+
+
+def _pole_first_order(q, transverse, phases, mod, mod_rate, first, reached):
+    """A batch with a half at a reached pole: its first-order term in ``b + k a`` (zero in value) added
+    to ``q``, and the derivative of ``omega_1 + i omega_2`` taken as that of ``2 (conj(Z_+) Z_-' -
+    conj(Z_+') Z_-)`` (``Z_+ = w + iz``, ``Z_- = x + iy``), which holds on any motion and needs no division
+    by a half's modulus, in place of that of the pole's limit form (which has none of ``b + k a``)."""
+    shift, shift_rate, phase_rate = first
+    halves, rates = [], []
+    for k in range(2):
+        z = jax.lax.complex(mod[k], shift[k]) * phases[k]
+        halves.append(z)
+        rates.append(
+            jax.lax.complex(mod_rate[k], shift_rate[k]) * phases[k] + _times_i(_times(phase_rate[k], z))
+        )
+    q = [
+        q[0] - shift[0] * jnp.imag(phases[0]),
+        q[1] - shift[1] * jnp.imag(phases[1]),
+        q[2] + shift[1] * jnp.real(phases[1]),
+        q[3] + shift[0] * jnp.real(phases[0]),
+    ]
+    bilinear = 2 * (jnp.conj(halves[0]) * rates[1] - jnp.conj(rates[0]) * halves[1])
+    use = reached & jnp.isfinite(jnp.real(bilinear)) & jnp.isfinite(jnp.imag(bilinear))
+    bilinear = jnp.where(use, bilinear, 0.0)
+    held = jax.lax.stop_gradient(transverse) + (bilinear - jax.lax.stop_gradient(bilinear))
+    return q, jnp.where(use, held, transverse)
 
 
 def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):
