@@ -319,14 +319,19 @@ def _half(half, body, t, now, reduced):
     # evaluated only for a batch that holds such a half.
     on_root = (coeff == 0) & (amp > 0) & (rate > 0)
 
-    def root_terms():
-        step = epsilon_step(now, body["start"], body["rho0"], reduced, body["m"], body["p"], body["quarter"])
-        return pole_root_terms(now, body["start"], step, reduced, rate, body["m"], body["p"], near, far)
+    # Without derivatives of their own (they multiply b + k a = 0): no tangents enter the branch, and
+    # only the bodies' parts and t (the Jacobi triple is evaluated again there, so that the common
+    # program need not hold it in memory for the branch).
+    held, held_t, held_near, held_far = jax.lax.stop_gradient((body, t, near, far))
 
-    zero = jnp.zeros_like(integral)
-    third, pole_r, pole_r_dot = (
-        jax.lax.stop_gradient(x) for x in _select_some(on_root, root_terms, (integral, zero, zero))
-    )
+    def root_terms():
+        v, now = _jacobi_now(held, held_t)
+        m, p, start = held["m"], held["p"], held["start"]
+        step = epsilon_step(now, start, held["rho0"], v, m, p, held["quarter"])
+        return pole_root_terms(now, start, step, v, held["rate"], m, p, held_near, held_far)
+
+    zero = jnp.zeros(jnp.broadcast_shapes(integral.shape, on_root.shape), integral.dtype)
+    third, pole_r, pole_r_dot = _select_some(on_root, root_terms, (zero, zero, zero))
     integral = jnp.where(on_root & ~half["reached"], third, integral)
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
     # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
@@ -350,7 +355,6 @@ def _half(half, body, t, now, reduced):
     )
     regular_coeff = jnp.where(half["reached"], 0.0, coeff)
     phase = 0.5 * (spin * t + regular_coeff * integral)
-    phase_rate = 0.5 * (spin + _safe_div(regular_coeff, 2 * modulus * modulus))
     sin_phase, cos_phase = _sin_cos(phase)
     rotor = jax.lax.complex(cos_phase, sin_phase)
     regular = (_unit(half["z0"]), modulus, modulus_rate)
@@ -369,10 +373,8 @@ def _half(half, body, t, now, reduced):
     direction = _unit(_times(j0, z0) + _times(_safe_div(1.0, rate) * jdot0, drift))
     pole = (direction, scale * j_now, scale * jdot_now * rate)
     chosen = [jnp.where(half["reached"], x, y) for x, y in zip(pole, regular, strict=True)]
-    # A reached pole: the half is (S + i (b + k a) R) e to first order, (b + k a) R zero in value.
-    shift = jnp.where(half["reached"] & on_root, coeff, 0.0)
-    first = (shift * pole_r, shift * pole_r_dot, phase_rate)
-    return chosen[0] * rotor, chosen[1], chosen[2], udot, phase, first
+    # A reached pole: the half is (S + i (b + k a) R) e to first order (see _pole_first_order).
+    return chosen[0] * rotor, chosen[1], chosen[2], udot, phase, (pole_r, pole_r_dot)
 
 
 def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t, *, phases=False):
@@ -414,10 +416,8 @@ def lagrange_top_parts(inertia, mass, com, gravity, omega0, q0) -> dict:
     return _body(A, C, mass * gravity * com[..., 2], omega0, q0)
 
 
-def lagrange_top_at(body: dict, t):
-    """``(omega, q)`` of :func:`lagrange_top_motion` at times ``t`` from the tops' parts
-    (:func:`lagrange_top_parts`), and the size of their phases (:func:`.largest_phase`), shape
-    ``batch + (1,)``."""
+def _jacobi_now(body, t):
+    """``lambda t`` and ``(sn, cn, dn)(tau0 + lambda t)``."""
     sn0, cn0, dn0 = body["start"]
     v = body["rate"] * t
     sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
@@ -427,7 +427,14 @@ def lagrange_top_at(body: dict, t):
     sn = (sn_v * cn0 * dn0 + sn0 * cn_v * dn_v) / den
     cn = (cn_v * cn0 - sn_v * sn0 * dn_v * dn0) / den
     dn = (dn_v * dn0 - m * sn_v * sn0 * cn_v * cn0) / den
-    now = (sn, cn, dn)
+    return v, (sn, cn, dn)
+
+
+def lagrange_top_at(body: dict, t):
+    """``(omega, q)`` of :func:`lagrange_top_motion` at times ``t`` from the tops' parts
+    (:func:`lagrange_top_parts`), and the size of their phases (:func:`.largest_phase`), shape
+    ``batch + (1,)``."""
+    v, now = _jacobi_now(body, t)
     # The halves' leading axis in front of the samples' axes (t may have more axes than the tops).
     samples = max(jnp.ndim(t), body["halves"]["k"].ndim - 1)
     halves = jax.tree.map(
@@ -451,12 +458,6 @@ def lagrange_top_at(body: dict, t):
     ratio = jnp.where(down_pole, at_down, jnp.where(up_pole, at_up, regular))
     transverse = ratio * ph_m * jnp.conj(ph_p)
     transverse = jax.lax.complex(-jnp.imag(transverse) / 2, jnp.real(transverse) / 2)  # times i/2
-    q, transverse = jax.lax.cond(
-        jnp.any(up_pole | down_pole),
-        _pole_first_order,
-        lambda q, transverse, *_: (list(q), transverse),
-        q, transverse, (ph_p, ph_m), mod, mod_rate, first, up_pole | down_pole,
-    )  # fmt: skip
     # A top sleeping at a pole up to a wobble below eps^(2/3): the linearised motion, zero in value
     # at the equilibrium and carrying the derivatives that start a wobble (the pole form's direction
     # of the wobble is undefined there). The tilt T = X + iY of the symmetry axis (T = -2i (x+iy)(w+iz))
@@ -467,8 +468,9 @@ def lagrange_top_at(body: dict, t):
     z_up, z_down = halves["z0"]
     tilt_args = (a, body["beta"], z_up, z_down, body["w1"], body["w2"], t, ph_p, ph_m)
 
-    def sleeping(q, transverse):
-        q = list(q)
+    def at_poles(q, transverse):
+        top = (halves["k"], halves["coeff"], halves["reached"], body["w3"] - a)
+        q, transverse = _pole_first_order(q, transverse, (ph_p, ph_m), mod, mod_rate, first, top)
         zeta, big_w, tilt_rate_up, tilt_rate_down = _sleeping(*tilt_args)
         # The other half's modulus is constant to first order (its elliptic form's derivatives are
         # those of roots a roundoff apart, times roundoff: O(1) noise for a top 1e-16 off the pole).
@@ -485,10 +487,10 @@ def lagrange_top_at(body: dict, t):
         transverse = jnp.where(sleep_down, tilt_rate_down, transverse)
         return q, transverse
 
-    # Evaluated only where a batch holds a sleeping top (the common batch holds none). This also
-    # makes XLA materialise the components before they are stacked.
+    # Evaluated only where a batch holds a top at a reached pole (the common batch holds none). This
+    # also makes XLA materialise the components before they are stacked.
     q, transverse = jax.lax.cond(
-        jnp.any(sleep_up | sleep_down), sleeping, lambda q, transverse: (list(q), transverse), q, transverse
+        jnp.any(up_pole | down_pole), at_poles, lambda q, transverse: (list(q), transverse), q, transverse
     )
     w3 = jnp.broadcast_to(body["w3"], transverse.shape)
     omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
@@ -500,12 +502,16 @@ def lagrange_top_at(body: dict, t):
     return omega, jnp.stack(q, axis=-1), jnp.broadcast_to(phase, transverse.shape)[..., None]
 
 
-def _pole_first_order(q, transverse, phases, mod, mod_rate, first, reached):
+def _pole_first_order(q, transverse, phases, mod, mod_rate, first, top):
     """A batch with a half at a reached pole: its first-order term in ``b + k a`` (zero in value) added
     to ``q``, and the derivative of ``omega_1 + i omega_2`` taken as that of ``2 (conj(Z_+) Z_-' -
     conj(Z_+') Z_-)`` (``Z_+ = w + iz``, ``Z_- = x + iy``), which holds on any motion and needs no division
     by a half's modulus, in place of that of the pole's limit form (which has none of ``b + k a``)."""
-    shift, shift_rate, phase_rate = first
+    k, coeff, reached, spin = top
+    # (b + k a) R and its rate, zero in value; the phases' rates (k spin + (b + k a) / (1 + k u)) / 2.
+    shift = jnp.where(reached, coeff, 0.0)
+    shift, shift_rate = shift * first[0], shift * first[1]
+    phase_rate = 0.5 * (k * spin + _safe_div(jnp.where(reached, 0.0, coeff), 2 * mod * mod))
     halves, rates = [], []
     for k in range(2):
         z = jax.lax.complex(mod[k], shift[k]) * phases[k]
@@ -520,7 +526,7 @@ def _pole_first_order(q, transverse, phases, mod, mod_rate, first, reached):
         q[3] + shift[0] * jnp.real(phases[0]),
     ]
     bilinear = 2 * (jnp.conj(halves[0]) * rates[1] - jnp.conj(rates[0]) * halves[1])
-    use = reached & jnp.isfinite(jnp.real(bilinear)) & jnp.isfinite(jnp.imag(bilinear))
+    use = (reached[0] | reached[1]) & jnp.isfinite(jnp.real(bilinear)) & jnp.isfinite(jnp.imag(bilinear))
     bilinear = jnp.where(use, bilinear, 0.0)
     held = jax.lax.stop_gradient(transverse) + (bilinear - jax.lax.stop_gradient(bilinear))
     return q, jnp.where(use, held, transverse)
