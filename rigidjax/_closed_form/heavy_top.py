@@ -513,11 +513,11 @@ def _pole_first_order(q, transverse, phases, mod, mod_rate, first, top):
     shift, shift_rate = shift * first[0], shift * first[1]
     phase_rate = 0.5 * (k * spin + _safe_div(jnp.where(reached, 0.0, coeff), 2 * mod * mod))
     halves, rates = [], []
-    for k in range(2):
-        z = jax.lax.complex(mod[k], shift[k]) * phases[k]
+    for i in range(2):
+        z = jax.lax.complex(mod[i], shift[i]) * phases[i]
         halves.append(z)
         rates.append(
-            jax.lax.complex(mod_rate[k], shift_rate[k]) * phases[k] + _times_i(_times(phase_rate[k], z))
+            jax.lax.complex(mod_rate[i], shift_rate[i]) * phases[i] + _times_i(_times(phase_rate[i], z))
         )
     q = [
         q[0] - shift[0] * jnp.imag(phases[0]),
