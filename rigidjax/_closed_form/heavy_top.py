@@ -37,14 +37,17 @@ Derivatives (forward and reverse) are those of the motion, including a start on 
 (a top released with ``theta' = 0``), tops passing close to the vertical and steady precession
 (a nutation below ``eps^(2/3)`` is evaluated in its first-order form, which carries them) and a
 top exactly at a pole without a wobble (the linearised tilt: two circular modes above the sleeping
-threshold, a growing and a decaying one below it and at rest upright). A top started exactly at
-a pole with a finite wobble (``theta0 = 0``, ``omega0`` not along the axis) has exact values and
-finite derivatives, but the derivative with respect to the tilt of ``q0`` is not the motion's.
-A top with ``w3 = 0`` and ``L_z = 0`` (released from rest, or swinging in a vertical plane: both
-halves have ``b + k a = 0``, one pole a turning circle and the other the third root) has exact
-values, but its derivative with respect to ``omega0`` is not the motion's: the phase integral of the
-half whose pole is the third root is a placeholder there (``n' = 0``, its value multiplied by ``b + k
-a = 0``), and the reached half's pole form carries no derivative of ``b + k a``.
+threshold, a growing and a decaying one below it and at rest upright). A half with ``b + k a = 0``
+(a top with ``w3 = 0`` and ``L_z = 0``, released from rest or swinging in a vertical plane through
+the pivot; a top started exactly at a pole, whose tilt moves ``b + k a`` off 0) takes the terms that
+carry the derivative of ``b + k a`` from :mod:`.heavy_pole`: against central differences of DOP853
+(``tests/test_heavy_top_rest_gradients.py``: at rest at a tilt, planar swings below and over the
+top, hanging at rest, started upright or hanging with a wobble) the Jacobian with respect to
+``omega0`` and the tilt of ``q0`` is within 4e-9 of its largest entry. Those terms are held constant
+under differentiation, so second derivatives there lack their part. A top only within roundoff of
+that family (``b + k a`` of 1e-17 rad/s, as from an orientation built from Euler angles) takes the
+general form, whose derivative after a pass by the pole is off by up to about ``1e-15 / |b + k a|``
+relative (a planar swing over 1.3 s: 2.9 at 1e-17, 2e-3 at 4e-13, 3e-8 at 4e-9 rad/s).
 Reverse mode transposes every sample's Jacobian (:mod:`.derivatives`). Only ``com_z`` and the mean
 of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``, ``com_y`` (zero) and
 ``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
@@ -58,6 +61,7 @@ from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
 from .frame import largest_phase
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
+from .heavy_pole import epsilon_step, pole_root_terms
 
 
 def _safe_div(num, den):
@@ -174,7 +178,8 @@ def _body(A, C, weight_l, omega0, q0):
     dn0 = jnp.where(g_s > 0, safe_sqrt(_safe_div(g0, g_s)), 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
-    rho0 = _start_phase(sn0, cn0, dn0, p, _quarter_period(m, p))
+    quarter = _quarter_period(m, p)
+    rho0 = _start_phase(sn0, cn0, dn0, p, quarter)
     # The two halves (k = +1: w + iz, pole u = -1; k = -1: x + iy, pole u = 1) on a leading axis of
     # every array: their arithmetic is written, traced and compiled once.
     batch = jnp.broadcast_shapes(u0.shape, a.shape, beta.shape, g0.shape)
@@ -206,7 +211,7 @@ def _body(A, C, weight_l, omega0, q0):
     return dict(
         a=a, w3=w3, h0=h, u0=u0, udot0=udot, amp=amp, sigma=sigma, rate=rate, m=m, p=p,
         start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
-        pole_gap=2 * jnp.minimum(up, down),
+        pole_gap=2 * jnp.minimum(up, down), rho0=rho0, quarter=quarter,
     )  # fmt: skip
 
 
@@ -310,6 +315,24 @@ def _half(half, body, t, now, reduced):
     delta_v = _theta_phase(x0 + reduced, parts) - _theta_phase(x0, parts)
     rate_safe = jnp.where(valid, rate, 1.0)
     integral = jnp.where(valid, slope * t + wave / rate_safe * delta_v, _safe_div(t, near))
+    # b + k a = 0 with the pole on a root of the cubic: the terms that carry d(b + k a) (:mod:`.heavy_pole`),
+    # evaluated only for a batch that holds such a half.
+    on_root = (coeff == 0) & (amp > 0) & (rate > 0)
+
+    # Without derivatives of their own (they multiply b + k a = 0): no tangents enter the branch, and
+    # only the bodies' parts and t (the Jacobi triple is evaluated again there, so that the common
+    # program need not hold it in memory for the branch).
+    held, held_t, held_near, held_far = jax.lax.stop_gradient((body, t, near, far))
+
+    def root_terms():
+        v, now = _jacobi_now(held, held_t)
+        m, p, start = held["m"], held["p"], held["start"]
+        step = epsilon_step(now, start, held["rho0"], v, m, p, held["quarter"])
+        return pole_root_terms(now, start, step, v, held["rate"], m, p, held_near, held_far)
+
+    zero = jnp.zeros(jnp.broadcast_shapes(integral.shape, on_root.shape), integral.dtype)
+    third, pole_r, pole_r_dot = _select_some(on_root, root_terms, (zero, zero, zero))
+    integral = jnp.where(on_root & ~half["reached"], third, integral)
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
     # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
     # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
@@ -350,7 +373,8 @@ def _half(half, body, t, now, reduced):
     direction = _unit(_times(j0, z0) + _times(_safe_div(1.0, rate) * jdot0, drift))
     pole = (direction, scale * j_now, scale * jdot_now * rate)
     chosen = [jnp.where(half["reached"], x, y) for x, y in zip(pole, regular, strict=True)]
-    return chosen[0] * rotor, chosen[1], chosen[2], udot, phase
+    # A reached pole: the half is (S + i (b + k a) R) e to first order (see _pole_first_order).
+    return chosen[0] * rotor, chosen[1], chosen[2], udot, phase, (pole_r, pole_r_dot)
 
 
 def lagrange_top_motion(inertia, mass, com, gravity, omega0, q0, t, *, phases=False):
@@ -392,10 +416,8 @@ def lagrange_top_parts(inertia, mass, com, gravity, omega0, q0) -> dict:
     return _body(A, C, mass * gravity * com[..., 2], omega0, q0)
 
 
-def lagrange_top_at(body: dict, t):
-    """``(omega, q)`` of :func:`lagrange_top_motion` at times ``t`` from the tops' parts
-    (:func:`lagrange_top_parts`), and the size of their phases (:func:`.largest_phase`), shape
-    ``batch + (1,)``."""
+def _jacobi_now(body, t):
+    """``lambda t`` and ``(sn, cn, dn)(tau0 + lambda t)``."""
     sn0, cn0, dn0 = body["start"]
     v = body["rate"] * t
     sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
@@ -405,13 +427,20 @@ def lagrange_top_at(body: dict, t):
     sn = (sn_v * cn0 * dn0 + sn0 * cn_v * dn_v) / den
     cn = (cn_v * cn0 - sn_v * sn0 * dn_v * dn0) / den
     dn = (dn_v * dn0 - m * sn_v * sn0 * cn_v * cn0) / den
-    now = (sn, cn, dn)
+    return v, (sn, cn, dn)
+
+
+def lagrange_top_at(body: dict, t):
+    """``(omega, q)`` of :func:`lagrange_top_motion` at times ``t`` from the tops' parts
+    (:func:`lagrange_top_parts`), and the size of their phases (:func:`.largest_phase`), shape
+    ``batch + (1,)``."""
+    v, now = _jacobi_now(body, t)
     # The halves' leading axis in front of the samples' axes (t may have more axes than the tops).
     samples = max(jnp.ndim(t), body["halves"]["k"].ndim - 1)
     halves = jax.tree.map(
         lambda x: x.reshape((2,) + (1,) * (samples - x.ndim + 1) + x.shape[1:]), body["halves"]
     )
-    ph, mod, mod_rate, udot, angle = _half(halves, body, t, now, v)
+    ph, mod, mod_rate, udot, angle, first = _half(halves, body, t, now, v)
     # Held in memory: read by every component of omega and q (each would recompute them otherwise).
     ph_re, ph_im, mod, mod_rate, udot = _materialised((jnp.real(ph), jnp.imag(ph), mod, mod_rate, udot))
     (ph_p, ph_m), (mod_p, mod_m), (rate_p, rate_m) = jax.lax.complex(ph_re, ph_im), mod, mod_rate
@@ -439,9 +468,17 @@ def lagrange_top_at(body: dict, t):
     z_up, z_down = halves["z0"]
     tilt_args = (a, body["beta"], z_up, z_down, body["w1"], body["w2"], t, ph_p, ph_m)
 
-    def sleeping(q, transverse):
-        q = list(q)
+    def at_poles(q, transverse):
+        top = (halves["k"], halves["coeff"], halves["reached"], body["w3"] - a)
+        q, transverse = _pole_first_order(q, transverse, (ph_p, ph_m), mod, mod_rate, first, top)
         zeta, big_w, tilt_rate_up, tilt_rate_down = _sleeping(*tilt_args)
+        # The other half's modulus is constant to first order (its elliptic form's derivatives are
+        # those of roots a roundoff apart, times roundoff: O(1) noise for a top 1e-16 off the pole).
+        held_p, held_m = jax.lax.stop_gradient(mod_p), jax.lax.stop_gradient(mod_m)
+        q[0] = jnp.where(sleep_up, held_p * jnp.real(ph_p), q[0])
+        q[3] = jnp.where(sleep_up, held_p * jnp.imag(ph_p), q[3])
+        q[1] = jnp.where(sleep_down, held_m * jnp.real(ph_m), q[1])
+        q[2] = jnp.where(sleep_down, held_m * jnp.imag(ph_m), q[2])
         q[1] = jnp.where(sleep_up, jnp.real(zeta), q[1])
         q[2] = jnp.where(sleep_up, jnp.imag(zeta), q[2])
         q[0] = jnp.where(sleep_down, jnp.real(big_w), q[0])
@@ -450,10 +487,10 @@ def lagrange_top_at(body: dict, t):
         transverse = jnp.where(sleep_down, tilt_rate_down, transverse)
         return q, transverse
 
-    # Evaluated only where a batch holds a sleeping top (the common batch holds none). This also
-    # makes XLA materialise the components before they are stacked.
+    # Evaluated only where a batch holds a top at a reached pole (the common batch holds none). This
+    # also makes XLA materialise the components before they are stacked.
     q, transverse = jax.lax.cond(
-        jnp.any(sleep_up | sleep_down), sleeping, lambda q, transverse: (list(q), transverse), q, transverse
+        jnp.any(up_pole | down_pole), at_poles, lambda q, transverse: (list(q), transverse), q, transverse
     )
     w3 = jnp.broadcast_to(body["w3"], transverse.shape)
     omega = jnp.stack([jnp.real(transverse), jnp.imag(transverse), w3], axis=-1)
@@ -463,6 +500,36 @@ def lagrange_top_at(body: dict, t):
     )
     phase = largest_phase(v, angle[0], angle[1], modes)
     return omega, jnp.stack(q, axis=-1), jnp.broadcast_to(phase, transverse.shape)[..., None]
+
+
+def _pole_first_order(q, transverse, phases, mod, mod_rate, first, top):
+    """A batch with a half at a reached pole: its first-order term in ``b + k a`` (zero in value) added
+    to ``q``, and the derivative of ``omega_1 + i omega_2`` taken as that of ``2 (conj(Z_+) Z_-' -
+    conj(Z_+') Z_-)`` (``Z_+ = w + iz``, ``Z_- = x + iy``), which holds on any motion and needs no division
+    by a half's modulus, in place of that of the pole's limit form (which has none of ``b + k a``)."""
+    k, coeff, reached, spin = top
+    # (b + k a) R and its rate, zero in value; the phases' rates (k spin + (b + k a) / (1 + k u)) / 2.
+    shift = jnp.where(reached, coeff, 0.0)
+    shift, shift_rate = shift * first[0], shift * first[1]
+    phase_rate = 0.5 * (k * spin + _safe_div(jnp.where(reached, 0.0, coeff), 2 * mod * mod))
+    halves, rates = [], []
+    for i in range(2):
+        z = jax.lax.complex(mod[i], shift[i]) * phases[i]
+        halves.append(z)
+        rates.append(
+            jax.lax.complex(mod_rate[i], shift_rate[i]) * phases[i] + _times_i(_times(phase_rate[i], z))
+        )
+    q = [
+        q[0] - shift[0] * jnp.imag(phases[0]),
+        q[1] - shift[1] * jnp.imag(phases[1]),
+        q[2] + shift[1] * jnp.real(phases[1]),
+        q[3] + shift[0] * jnp.real(phases[0]),
+    ]
+    bilinear = 2 * (jnp.conj(halves[0]) * rates[1] - jnp.conj(rates[0]) * halves[1])
+    use = (reached[0] | reached[1]) & jnp.isfinite(jnp.real(bilinear)) & jnp.isfinite(jnp.imag(bilinear))
+    bilinear = jnp.where(use, bilinear, 0.0)
+    held = jax.lax.stop_gradient(transverse) + (bilinear - jax.lax.stop_gradient(bilinear))
+    return q, jnp.where(use, held, transverse)
 
 
 def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):
