@@ -283,6 +283,37 @@ def _select_some(mask, branch, values):
     return jax.lax.cond(jnp.any(mask), chosen, lambda: tuple(values))
 
 
+def _root_terms(held, t, near, far):
+    """:func:`.heavy_pole.pole_root_terms` at ``t``, from the body's parts in ``held``."""
+    v, now = _jacobi_now(held, t)
+    m, p, start = held["m"], held["p"], held["start"]
+    step = epsilon_step(now, start, held["rho0"], v, m, p, held["quarter"])
+    return pole_root_terms(now, start, step, v, held["rate"], m, p, near, far)
+
+
+@jax.custom_jvp
+def _zero_in_value(coeff, masks, held):
+    """``where(mask, coeff * term, 0)`` for the three terms of :func:`_root_terms` (at ``held``) and
+    their masks, on which ``coeff`` (``b + k a``) is 0. Zero in value, so that a run without
+    derivatives evaluates nothing (a branch per sample kept XLA from fusing the common batch's
+    samples: 50% longer); the derivative is ``d(coeff) * term``, the terms held constant."""
+    shapes = jax.eval_shape(_root_terms, *held)
+    return tuple(
+        jnp.zeros(jnp.broadcast_shapes(shape.shape, coeff.shape, mask.shape), shape.dtype)
+        for shape, mask in zip(shapes, masks, strict=True)
+    )
+
+
+@_zero_in_value.defjvp
+def _zero_in_value_jvp(primals, tangents):
+    coeff, masks, held = primals
+    zeros = _zero_in_value(coeff, masks, held)
+    # Evaluated only for a batch that holds such a half.
+    terms = _select_some(masks[0] | masks[1], lambda: _root_terms(*held), zeros)
+    d_coeff = tangents[0]
+    return zeros, tuple(jnp.where(mask, d_coeff * x, 0.0) for mask, x in zip(masks, terms, strict=True))
+
+
 def _quat_times_omega(q, omega):
     """``dq/dt = q (0, omega) / 2``."""
     w, x, y, z = (q[..., i] for i in range(4))
@@ -315,29 +346,19 @@ def _half(half, body, t, now, reduced):
     delta_v = _theta_phase(x0 + reduced, parts) - _theta_phase(x0, parts)
     rate_safe = jnp.where(valid, rate, 1.0)
     integral = jnp.where(valid, slope * t + wave / rate_safe * delta_v, _safe_div(t, near))
-    # b + k a = 0 with the pole on a root of the cubic: the terms that carry d(b + k a) (:mod:`.heavy_pole`),
-    # evaluated only for a batch that holds such a half.
+    # b + k a = 0 with the pole on a root of the cubic: the terms that carry d(b + k a) (:mod:`.heavy_pole`).
+    # A nutation below eps^(2/3) takes its first-order form instead (below).
+    linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3) * body["pole_gap"]) & (body["g0"] > 0)
     on_root = (coeff == 0) & (amp > 0) & (rate > 0)
-
-    # Without derivatives of their own (they multiply b + k a = 0): no tangents enter the branch, and
-    # only the bodies' parts and t (the Jacobi triple is evaluated again there, so that the common
-    # program need not hold it in memory for the branch).
-    held, held_t, held_near, held_far = jax.lax.stop_gradient((body, t, near, far))
-
-    def root_terms():
-        v, now = _jacobi_now(held, held_t)
-        m, p, start = held["m"], held["p"], held["start"]
-        step = epsilon_step(now, start, held["rho0"], v, m, p, held["quarter"])
-        return pole_root_terms(now, start, step, v, held["rate"], m, p, held_near, held_far)
-
-    zero = jnp.zeros(jnp.broadcast_shapes(integral.shape, on_root.shape), integral.dtype)
-    third, pole_r, pole_r_dot = _select_some(on_root, root_terms, (zero, zero, zero))
-    integral = jnp.where(on_root & ~half["reached"], third, integral)
+    third_mask, pole_mask = on_root & ~half["reached"] & ~linear, on_root & half["reached"]
+    held = {key: body[key] for key in ("start", "rate", "m", "p", "rho0", "quarter")}
+    held = jax.lax.stop_gradient((held, t, near, far))
+    third, pole_r, pole_r_dot = _zero_in_value(coeff, (third_mask, pole_mask, pole_mask), held)
+    integral = jnp.where(third_mask, 0.0, integral)
     # A nutation below eps^(2/3) (steady precession, up to roundoff): its first-order form, exact in
     # value there (errors O(amp^2)) and with the derivatives of the flow, which the elliptic form's
     # square roots of the amplitude do not give. x(t) = u - u0 solves x'' = -G0 (x + k1 / 2).
     # (Also small against both poles' distances: 1 / (1 + k u) is expanded to first order.)
-    linear = (amp <= jnp.finfo(amp.dtype).eps ** (2 / 3) * body["pole_gap"]) & (body["g0"] > 0)
     k1, udot0, dist0 = body["k1"], body["udot0"], half["dist0"]
 
     def first_order():
@@ -354,7 +375,7 @@ def _half(half, body, t, now, reduced):
         linear, first_order, (udot, modulus, modulus_rate, integral)
     )
     regular_coeff = jnp.where(half["reached"], 0.0, coeff)
-    phase = 0.5 * (spin * t + regular_coeff * integral)
+    phase = 0.5 * (spin * t + regular_coeff * integral + third)
     sin_phase, cos_phase = _sin_cos(phase)
     rotor = jax.lax.complex(cos_phase, sin_phase)
     regular = (_unit(half["z0"]), modulus, modulus_rate)
@@ -509,8 +530,7 @@ def _pole_first_order(q, transverse, phases, mod, mod_rate, first, top):
     by a half's modulus, in place of that of the pole's limit form (which has none of ``b + k a``)."""
     k, coeff, reached, spin = top
     # (b + k a) R and its rate, zero in value; the phases' rates (k spin + (b + k a) / (1 + k u)) / 2.
-    shift = jnp.where(reached, coeff, 0.0)
-    shift, shift_rate = shift * first[0], shift * first[1]
+    shift, shift_rate = first
     phase_rate = 0.5 * (k * spin + _safe_div(jnp.where(reached, 0.0, coeff), 2 * mod * mod))
     halves, rates = [], []
     for i in range(2):
