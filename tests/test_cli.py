@@ -122,9 +122,12 @@ def test_earth_wobble_period(earth):
     code, out, err, npz, png = earth
     assert code == 0, err
     assert png.exists()
-    a, c, omega3 = 8.0101e37, 8.0365e37, 7.292115e-5
-    closed = 2 * math.pi / ((c - a) / a * omega3)
-    assert closed / 86400 == pytest.approx(302.58, abs=0.01)
+    # The rigid Earth's Euler period from its dynamical ellipticity H = (C - A) / C (IERS
+    # Conventions 2010): A / (C - A) sidereal days (the moments 8.0101e37, 8.0365e37 gave 302.58).
+    h, omega3 = 3.2737949e-3, 7.292115e-5
+    closed = 2 * math.pi / (h / (1 - h) * omega3)
+    assert closed / 86400 == pytest.approx(303.62, abs=0.01)
+    assert closed * omega3 / (2 * math.pi) == pytest.approx((1 - h) / h, rel=1e-12)  # sidereal days
     printed = _number(out, "wobble period")
     assert printed == pytest.approx(closed, rel=1e-6)
     with np.load(npz) as data:

@@ -20,8 +20,12 @@ from .common import counted
 
 GRAVITY = 9.81  # m/s^2
 
-# The rigid Earth (SI): principal moments near the real ones, sidereal rotation rate.
-EARTH_INERTIA = (8.0101e37, 8.0101e37, 8.0365e37)  # kg m^2
+# The rigid Earth (SI): its polar moment C, the equatorial A from the dynamical ellipticity
+# H = (C - A) / C (IERS Conventions 2010; C - A is a small difference of large numbers, so A is
+# derived rather than rounded on its own), sidereal rotation rate.
+EARTH_C = 8.0365e37  # kg m^2
+EARTH_H = 3.2737949e-3
+EARTH_INERTIA = (EARTH_C * (1 - EARTH_H), EARTH_C * (1 - EARTH_H), EARTH_C)  # kg m^2
 EARTH_OMEGA3 = 7.292115e-5  # rad/s
 DAY = 86400.0  # s
 

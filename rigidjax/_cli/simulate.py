@@ -530,7 +530,7 @@ def add_parser(subparsers) -> None:
         "--duration",
         type=positive_float,
         default=None,
-        help="simulated time in seconds (default: 5 s; 3 Euler periods, about 908 days, for earth)",
+        help="simulated time in seconds (default: 5 s; 3 Euler periods, about 911 days, for earth)",
     )
     sim.add_argument(
         "--samples", type=_samples, default=None, help="output samples, including t=0 (default: 200)"
