@@ -194,6 +194,11 @@ def _check_finer(tolerances, finer, dtype):
         )
 
 
+def _solver_order(kwargs) -> int:
+    """The order of the run's solver: the user's, or the preset's."""
+    return (kwargs["solver"] or PRESETS[kwargs["accuracy"]][0]()).order(None)
+
+
 def _finer_adaptive(kwargs, dtype, fine_eps):
     """The finer run's arguments: tolerances divided by TOLERANCE_FACTOR (not below ten roundoff
     units of the finer run's dtype, ``fine_eps``), or half the constant step. Tolerances already at
@@ -215,8 +220,7 @@ def _finer_adaptive(kwargs, dtype, fine_eps):
         # Steps held at dtmax (or dtmin) would be the same in both runs, and their difference would
         # miss the error (2e-15 for a true 2e-9): the bounds shrink by what makes a step's error
         # TOLERANCE_FACTOR smaller at the solver's order.
-        solver = kwargs["solver"] or PRESETS[kwargs["accuracy"]][0]()
-        shrink = TOLERANCE_FACTOR ** (1.0 / solver.order(None))
+        shrink = TOLERANCE_FACTOR ** (1.0 / _solver_order(kwargs))
         for bound in ("dtmax", "dtmin"):
             if getattr(controller, bound) is not None:
                 smaller = getattr(controller, bound) / shrink
@@ -227,8 +231,7 @@ def _finer_adaptive(kwargs, dtype, fine_eps):
         if kwargs["dt0"] is None:
             raise ValueError("error_estimate with ConstantStepSize needs dt0.")
         kwargs["dt0"] = kwargs["dt0"] / 2
-        solver = kwargs["solver"] or PRESETS[kwargs["accuracy"]][0]()
-        return kwargs, 1.0 / (1.0 - 2.0 ** (-solver.order(None)))
+        return kwargs, 1.0 / (1.0 - 2.0 ** (-_solver_order(kwargs)))
     raise ValueError(
         "error_estimate=True works with the presets' step control, a diffrax.PIDController (a second "
         "run at tolerances / 100) or a ConstantStepSize (a second run at dt0 / 2); got "
