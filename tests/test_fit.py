@@ -390,6 +390,29 @@ def test_the_default_optimiser_converges_with_a_known_torque():
     assert np.all(np.asarray(fit.residual_rms / fit.noise_estimate) < 1.2)
 
 
+def test_a_record_that_does_not_determine_the_inertia_has_infinite_standard_errors():
+    """A steady spin about a principal axis (omega constant for any inertia) returned the starting
+    estimate with standard errors of 0 and converged=True: the pseudo-inverse of J^T J dropped the
+    directions it could not invert. The same for a zero known torque, which fixes no scale."""
+    # The record lengths of the tests above (240 samples without a torque, 100 with one), whose
+    # compiled fits serve here.
+    ts = np.linspace(0.0, 10.0, 240)
+    moments = np.array([1.0, 2.0, 2.8])
+    steady = np.asarray(rj.torque_free_omega(moments, np.array([0.0, 0.0, 1.0]), ts))
+    fit = rj.fit_inertia(ts, steady)
+    assert np.all(np.isinf(np.asarray(fit.inertia_stderr)))
+    tumbling = np.asarray(rj.torque_free_omega(moments, np.array([0.3, 0.5, 1.0]), ts))
+    zero = rj.ConstantTorque(np.zeros(3))
+    scaled = rj.fit_inertia(ts[:100], tumbling[:100], torque=zero, inertia_init=np.array([5.0, 10.0, 14.0]))
+    assert np.all(np.isinf(np.asarray(scaled.inertia_stderr)))
+    # A tumbling record determines the normalised inertia: finite errors, and the truth within 5 of them.
+    noisy = tumbling + 1e-3 * np.random.default_rng(0).normal(size=tumbling.shape)
+    fit = rj.fit_inertia(ts, noisy)
+    stderr = np.asarray(fit.inertia_stderr)
+    assert np.all(np.isfinite(stderr)) and np.all(stderr > 0)
+    assert np.all(np.abs(np.asarray(fit.inertia) - moments / moments.sum()) < 5 * stderr)
+
+
 @pytest.mark.slow
 def test_robust_loss_standard_errors_match_the_spread_over_noise_draws():
     """With a robust loss and outliers, the standard errors were scaled by the residuals' plain
