@@ -13,6 +13,7 @@ import contextvars
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 _TANGENTS_HELD = contextvars.ContextVar("tangents_held", default=False)
 
@@ -37,13 +38,17 @@ def _materialised(arrays):
     """``arrays`` (a tuple), computed in full before any of their consumers runs.
 
     The identity: one pass of a loop that multiplies by one, with the trip count read at run time
-    (0 where the first element is NaN, which returns the arrays as they are), so that XLA can
-    neither remove the loop nor fuse across it. The tangents pass through unchanged (a custom JVP),
-    so reverse mode sees no loop, except under :func:`tangents_held`.
+    (0 where the first element of the first floating array is NaN, which returns the arrays as they
+    are), so that XLA can neither remove the loop nor fuse across it. The trip count is read from a
+    floating array: ``x == x`` of an integer or boolean is known to XLA, which then removed the
+    loop, and every reader recomputed the arrays (the precession's per-body constants, led by a
+    boolean, at every sample). The tangents pass through unchanged (a custom JVP), so reverse mode
+    sees no loop, except under :func:`tangents_held`.
     """
     if not arrays or any(jnp.size(a) == 0 for a in arrays):
         return arrays
-    first = jnp.ravel(arrays[0])[0]
+    floating = [a for a in arrays if jnp.issubdtype(jnp.result_type(a), jnp.inexact)]
+    first = jnp.ravel(floating[0] if floating else jnp.asarray(arrays[0], jnp.float32))[0]
     trips = (first == first).astype(jnp.int32)
 
     def body(_, xs):
@@ -59,3 +64,14 @@ def _materialised_jvp(primals, tangents):
         held = _materialised(tuple(arrays) + tuple(dots))
         return held[: len(arrays)], held[len(arrays) :]
     return _materialised(arrays), dots
+
+
+def _held_per_body(arrays, t):
+    """``arrays`` of the bodies, read at the sample times ``t`` (broadcast against them), held by
+    :func:`_materialised` where there are more samples than bodies. With one sample per body they
+    are returned as they are: fused into their readers, they are computed once per sample anyway,
+    and holding them cost two kernels per array."""
+    samples = jnp.broadcast_shapes(jnp.shape(t), *(jnp.shape(a) for a in arrays))
+    if max(int(np.prod(jnp.shape(a))) for a in arrays) >= int(np.prod(samples)):
+        return tuple(arrays)
+    return _materialised(tuple(arrays))

@@ -17,6 +17,7 @@ nearly symmetric bodies (m -> 0). Steady rotations (spin about a principal axis,
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -36,7 +37,7 @@ from .._checks import (
 from .._dynamics.inertia import check_inertia
 from .._kinematics.quaternion import _quat_multiply
 from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, VectorOut
-from .barrier import _materialised
+from .barrier import _held_per_body, _materialised
 from .carlson import _carlson_rf_rd
 from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, ellipkm1
@@ -159,6 +160,10 @@ def _motion_parts(frame, t, held=False):
     :mod:`.barrier`; omega alone: 10^4 bodies 7.2 -> 5.5 ms, not with the orientation, which
     reads them)."""
     first = _start(frame)
+    # Per body and read at every sample: held where there are several samples a body, or each
+    # sample's kernels derived the elliptic parameters from the frame again.
+    leaves, tree = jax.tree.flatten(first)
+    first = jax.tree.unflatten(tree, _held_per_body(leaves, t))
     around_largest, (amp_a, amp_b, amp_c) = first["around_largest"], first["amplitudes"]
     m, p, sign_c = first["m"], first["p"], first["sign_c"]
     sn0, cn0, dn0 = first["start"]
