@@ -2,6 +2,8 @@
 call them), the exact ``mod`` of integer-valued floats, and the materialising identity, against
 mpmath, scipy and numpy."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import mpmath
@@ -111,3 +113,25 @@ def test_materialised_is_the_identity_with_its_derivatives():
     np.testing.assert_allclose(jax.jacfwd(f)(a), expected, rtol=1e-15)
     batched = jax.vmap(jax.grad(f))(jnp.stack([a, 2 * a]))
     np.testing.assert_allclose(batched[1], np.cos(2 * a) * 2 * a + np.sin(2 * a), rtol=1e-15)
+
+
+@pytest.mark.parametrize("order", ["boolean first", "floating first"])
+def test_materialised_keeps_its_loop_whatever_the_first_array(order):
+    """The arrays are held by a loop whose trip count XLA cannot know. It was read from the first
+    array, ``x == x``, which XLA folds to true for a boolean: the loop was removed and every reader
+    recomputed the arrays (the precession's per-body constants, led by a boolean). Reference: the
+    compiled program's own text, which names a while loop only where one survived."""
+    flags = jnp.asarray([True, False, True])
+    values = jnp.asarray([0.5, -1.0, 2.0])
+    xs = (flags, values) if order == "boolean first" else (values, flags)
+
+    def held(a, b):
+        return _materialised((a, jnp.exp(b) if b.dtype != jnp.bool_ else b))
+
+    compiled = jax.jit(held).lower(*xs).compile().as_text()
+    assert re.search(r"\bwhile\b", compiled), compiled[:2000]
+    out = jax.jit(held)(*xs)
+    exp = np.exp(np.asarray(values))
+    want = (flags, exp) if order == "boolean first" else (values, flags)
+    for got, expected in zip(out, want, strict=True):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-15)
