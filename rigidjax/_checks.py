@@ -250,6 +250,30 @@ def branched_error_if(x, condition, index, messages):
     return eqx.branched_error_if(x, condition, index, messages)
 
 
+def floats_as_arrays(tree):
+    """``tree`` with its Python and NumPy floating-point scalars as JAX arrays (of their own
+    precision; Python's weakly typed). Passed to ``eqx.filter_jit`` they were static arguments, so
+    each new value (a sweep of a torque's gain) compiled the whole program again; as arrays they are
+    traced. Ints and bools stay Python values: code may branch on them or use them as counts."""
+
+    def convert(x):
+        if isinstance(x, bool | np.bool_):
+            return x
+        if isinstance(x, float | complex) or (isinstance(x, np.generic) and x.dtype.kind in "fc"):
+            return jnp.asarray(x)
+        return x
+
+    return jax.tree.map(convert, tree)
+
+
+@functools.cache
+def compiled_once(function):
+    """``jax.jit(function)``, one for each function: a public function called eagerly then compiles
+    once per shape and dtype. Called op by op, its loops (``lax.scan``, ``fori_loop``) were traced and
+    compiled again at every call (0.1 to 0.3 s each), their bodies closing over the call's arrays."""
+    return jax.jit(function)
+
+
 def call_checked(program, failures, *args):
     """``program(*args, checked=...)`` with its inputs' value checks done where they cost least.
 
@@ -260,6 +284,11 @@ def call_checked(program, failures, *args):
     cache keeps both and a new process compiles nothing. Inputs without values (the user's ``jit``
     or ``vmap``) run ``program`` with ``checked=True``: ``eqx.error_if`` checks in the program.
     """
+    # A Python number would be a static argument of the programs (equinox's filter_jit): each new
+    # value (t = 0.1 k in a loop) compiled both again, 1-3 s a call. As an array it is traced.
+    args = tuple(
+        jnp.asarray(a) if isinstance(a, int | float) and not isinstance(a, bool) else a for a in args
+    )
     values = known_values(args)
     if values is None:
         return program(*args, checked=True)

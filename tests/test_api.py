@@ -232,6 +232,59 @@ def test_eager_calls_compile_one_program_not_one_per_operation():
     assert _programs_compiled(lambda: rj.euler_rates(angles, traj.omega[:, 0], "yxz")) == 1
 
 
+@pytest.mark.parametrize("kind", ["Python float", "array"])
+def test_a_second_eager_call_with_new_values_compiles_nothing(kind):
+    """The elliptic functions ran their loops operation by operation, compiling them again at every
+    call (0.1 to 0.3 s each, arrays or not); the closed forms took a Python float time as a static
+    argument of their programs, compiled again for each new value (1 to 3 s a call). A second call
+    with new values of the same shapes now compiles nothing. Reference: JAX's compile events."""
+    convert = float if kind == "Python float" else jnp.asarray
+    inertia, omega0, q0 = np.array([1.0, 2.0, 2.5]), np.array([0.3, 0.1, 1.0]), np.array([1.0, 0.0, 0.0, 0.0])
+    calls = {
+        "ellipk": lambda v: rj.elliptic.ellipk(v / 10),
+        "ellipkm1": lambda v: rj.elliptic.ellipkm1(v / 10),
+        "ellipe": lambda v: rj.elliptic.ellipe(v / 10),
+        "ellipkinc": lambda v: rj.elliptic.ellipkinc(v, 0.3),
+        "ellipeinc": lambda v: rj.elliptic.ellipeinc(v, 0.3),
+        "ellipj": lambda v: rj.elliptic.ellipj(v, 0.3),
+        "ellipj_m1": lambda v: rj.elliptic.ellipj_m1(v, 0.3),
+        "elliprj": lambda v: rj.elliptic.elliprj(v, 1.0, 2.0, 0.5),
+        "torque_free_omega": lambda v: rj.torque_free_omega(inertia, omega0, v),
+        "torque_free_motion": lambda v: rj.torque_free_motion(inertia, omega0, q0, v),
+    }
+    for name, call in calls.items():
+        first = call(convert(1.7))
+        assert _programs_compiled(lambda call=call: call(convert(1.3))) == 0, name
+        # Each call's own values, not the first call's.
+        assert not np.array_equal(
+            np.asarray(jax.tree.leaves(call(convert(1.3)))[0]), np.asarray(jax.tree.leaves(first)[0])
+        ), name
+
+
+@pytest.mark.parametrize("through", ["params", "args"])
+def test_a_torque_gain_swept_as_python_floats_compiles_once(through):
+    """A Python float in a Torque's params or in simulate's args was a static argument of the
+    compiled integration: every new value compiled it again (7-12 s a call). Floats are arrays now.
+    Reference: a damped sphere, I = 2, torque -k omega: omega(t) = omega0 exp(-k t / 2)."""
+
+    def damping(t, state, k):
+        return -k * state.omega
+
+    ts, omega0 = jnp.linspace(0.0, 1.0, 5), jnp.asarray([0.3, 0.1, 1.0])
+
+    def run(k):
+        params, args = (k, None) if through == "params" else (None, k)
+        torque = rj.Torque(damping, params=params, needs_orientation=False)
+        model = rj.RigidBody(jnp.asarray([2.0, 2.0, 2.0]), torque)
+        return rj.simulate(model, rj.State(omega0), ts, args=args, accuracy="fast").omega
+
+    run(0.1)
+    for k in (0.2, 0.3):
+        assert _programs_compiled(lambda k=k: run(k)) == 0
+        exact = np.asarray(omega0) * np.exp(-k * np.asarray(ts)[:, None] / 2)
+        np.testing.assert_allclose(np.asarray(run(k)), exact, rtol=1e-4)
+
+
 def test_checked_functions_called_eagerly_are_one_program_with_the_same_errors():
     """Called eagerly, each checked public function (its input checks and its formula) is one
     compiled program, on a shape no other test uses: ``check_inertia`` operation by operation

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from .._checks import common_float
+from .._checks import common_float, compiled_once
 from .._numerics import safe_sqrt
 from .._types import Scalar, ScalarOut
 
@@ -207,7 +207,7 @@ def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
     """
     x, y, z, p = common_float(x, y, z, p, names=["x", "y", "z", "p"])
     x, y, z, p = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
-    return _elliprj(x, y, z, p)
+    return compiled_once(_elliprj)(x, y, z, p)
 
 
 @jax.custom_jvp

@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from .._checks import common_float
+from .._checks import common_float, compiled_once
 from .._types import Scalar, ScalarOut
 from .carlson import (
     _broadcast,
@@ -119,7 +119,7 @@ def ellipk(m: Scalar) -> ScalarOut:
     **Returns:** ``K(m)``, shaped as `m`: ``inf`` at ``m = 1``, NaN for ``m > 1`` or NaN input.
     """
     m, p = _as_pair(m, "m", complementary=False)
-    return _ellipk(m, p)
+    return compiled_once(_ellipk)(m, p)
 
 
 def ellipkm1(p: Scalar) -> ScalarOut:
@@ -135,7 +135,7 @@ def ellipkm1(p: Scalar) -> ScalarOut:
     **Returns:** ``K(1 - p)``, shaped as `p`: ``inf`` at ``p = 0``, NaN for ``p < 0`` or NaN input.
     """
     m, p = _as_pair(p, "p", complementary=True)
-    return _ellipk(m, p)
+    return compiled_once(_ellipk)(m, p)
 
 
 @jax.custom_jvp
@@ -178,7 +178,7 @@ def ellipe(m: Scalar) -> ScalarOut:
     **Returns:** ``E(m)``, shaped as `m`: ``E(1) = 1``, NaN for ``m > 1`` or NaN input.
     """
     m, p = _as_pair(m, "m", complementary=False)
-    return _ellipe(m, p)
+    return compiled_once(_ellipe)(m, p)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -320,7 +320,7 @@ def ellipkinc(phi: Scalar, m: Scalar) -> ScalarOut:
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
-    return _legendre_checked(phi, m, 1 - m)[0]
+    return compiled_once(_legendre_checked)(phi, m, 1 - m)[0]
 
 
 def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
@@ -335,7 +335,7 @@ def ellipeinc(phi: Scalar, m: Scalar) -> ScalarOut:
     """
     phi, m = common_float(phi, m, names=["phi", "m"])
     phi, m = _broadcast((phi, m), ("phi", "m"))
-    return _legendre_checked(phi, m, 1 - m)[1]
+    return compiled_once(_legendre_checked)(phi, m, 1 - m)[1]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -410,7 +410,7 @@ def ellipj(u: Scalar, m: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Scala
     """
     u, m = common_float(u, m, names=["u", "m"])
     u, m = _broadcast((u, m), ("u", "m"))
-    return _ellipj_checked(u, m, 1 - m)
+    return compiled_once(_ellipj_checked)(u, m, 1 - m)
 
 
 def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, ScalarOut]:
@@ -429,7 +429,7 @@ def ellipj_m1(u: Scalar, p: Scalar) -> tuple[ScalarOut, ScalarOut, ScalarOut, Sc
     """
     u, p = common_float(u, p, names=["u", "p"])
     u, p = _broadcast((u, p), ("u", "p"))
-    return _ellipj_checked(u, 1 - p, p)
+    return compiled_once(_ellipj_checked)(u, 1 - p, p)
 
 
 def _ellipj_checked(u, m, p):

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import as_float_array, check_last_axis
+from .._checks import as_float_array, check_last_axis, floats_as_arrays
 from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
 from .._repr import module_repr
 from .equations import _components, _cross_components
@@ -170,13 +170,15 @@ class Torque(AbstractTorque):
       change to them is not seen (a sweep that sets a global between runs gets the first value
       every time). Pass numbers that change through `params` or ``simulate``'s ``args``.
     - `params`: numbers you want gradients for; ``fn`` then receives them as its third argument,
-      ``fn(t, state, params)``, instead of ``simulate``'s ``args``.
+      ``fn(t, state, params)``, instead of ``simulate``'s ``args``. Floating-point numbers in it
+      (Python or NumPy scalars too) become JAX arrays, so one compiled program serves every value;
+      ints and bools stay Python values (``fn`` may branch on them; each new one compiles again).
     - `needs_orientation`: set False when ``fn`` ignores ``state.orientation``, so that scenes
       without an orientation can integrate only Euler's equations.
     """
 
     fn: Callable = eqx.field(static=True)
-    params: Any = None
+    params: Any = eqx.field(default=None, converter=floats_as_arrays)
     needs_orientation: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):

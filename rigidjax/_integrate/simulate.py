@@ -20,6 +20,7 @@ from .._checks import (
     check_times_shape,
     error_if,
     float_dtype,
+    floats_as_arrays,
     known_values,
     times_in_dtype,
 )
@@ -174,8 +175,9 @@ def simulate(
       mode twice (``jacrev(jacrev(f))``)
       ``diffrax.DirectAdjoint()``, and so in reverse mode on several devices
       (:func:`rigidjax.use_cpu_cores`; the checkpointed adjoint fails there through
-      ``shard_map``). A ``jax.jit`` between ``jacfwd`` and ``simulate``
-      (``jacfwd(jit(f))``) hides the tangents: pass ``adjoint=diffrax.ForwardMode()`` there, or jit
+      ``shard_map``). A ``jax.jit``, ``jax.checkpoint`` or ``lax`` loop or branch between
+      ``jacfwd`` and ``simulate`` (``jacfwd(jit(f))``, ``simulate`` in a ``lax.scan`` body) hides
+      the tangents: pass ``adjoint=diffrax.ForwardMode()`` (or ``DirectAdjoint()``) there, or jit
       outside the ``jacfwd``.
     - `max_steps`: step limit per chunk; reaching it is an error (or NaN rows with
       ``throw=False``). Default: 100 steps per turn of the fastest body over the span of ``ts``
@@ -212,7 +214,8 @@ def simulate(
       closed form is NaN or inf (inputs beyond the dtype's range) or its phase is rounded by more
       than 1e-3 rad (float64: a phase of 4.5e12 rad, float32: 8.4e3 rad; the samples would be
       noise), and is NaN from that sample on too.
-    - `args`: passed to user torques as ``fn(t, state, args)``.
+    - `args`: passed to user torques as ``fn(t, state, args)``; its floating-point numbers become
+      JAX arrays (one compiled program for every value), as a torque's ``params`` do.
     - `representation`: how the orientation is integrated when there is one: ``"quaternion"``
       (default; unit norm kept without drift) or ``"euler"`` (the Euler angles of ``euler_seq`` as
       state, for users who want them). The Euler-angle state stops with an error when
@@ -262,6 +265,7 @@ def simulate(
         dt0=dt0,
         lock_tolerance=lock_tolerance,
     )
+    args = floats_as_arrays(args)
     if error_estimate:
         return with_error_estimate(
             simulate, model, state0, ts, accuracy=accuracy, solver=solver, rtol=rtol, atol=atol,
