@@ -472,3 +472,22 @@ def test_repr_while_tracing():
 
     f(jnp.asarray(TS))
     assert seen[0].startswith("Trajectory(FreeBody, batch_shape=(2,), 3 samples, float64")
+
+
+def test_a_trajectory_of_abstract_values_or_shapes_has_a_repr():
+    """``jax.eval_shape`` of a simulation gave a Trajectory whose repr raised IndexError (NumPy's
+    array of a ShapeDtypeStruct), and ``tree_map`` over a Trajectory failed on its one Python-int leaf
+    (``stats["chunk_size"]``): every leaf is an array now, and every Trajectory prints."""
+
+    def sim(omega0):
+        model = rj.FreeBody(jnp.asarray([1.0, 2.0, 2.5]))
+        return rj.simulate(model, rj.State(omega0), jnp.linspace(0.0, 1.0, 5), accuracy="exact")
+
+    omega0 = jnp.asarray([[0.3, 0.1, 1.0], [0.2, 0.5, 0.1]])
+    abstract = jax.eval_shape(sim, omega0)
+    assert repr(abstract) == "Trajectory(FreeBody, batch_shape=(2,), 5 samples, float64, omega only)"
+    traj = sim(omega0)
+    shapes = jax.tree_util.tree_map(lambda x: x.shape, traj)
+    assert shapes.omega == (2, 5, 3) and shapes.stats["chunk_size"] == ()
+    assert repr(shapes).startswith("Trajectory(")
+    assert int(traj.stats["chunk_size"]) == 2

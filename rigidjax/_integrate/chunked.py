@@ -208,7 +208,7 @@ def _integrate_traced(
         success=ok.reshape(batch),
         stats={
             "num_steps": steps,
-            "chunk_size": plan.chunk,
+            "chunk_size": jnp.asarray(plan.chunk, jnp.int32),
             "quaternion_norm_error": None if q_norm_error is None else q_norm_error.reshape(batch),
             "result": code.reshape(batch),
             "first_failed_sample": first_bad.reshape(batch),

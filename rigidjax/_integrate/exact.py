@@ -176,7 +176,7 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
         success=success.reshape(batch),
         stats={
             "num_steps": jnp.zeros((), jnp.int32),
-            "chunk_size": block,
+            "chunk_size": jnp.asarray(block, jnp.int32),
             "first_failed_sample": first_bad.reshape(batch),
             # Nothing normalises the closed forms' quaternions; Trajectory.invariants measures their
             # norm from the samples when asked. Computed here, alongside the samples, it cost 15-20 %

@@ -3,7 +3,6 @@
 import os
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -12,6 +11,7 @@ from .._dynamics.equations import _kinetic_energy
 from .._dynamics.models import AbstractModel
 from .._kinematics.euler import _euler_from_quat
 from .._kinematics.quaternion import _quat_rotate
+from .._repr import _concrete
 from . import storage
 from .batching import model_per_time
 
@@ -39,9 +39,9 @@ class Trajectory(eqx.Module):
     sample of the closed form is NaN or inf (inputs beyond the dtype's range) or its phase is
     rounded by more than 1e-3 rad, and is NaN from that sample on too.
     ``stats`` holds solver counts: ``num_steps`` (accepted + rejected steps of each chunk),
-    ``chunk_size``, ``quaternion_norm_error`` (largest | |q| - 1 | before normalisation, per body;
-    None for ``accuracy="exact"``, whose quaternions nothing normalises: :meth:`invariants` measures
-    their norm from the samples),
+    ``chunk_size`` (bodies per chunk, an int32 array), ``quaternion_norm_error`` (largest
+    | |q| - 1 | before normalisation, per body; None for ``accuracy="exact"``, whose quaternions
+    nothing normalises: :meth:`invariants` measures their norm from the samples),
     ``result`` (per body: 0 for success, otherwise diffrax's result code, or -1 for a state that turned
     NaN or inf under a fixed-step solver) and ``first_failed_sample`` (per body: the index of its
     first NaN sample, ``T`` when it has none; the closed form has this one only, its first failed
@@ -140,15 +140,16 @@ class Trajectory(eqx.Module):
     def __repr__(self) -> str:
         """One line: the scene and its torques, the batch shape, the number of samples, the time span,
         the dtype, whether there are orientations and how many bodies succeeded; no array values."""
+        if not all(hasattr(x, "shape") and hasattr(x, "dtype") for x in (self.ts, self.omega, self.success)):
+            # Leaves that are not arrays (a tree_map to their shapes, say): the generic form.
+            return eqx.tree_pformat(self)
         model = type(self.model).__name__
         torques = getattr(self.model, "torques", ())
         if torques:
             model += "[" + ", ".join(type(t).__name__ for t in torques) + "]"
         parts = [model, f"batch_shape={self.batch_shape}", f"{self.ts.shape[-1]} samples"]
-        try:
-            ts, success = np.asarray(self.ts), np.asarray(self.success)
-        except jax.errors.TracerArrayConversionError:  # inside jit: shapes only
-            ts = success = None
+        # Inside jit, and for jax.eval_shape's abstract values: shapes only.
+        ts, success = _concrete(self.ts), _concrete(self.success)
         if ts is not None and ts.size:
             # One time axis, or one per body where jax.vmap of simulate stacked them.
             parts.append(f"t={np.min(ts[..., 0]):g} to {np.max(ts[..., -1]):g} s")
