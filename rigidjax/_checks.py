@@ -57,7 +57,12 @@ def common_float(*arrays, names=None):
     # Python numbers take the arrays' dtype (as in NumPy and JAX): ellipj(float32 u, 0.5) stays
     # float32. Among arrays, numpy's promotion, not jax's: widening float32 to float64 here is
     # deliberate, and must not depend on the user's jax_numpy_dtype_promotion setting.
-    python_number = [isinstance(a, int | float) and not isinstance(a, bool) for a in arrays]
+    # Weakly typed arrays count as Python numbers: a Python time or scalar made an array on its way
+    # into a compiled program keeps taking the other arguments' dtype.
+    python_number = [
+        (isinstance(a, int | float) and not isinstance(a, bool)) or bool(getattr(a, "weak_type", False))
+        for a in arrays
+    ]
     arrays = [as_float_array(a, n) for a, n in zip(arrays, names, strict=True)]
     decide = [a for a, number in zip(arrays, python_number, strict=True) if not number] or arrays
     dtype = np.result_type(*[np.dtype(a.dtype) for a in decide])

@@ -259,6 +259,11 @@ def test_a_second_eager_call_with_new_values_compiles_nothing(kind):
         assert not np.array_equal(
             np.asarray(jax.tree.leaves(call(convert(1.3)))[0]), np.asarray(jax.tree.leaves(first)[0])
         ), name
+    # A Python number still takes the other arguments' dtype (NumPy's and JAX's rule).
+    single = [jnp.asarray(x, jnp.float32) for x in (inertia, omega0, q0)]
+    assert rj.torque_free_omega(*single[:2], 1.5).dtype == jnp.float32
+    assert rj.torque_free_motion(*single, 1.5)[1].dtype == jnp.float32
+    assert rj.elliptic.ellipj(jnp.float32(1.5), 0.3)[0].dtype == jnp.float32
 
 
 @pytest.mark.parametrize("through", ["params", "args"])
