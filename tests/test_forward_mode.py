@@ -1,15 +1,17 @@
 """Forward and reverse mode through simulate on default settings: jax.jacfwd and jax.jacrev agree
 with each other and with central finite differences (a HeavyTop, RKMK at a fixed step, tangents
-closed over by a torque) or the closed form's derivative (a FreeBody with orientation under jit);
-the rule that picks the adjoint for each transformation; an adjoint given by the user is used as
-given."""
+closed over by a torque) or the exact derivative (a FreeBody with orientation under jit, and the
+Hessian: Euler's equations' variational equations, integrated by scipy); the rule that picks the
+adjoint for each transformation; an adjoint given by the user is used as given."""
 
 import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import sympy as sp
 from helpers import central_difference
+from scipy.integrate import solve_ivp
 
 import rigidjax as rj
 from rigidjax._integrate import driver
@@ -35,6 +37,53 @@ def rkmk(w, **kwargs):
     return free_body(w, solver=rj.solvers.RKMK(), dt0=0.05, **kwargs)
 
 
+def variational_dop853(rhs, z, z0, dz0, t1, second=False, tol=1e-13):
+    """``z(t1)`` of ``z' = rhs(z)`` (sympy expressions in the symbols ``z``) with its derivatives
+    ``S = dz(t1)/dp`` and, with ``second``, ``H = d^2 z(t1)/dp^2``, for initial conditions linear in
+    ``p`` (``dz0 = dz(0)/dp``): the variational equations ``S' = G_z S`` and
+    ``H_ab' = G_z H_ab + G_zz[S_a, S_b]``, integrated with the motion by scipy's DOP853. No rigidjax
+    and no JAX: a reference for derivatives independent of both (and nothing to compile)."""
+    n, m = dz0.shape
+    jacobian = sp.Matrix(rhs).jacobian(z)
+    g, gz = sp.lambdify([z], rhs, "numpy"), sp.lambdify([z], jacobian, "numpy")
+    gzz = sp.lambdify([z], sp.derive_by_array(jacobian, z), "numpy")  # [k, i, j]: d2 G_i / dz_j dz_k
+
+    def ode(t, y):
+        x, S = y[:n], y[n : n + n * m].reshape(n, m)
+        Gz = np.asarray(gz(x), float)
+        out = [np.asarray(g(x), float), (Gz @ S).ravel()]
+        if second:
+            H = y[n + n * m :].reshape(n, m, m)
+            Gzz = np.asarray(gzz(x), float)
+            out.append((np.einsum("ij,jab->iab", Gz, H) + np.einsum("kij,ja,kb->iab", Gzz, S, S)).ravel())
+        return np.concatenate(out)
+
+    y0 = np.concatenate([z0, np.ravel(dz0)] + ([np.zeros(n * m * m)] if second else []))
+    sol = solve_ivp(ode, (0.0, t1), y0, method="DOP853", rtol=tol, atol=tol)
+    assert sol.success, sol.message
+    y = sol.y[:, -1]
+    S = y[n : n + n * m].reshape(n, m)
+    return (y[:n], S, y[n + n * m :].reshape(n, m, m)) if second else (y[:n], S)
+
+
+def free_body_equations(inertia, with_orientation):
+    """Euler's equations of a torque-free body (principal moments ``inertia``) and, with
+    ``with_orientation``, ``q' = q (0, w) / 2``, as sympy expressions: (rhs, symbols)."""
+    I1, I2, I3 = (float(x) for x in np.asarray(inertia))
+    w1, w2, w3 = w = sp.symbols("w1:4")
+    rhs = [(I2 - I3) * w2 * w3 / I1, (I3 - I1) * w3 * w1 / I2, (I1 - I2) * w1 * w2 / I3]
+    if not with_orientation:
+        return rhs, list(w)
+    qw, qx, qy, qz = q = sp.symbols("q0:4")
+    rhs += [
+        (-qx * w1 - qy * w2 - qz * w3) / 2,
+        (qw * w1 + qy * w3 - qz * w2) / 2,
+        (qw * w2 - qx * w3 + qz * w1) / 2,
+        (qw * w3 + qx * w2 - qy * w1) / 2,
+    ]
+    return rhs, [*w, *q]
+
+
 @pytest.mark.parametrize(
     "f", [heavy_top, pytest.param(rkmk, marks=pytest.mark.slow)], ids=["heavy_top", "rkmk"]
 )
@@ -52,12 +101,15 @@ def test_jacfwd_and_jacrev_agree_with_finite_differences(f):
 def test_free_body_under_jit():
     """A FreeBody with orientation: jit around jacfwd (the tangents wrap jit tracers) finds forward
     mode, jit around jacrev stays in reverse mode (vmap nesting: test_default_adjoint_by_mode).
-    Reference: the derivative of the closed form (Jacobi elliptic functions, no integration), which
-    the 4-step solve matches to 6e-9. Central differences of the solve are no reference here: a
-    change of 1e-5 in omega0 changes the step sizes, and the differences were off by 8e-7."""
+    Reference: the exact derivative, by the variational equations integrated by scipy's DOP853 at
+    rtol = atol = 1e-13 (the closed form's derivative, which took 25 s to compile, agrees with it to
+    5e-14; the 4-step solve matches it to 6e-9). Central differences of the solve are no reference
+    here: a change of 1e-5 in omega0 changes the step sizes, and the differences were off by 8e-7."""
     forward = np.asarray(jax.jit(jax.jacfwd(free_body))(W0))
     reverse = np.asarray(jax.jit(jax.jacrev(free_body))(W0))
-    reference = np.asarray(jax.jacfwd(lambda w: free_body(w, accuracy="exact"))(W0))
+    rhs, z = free_body_equations(INERTIA, with_orientation=True)
+    z0 = np.concatenate([np.asarray(W0), np.asarray(Q0)])
+    _, reference = variational_dop853(rhs, z, z0, np.eye(7, 3), float(TS[-1]))
     scale = np.max(np.abs(reference))
     assert scale > 0.1
     np.testing.assert_allclose(forward, reverse, rtol=0, atol=1e-9 * scale)
@@ -76,7 +128,14 @@ def test_tangents_closed_over_by_a_torque():
 
     k = jnp.array(0.2)
     forward = np.asarray(jax.jacfwd(f)(k))
-    reference = (np.asarray(f(k + 1e-5)) - np.asarray(f(k - 1e-5))) / 2e-5
+    # Central differences of the same damped solve, with k passed in args to one torque function (one
+    # program for both calls: f, with a new function and k compiled in, compiled a program per call).
+    damped = rj.RigidBody(inertia, rj.Torque(lambda t, s, a: -a * s.omega, needs_orientation=False))
+
+    def g(k):
+        return np.asarray(rj.simulate(damped, rj.State(W0), TS, accuracy="fast", args=k).omega[-1])
+
+    reference = (g(k + 1e-5) - g(k - 1e-5)) / 2e-5
     np.testing.assert_allclose(forward, reference, rtol=0, atol=1e-6 * np.max(np.abs(reference)))
     assert np.max(np.abs(reference)) > 0.01
 
@@ -119,18 +178,21 @@ def test_default_adjoint_by_mode():
 @pytest.mark.slow
 def test_hessian_on_default_settings_matches_the_closed_form():
     """jax.hessian (forward over reverse) of a function of simulate's omega, without an adjoint
-    given: the direct adjoint is picked for the nested modes. Against the hessian of the closed form
-    (torque_free_omega, differentiated as it is computed, no integrator)."""
+    given: the direct adjoint is picked for the nested modes. Against the exact Hessian: Euler's
+    equations' first and second variational equations integrated by scipy's DOP853 at 1e-13 (no
+    rigidjax, no JAX; the closed form's jax.hessian, 20 s to compile, agrees with it to 3e-14)."""
+    weights = jnp.arange(1.0, 4.0)
 
     def integrated(w):
         omega = rj.simulate(rj.FreeBody(INERTIA), rj.State(w), TS).omega[-1]
-        return jnp.sum(omega**2 * jnp.arange(1.0, 4.0))
-
-    def closed_form(w):
-        return jnp.sum(rj.torque_free_omega(INERTIA, w, TS[-1]) ** 2 * jnp.arange(1.0, 4.0))
+        return jnp.sum(omega**2 * weights)
 
     hessian = np.asarray(jax.hessian(integrated)(W0))
-    reference = np.asarray(jax.hessian(closed_form)(W0))
+    # sum_i c_i w_i^2: its Hessian is 2 sum_i c_i (dw_i/dw0 dw_i/dw0^T + w_i d2w_i/dw0^2).
+    rhs, z = free_body_equations(INERTIA, with_orientation=False)
+    w, S, H = variational_dop853(rhs, z, np.asarray(W0), np.eye(3), float(TS[-1]), second=True)
+    c = np.asarray(weights)
+    reference = 2 * (np.einsum("i,ia,ib->ab", c, S, S) + np.einsum("i,i,iab->ab", c, w, H))
     assert np.max(np.abs(reference)) > 0.1
     np.testing.assert_allclose(hessian, reference, rtol=0, atol=1e-6 * np.max(np.abs(reference)))
 
