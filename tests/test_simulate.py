@@ -13,42 +13,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import sympy as sp
-from scipy.integrate import solve_ivp
+from helpers import variational_dop853
 
 import rigidjax as rj
 
 F64 = jnp.float64
 IDENTITY = jnp.array([1.0, 0.0, 0.0, 0.0])
-
-
-def variational_dop853(rhs, z, z0, dz0, t1, second=False, tol=1e-13):
-    """``z(t1)`` of ``z' = rhs(z)`` (sympy expressions in the symbols ``z``; a parameter is a state
-    with zero rate) with its derivatives ``S = dz(t1)/dp`` and, with ``second``,
-    ``H = d^2 z(t1)/dp^2``, for initial conditions linear in ``p`` (``dz0 = dz(0)/dp``): the
-    variational equations ``S' = G_z S`` and ``H_ab' = G_z H_ab + G_zz[S_a, S_b]``, integrated with
-    the motion by scipy's DOP853. No rigidjax and no JAX: a reference for derivatives independent of
-    both (and nothing to compile)."""
-    n, m = dz0.shape
-    jacobian = sp.Matrix(rhs).jacobian(z)
-    g, gz = sp.lambdify([z], rhs, "numpy"), sp.lambdify([z], jacobian, "numpy")
-    gzz = sp.lambdify([z], sp.derive_by_array(jacobian, z), "numpy")  # [k, i, j]: d2 G_i / dz_j dz_k
-
-    def ode(t, y):
-        x, S = y[:n], y[n : n + n * m].reshape(n, m)
-        Gz = np.asarray(gz(x), float)
-        out = [np.asarray(g(x), float), (Gz @ S).ravel()]
-        if second:
-            H = y[n + n * m :].reshape(n, m, m)
-            Gzz = np.asarray(gzz(x), float)
-            out.append((np.einsum("ij,jab->iab", Gz, H) + np.einsum("kij,ja,kb->iab", Gzz, S, S)).ravel())
-        return np.concatenate(out)
-
-    y0 = np.concatenate([z0, np.ravel(dz0)] + ([np.zeros(n * m * m)] if second else []))
-    sol = solve_ivp(ode, (0.0, t1), y0, method="DOP853", rtol=tol, atol=tol)
-    assert sol.success, sol.message
-    y = sol.y[:, -1]
-    S = y[n : n + n * m].reshape(n, m)
-    return (y[:n], S, y[n + n * m :].reshape(n, m, m)) if second else (y[:n], S)
 
 
 def euler_equations_sympy(inertia, torque=(0, 0, 0)):
