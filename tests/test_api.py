@@ -6,6 +6,7 @@ warn with ``DeprecationWarning``.
 import importlib
 import warnings
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -288,6 +289,26 @@ def test_a_torque_gain_swept_as_python_floats_compiles_once(through):
         assert _programs_compiled(lambda k=k: run(k)) == 0
         exact = np.asarray(omega0) * np.exp(-k * np.asarray(ts)[:, None] / 2)
         np.testing.assert_allclose(np.asarray(run(k)), exact, rtol=1e-4)
+
+
+def test_a_sweep_of_fixed_steps_compiles_once():
+    """A Python-float dt0 for a diffrax solver was a static argument of the compiled solve: each
+    step of a convergence study compiled it again. Reference: the closed form, and Tsit5's fifth
+    order (the error falls about 32-fold per halving)."""
+    inertia, omega0, ts = jnp.asarray([1.0, 2.0, 2.5]), jnp.asarray([0.3, 0.1, 1.0]), jnp.asarray([0.0, 4.0])
+    exact = np.asarray(rj.torque_free_omega(inertia, omega0, 4.0))
+
+    def error(dt0):
+        fixed = {"solver": diffrax.Tsit5(), "stepsize_controller": diffrax.ConstantStepSize(), "dt0": dt0}
+        traj = rj.simulate(rj.FreeBody(inertia), rj.State(omega0), ts, **fixed)
+        return np.max(np.abs(np.asarray(traj.omega[-1]) - exact))
+
+    errors = [error(0.1)]
+    for dt0 in (0.05, 0.025):
+        assert _programs_compiled(lambda dt0=dt0: error(dt0)) == 0
+        errors.append(error(dt0))
+    ratios = np.asarray(errors[:-1]) / np.asarray(errors[1:])
+    assert np.all((ratios > 20) & (ratios < 45)), errors
 
 
 def test_checked_functions_called_eagerly_are_one_program_with_the_same_errors():

@@ -354,6 +354,9 @@ def simulate(
             differentiated = driver.is_differentiated(model, state0, ts, args)
             n_bodies = math.prod(batching.batch_shape(model, omega0, q0))
             solver = preset_solver(accuracy, differentiated, n_bodies)
+        if dt0 is not None:
+            # Traced, not a static argument of the compiled solve: a sweep of steps compiles once.
+            dt0 = jnp.asarray(dt0, dtype)
         controller = stepsize_controller
         if controller is None:
             controller = _preset_controller(
