@@ -255,16 +255,20 @@ def branched_error_if(x, condition, index, messages):
     return eqx.branched_error_if(x, condition, index, messages)
 
 
-def floats_as_arrays(tree):
+def floats_as_arrays(tree, *, ints: bool = False):
     """``tree`` with its Python and NumPy floating-point scalars as JAX arrays (of their own
     precision; Python's weakly typed). Passed to ``eqx.filter_jit`` they were static arguments, so
     each new value (a sweep of a torque's gain) compiled the whole program again; as arrays they are
-    traced. Ints and bools stay Python values: code may branch on them or use them as counts."""
+    traced. Bools stay Python values, and so do ints unless ``ints``: a user's code may branch on
+    them or use them as counts."""
+    kinds = "iufc" if ints else "fc"
 
     def convert(x):
         if isinstance(x, bool | np.bool_):
             return x
-        if isinstance(x, float | complex) or (isinstance(x, np.generic) and x.dtype.kind in "fc"):
+        if isinstance(x, float | complex) or (isinstance(x, np.generic) and x.dtype.kind in kinds):
+            return jnp.asarray(x)
+        if ints and isinstance(x, int):
             return jnp.asarray(x)
         return x
 
@@ -291,14 +295,16 @@ def call_checked(program, failures, *args):
     """
     # A Python number would be a static argument of the programs (equinox's filter_jit): each new
     # value (t = 0.1 k in a loop) compiled both again, 1-3 s a call. As an array it is traced.
-    args = tuple(
-        jnp.asarray(a) if isinstance(a, int | float) and not isinstance(a, bool) else a for a in args
-    )
+    args = tuple(floats_as_arrays(a, ints=True) if _is_scalar(a) else a for a in args)
     values = known_values(args)
     if values is None:
         return program(*args, checked=True)
     raise_collected(evaluated_now(failures, *values))
     return program(*args, checked=False)
+
+
+def _is_scalar(x) -> bool:
+    return isinstance(x, int | float | complex | np.generic)
 
 
 class StaticValue(eqx.Module):

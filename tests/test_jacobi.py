@@ -135,3 +135,10 @@ def test_materialised_keeps_its_loop_whatever_the_first_array(order):
     want = (flags, exp) if order == "boolean first" else (values, flags)
     for got, expected in zip(out, want, strict=True):
         np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-15)
+
+
+def test_materialised_refuses_arrays_without_a_floating_one():
+    """Without a floating array there is no trip count that XLA cannot know: the loop would be
+    removed and nothing held, so it says so instead."""
+    with pytest.raises(TypeError, match="floating-point array"):
+        _materialised((jnp.asarray([1, 2]), jnp.asarray([True, False])))

@@ -48,7 +48,9 @@ def _materialised(arrays):
     if not arrays or any(jnp.size(a) == 0 for a in arrays):
         return arrays
     floating = [a for a in arrays if jnp.issubdtype(jnp.result_type(a), jnp.inexact)]
-    first = jnp.ravel(floating[0] if floating else jnp.asarray(arrays[0], jnp.float32))[0]
+    if not floating:
+        raise TypeError("_materialised needs a floating-point array to read its trip count from")
+    first = jnp.ravel(floating[0])[0]
     trips = (first == first).astype(jnp.int32)
 
     def body(_, xs):

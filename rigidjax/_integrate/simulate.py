@@ -265,7 +265,6 @@ def simulate(
         dt0=dt0,
         lock_tolerance=lock_tolerance,
     )
-    args = floats_as_arrays(args)
     if error_estimate:
         return with_error_estimate(
             simulate, model, state0, ts, accuracy=accuracy, solver=solver, rtol=rtol, atol=atol,
@@ -274,6 +273,7 @@ def simulate(
             representation=representation, euler_seq=euler_seq, lock_tolerance=lock_tolerance,
             progress=progress,
         )  # fmt: skip
+    args = floats_as_arrays(args)
     report = _progress.check_progress(progress)
     batch = batching.batch_shape(model, state0.omega, state0.orientation)
     if math.prod(batch) == 0:
