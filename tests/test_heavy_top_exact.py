@@ -316,7 +316,8 @@ def _tops_of_sides(sides):
 def test_blocks_of_tops_match_one_block(sides, n_samples):
     """60 random tops evaluated in blocks of 7 == in one block, with tops whose elliptic parameters
     lie on one side of 1/2 or both (each block masks the two sides' theta series, as one block
-    does); the last block is padded. The closed form's rare branches are chosen per block."""
+    does); the last block overlaps the one before it. The closed form's rare branches are chosen per
+    block."""
     inertia, mass, com, omega, q0 = _tops_of_sides(sides)
     top = rj.HeavyTop(*(jnp.asarray(x) for x in (inertia, mass, com)), G)
     state, ts = rj.State(jnp.asarray(omega), jnp.asarray(q0)), jnp.linspace(0.0, 5.0, n_samples)

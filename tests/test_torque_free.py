@@ -759,6 +759,33 @@ def test_simulate_exact_in_blocks_of_bodies_and_at_two_times(n_times):
         np.testing.assert_allclose(float(along), np.sum(grad_whole * direction), rtol=1e-12)
 
 
+def test_blocks_of_bodies_write_their_samples_in_place():
+    """In blocks, each block's samples are written into the arrays of all the bodies: beside the
+    output, the program needs memory for about one block's work, not a second copy of every sample
+    (stacked blocks, then cut to the bodies: 0.85 of the output; in place: 0.43; 3001 bodies in 31
+    blocks, the last overlapping the one before it). Reference: XLA's memory analysis of the compiled
+    program; the overlapping block's bodies are those of one block."""
+    n = 3001
+    rng = np.random.default_rng(11)
+    inertia = jnp.asarray(perturbed_inertia(rng, n, 0.05))
+    omega0, q0 = jnp.asarray(perturbed_omega(rng, n, 0.3)), jnp.asarray(random_quaternions(rng, n))
+    ts = jnp.linspace(0.0, 5.0, 11)
+
+    def motion(inertia, omega0, q0, chunk_size):
+        state = rj.State(omega0, q0)
+        traj = rj.simulate(rj.FreeBody(inertia), state, ts, accuracy="exact", chunk_size=chunk_size)
+        return traj.omega, traj.orientation
+
+    in_blocks = jax.jit(motion, static_argnums=3)
+    memory = in_blocks.lower(inertia, omega0, q0, 100).compile().memory_analysis()
+    assert memory.temp_size_in_bytes < 0.6 * memory.output_size_in_bytes, memory
+    blocks = in_blocks(inertia, omega0, q0, 100)
+    tail = slice(n - 150, n)  # the last block and the one it overlaps
+    whole = motion(inertia[tail], omega0[tail], q0[tail], None)
+    for got, expected in zip(blocks, whole, strict=True):
+        np.testing.assert_allclose(np.asarray(got[tail]), np.asarray(expected), rtol=0, atol=1e-14)
+
+
 @pytest.mark.slow
 def test_orientation_near_separatrix_against_taylor_integration():
     """s = (L^2 - 2 E I2) / L^2 = -4e-10, axes relabelled (odd), in the middle of the first flip:

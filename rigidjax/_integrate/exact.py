@@ -210,12 +210,28 @@ _TOP_INPUTS = ("inertia", "mass", "com", "gravity", "omega0", "q0")
 
 
 def _plain_blocks(motion, flat, t, per_block):
-    """``motion`` of the bodies in blocks of ``per_block`` in a loop; the last block is filled up
-    with copies of the last body."""
-    plan = batching.plan_chunks(flat["omega0"].shape[0], per_block, shardable=False)
-    blocks = {name: batching.to_chunks(plan, x) for name, x in flat.items()}
-    outputs = jax.lax.map(lambda bodies: motion(bodies, t), blocks)
-    return tuple(batching.from_chunks(plan, x) for x in outputs)
+    """``motion`` of the bodies in blocks of ``per_block`` in a loop, each block's samples written in
+    place into arrays of all the bodies. Where the blocks do not divide the bodies, the last block
+    starts early and overlaps the one before it (those bodies are evaluated twice, to the same
+    values). Stacked blocks (``lax.map``) with the last one padded were cut to the bodies afterwards:
+    a second copy of every sample (10^6 free bodies at 64 samples, omega and q: a peak of 8.4 GB of
+    memory against 4.9 GB here, 3.6 GB of them the samples)."""
+    n = flat["omega0"].shape[0]
+    block = batching.plan_chunks(n, per_block, shardable=False).chunk
+    first = {name: x[:block] for name, x in flat.items()}
+    shapes = jax.eval_shape(lambda bodies: motion(bodies, t), first)
+    outputs = jax.tree.map(lambda s: jnp.zeros((n,) + s.shape[1:], s.dtype), shapes)
+
+    def one_block(i, outputs):
+        start = jnp.minimum(i * block, n - block)
+        bodies = {name: jax.lax.dynamic_slice_in_dim(x, start, block) for name, x in flat.items()}
+        return jax.tree.map(
+            lambda whole, part: jax.lax.dynamic_update_slice_in_dim(whole, part, start, 0),
+            outputs,
+            motion(bodies, t),
+        )
+
+    return jax.lax.fori_loop(0, -(-n // block), one_block, outputs)
 
 
 def _lagrange_tolerance(dtype) -> float:
