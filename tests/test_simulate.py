@@ -750,6 +750,33 @@ def test_simulate_reports_its_equal_chunks():
     assert np.max(np.abs(np.asarray(traj.omega) - np.asarray(exact.omega)) / scale) < 5e-7
 
 
+def test_chunks_write_their_samples_in_place():
+    """Each chunk's samples are written into the arrays of all the bodies, in the bodies' order,
+    as the chunk finishes: beside the output, the program needs memory for about one chunk's work,
+    not a second copy of every sample (stacked chunks, then put back in the bodies' order: 0.89 of
+    the output; in place: 0.43; 3001 bodies sorted by speed into 12 chunks). References: XLA's
+    memory analysis of the compiled program; every body against the closed form."""
+    rng = np.random.default_rng(12)
+    n = 3001
+    inertia = jnp.asarray(np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (n, 3))))
+    omega0 = jnp.asarray(np.array([0.3, 1.0, 0.2]) + 0.05 * rng.normal(size=(n, 3)))
+    q0 = jnp.broadcast_to(IDENTITY, (n, 4))
+    ts = jnp.linspace(0.0, 5.0, 21)
+
+    def motion(inertia, accuracy):
+        traj = rj.simulate(rj.FreeBody(inertia), rj.State(omega0, q0), ts, accuracy=accuracy)
+        return traj.omega, traj.orientation
+
+    balanced = jax.jit(motion, static_argnums=1)
+    memory = balanced.lower(inertia, "balanced").compile().memory_analysis()
+    assert memory.temp_size_in_bytes < 0.6 * memory.output_size_in_bytes, memory
+    omega, q = balanced(inertia, "balanced")
+    exact_omega, exact_q = motion(inertia, "exact")
+    scale = np.max(np.abs(np.asarray(exact_omega)), axis=(1, 2), keepdims=True)
+    assert np.max(np.abs(np.asarray(omega) - np.asarray(exact_omega)) / scale) < 5e-7
+    assert np.max(np.abs(np.asarray(q) - np.asarray(exact_q))) < 5e-7
+
+
 class _Device:
     def __init__(self, platform):
         self.platform = platform

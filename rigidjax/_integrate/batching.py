@@ -7,9 +7,10 @@ the state's. The integrator, the closed forms and :class:`rigidjax.Trajectory` a
 this module.
 
 Chunks: bodies sorted by speed (torque-free bodies also by period) are cut into ``n_chunks`` chunks
-of ``chunk`` bodies (the last one padded with copies of a real body, dropped again by
-:func:`from_chunks`); chunks run one after another with ``lax.map`` (bounded memory for 10^6
-bodies) and, with several devices, are sharded across them.
+of ``chunk`` bodies (the last one padded with copies of a real body, dropped again); chunks run
+one after another in a loop that writes each chunk's results into the arrays of all the bodies
+(:func:`map_chunks_into`: bounded memory for 10^6 bodies, and one copy of the results) and, with
+several devices, are sharded across them.
 """
 
 import math
@@ -242,3 +243,42 @@ def map_chunks(fn: Callable, chunks, shared, plan: ChunkPlan):
             run, mesh=mesh, in_specs=(P("bodies"), P()), out_specs=P("bodies"), check_vma=False
         )
     return run(chunks, shared)
+
+
+def map_chunks_into(fn: Callable, chunks, shared, plan: ChunkPlan):
+    """``fn(chunk, shared) -> (per_body, per_chunk)`` for every chunk, returning ``per_body``'s arrays
+    for all the bodies ``(n, ...)`` in the user's order and ``per_chunk``'s ``(n_chunks, ...)``.
+
+    On one device the chunks run one after another in a loop that writes each chunk's bodies into
+    the output arrays where they belong (a scatter, in place; the padding is dropped). Stacking the
+    chunks' results (``lax.map``) and putting them back in the bodies' order afterwards held a second
+    copy of every sample. Sharded plans run :func:`map_chunks` and :func:`from_chunks`."""
+    if plan.shard:
+        per_body, per_chunk = map_chunks(fn, chunks, shared, plan)
+        return jax.tree.map(lambda x: from_chunks(plan, x), per_body), per_chunk
+    padded = plan.n_chunks * plan.chunk
+    slots = jnp.arange(padded, dtype=plan.order.dtype)
+    # Each slot's body, a distinct index beyond the bodies for the padding (dropped by the scatter).
+    bodies = jnp.where(slots < plan.n, plan.order[jnp.minimum(slots, plan.n - 1)], slots)
+    bodies = bodies.reshape(plan.n_chunks, plan.chunk)
+    first = jax.tree.map(lambda x: x[0], chunks)
+    per_body_shape, per_chunk_shape = jax.eval_shape(fn, first, shared)
+    outputs = (
+        jax.tree.map(lambda s: jnp.zeros((plan.n,) + s.shape[1:], s.dtype), per_body_shape),
+        jax.tree.map(lambda s: jnp.zeros((plan.n_chunks,) + s.shape, s.dtype), per_chunk_shape),
+    )
+
+    def one_chunk(i, outputs):
+        chunk = jax.tree.map(lambda x: x[i], chunks)
+        per_body, per_chunk = fn(chunk, shared)
+        into = bodies[i]
+        return (
+            jax.tree.map(
+                lambda whole, part: whole.at[into].set(part, mode="drop", unique_indices=True),
+                outputs[0],
+                per_body,
+            ),
+            jax.tree.map(lambda whole, part: whole.at[i].set(part), outputs[1], per_chunk),
+        )
+
+    return jax.lax.fori_loop(0, plan.n_chunks, one_chunk, outputs)

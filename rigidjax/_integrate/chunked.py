@@ -152,7 +152,7 @@ def _integrate_traced(
         omega, q, first_bad, q_norm_error = _kept_samples(
             omega0[:, None, :], None if q0 is None else q0[:, None, :]
         )
-        codes = jnp.zeros((plan.n_chunks,), jnp.int32)
+        code = jnp.full((plan.n,), driver.SUCCESSFUL, jnp.int32)
         steps = jnp.zeros((plan.n_chunks,), jnp.int32)
     else:
         chunks = tuple(batching.to_chunks(plan, x) for x in (omega0, q0, sigma))
@@ -186,16 +186,14 @@ def _integrate_traced(
             # Per chunk, while its samples are in cache, not in passes over the whole batch's
             # samples afterwards.
             kept = _kept_samples(*formulation.outputs(solution.ys, values, leaves, s))
-            return (*kept, solution.result, solution.num_steps)
+            if q0 is None:  # a formulation may integrate an orientation the user did not ask for
+                kept = (kept[0], None, kept[2], None)
+            code = jnp.broadcast_to(solution.result, kept[2].shape)
+            return (*kept, code), solution.num_steps
 
-        per_chunk = batching.map_chunks(solve_chunk, chunks, shared, plan)
-        omega, q, first_bad, q_norm_error, codes, steps = per_chunk
-        omega = batching.from_chunks(plan, omega)
-        q = None if q0 is None else batching.from_chunks(plan, q)
-        first_bad = batching.from_chunks(plan, first_bad)
-        q_norm_error = None if q0 is None else batching.from_chunks(plan, q_norm_error)
+        per_body, steps = batching.map_chunks_into(solve_chunk, chunks, shared, plan)
+        omega, q, first_bad, q_norm_error, code = per_body
 
-    code = batching.from_chunks(plan, jnp.broadcast_to(codes[:, None], (plan.n_chunks, plan.chunk)))
     code = jnp.where((code == driver.SUCCESSFUL) & (first_bad < n_times), NON_FINITE, code)
     ok = code == driver.SUCCESSFUL
     return Trajectory(
