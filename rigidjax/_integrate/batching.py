@@ -262,6 +262,8 @@ def map_chunks_into(fn: Callable, chunks, shared, plan: ChunkPlan):
     bodies = jnp.where(slots < plan.n, plan.order[jnp.minimum(slots, plan.n - 1)], slots)
     bodies = bodies.reshape(plan.n_chunks, plan.chunk)
     first = jax.tree.map(lambda x: x[0], chunks)
+    # jit's trace cache: the loop's call below reuses the trace that gives the output shapes.
+    fn = jax.jit(fn)
     per_body_shape, per_chunk_shape = jax.eval_shape(fn, first, shared)
     outputs = (
         jax.tree.map(lambda s: jnp.zeros((plan.n,) + s.shape[1:], s.dtype), per_body_shape),
