@@ -10,6 +10,7 @@ fusion); a loop whose trip count XLA cannot know does.
 
 import contextlib
 import contextvars
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -33,8 +34,8 @@ def tangents_held():
         _TANGENTS_HELD.reset(token)
 
 
-@jax.custom_jvp
-def _materialised(arrays):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _materialised(arrays, parts=None):
     """``arrays`` (a tuple), computed in full before any of their consumers runs.
 
     The identity: one pass of a loop that multiplies by one, with the trip count read at run time
@@ -44,6 +45,9 @@ def _materialised(arrays):
     loop, and every reader recomputed the arrays (the precession's per-body constants, led by a
     boolean, at every sample). The tangents pass through unchanged (a custom JVP), so reverse mode
     sees no loop, except under :func:`tangents_held`.
+
+    ``parts``: the lengths of consecutive runs of ``arrays`` that are never stacked together (the
+    values and the tangents, whose batch axes differ under ``vmap``); one run by default.
     """
     if not arrays or any(jnp.size(a) == 0 for a in arrays):
         return arrays
@@ -52,20 +56,38 @@ def _materialised(arrays):
         raise TypeError("_materialised needs a floating-point array to read its trip count from")
     first = jnp.ravel(floating[0])[0]
     trips = (first == first).astype(jnp.int32)
+    # One array per shape and dtype crosses the loop: each array that crossed it on its own cost
+    # two kernels (the loop's multiply and the trip count's conversion), whatever its size.
+    arrays = [jnp.asarray(a) for a in arrays]
+    runs = np.repeat(np.arange(len(parts or (len(arrays),))), parts or (len(arrays),))
+    groups = {}
+    for index, (a, run) in enumerate(zip(arrays, runs, strict=True)):
+        groups.setdefault((run, a.shape, a.dtype), []).append(index)
+    stacked = tuple(
+        jnp.stack([arrays[i] for i in members]) if len(members) > 1 else arrays[members[0]]
+        for members in groups.values()
+    )
 
-    def body(_, xs):
-        return tuple(x * trips.astype(x.dtype) for x in xs)
+    def body(i, xs):
+        # 1 on the only pass, formed in the loop: a conversion outside it was a kernel per dtype.
+        return tuple(x * (trips - i).astype(x.dtype) for x in xs)
 
-    return jax.lax.fori_loop(0, trips, body, tuple(arrays))
+    held = jax.lax.fori_loop(0, trips, body, stacked)
+    out = [None] * len(arrays)
+    for members, block in zip(groups.values(), held, strict=True):
+        for row, index in enumerate(members):
+            out[index] = block[row] if len(members) > 1 else block
+    return tuple(out)
 
 
 @_materialised.defjvp
-def _materialised_jvp(primals, tangents):
+def _materialised_jvp(parts, primals, tangents):
     (arrays,), (dots,) = primals, tangents
     if _TANGENTS_HELD.get() and all(jnp.issubdtype(d.dtype, jnp.inexact) for d in dots):
-        held = _materialised(tuple(arrays) + tuple(dots))
+        parts = tuple(parts or (len(arrays),))
+        held = _materialised(tuple(arrays) + tuple(dots), parts + parts)
         return held[: len(arrays)], held[len(arrays) :]
-    return _materialised(arrays), dots
+    return _materialised(arrays, parts), dots
 
 
 def _held_per_body(arrays, t):

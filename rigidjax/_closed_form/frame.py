@@ -3,8 +3,11 @@ the angular velocity in that frame, and the parameters of the Jacobi-function so
 Lifshitz, Mechanics, section 37): which axis the motion circles, the amplitudes, the rate, the
 parameter ``m`` and its complement ``p = 1 - m`` computed on its own."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 # The comparators of a sorting network for three elements.
 _NETWORK = ((0, 1), (1, 2), (0, 1))
@@ -58,9 +61,29 @@ def _momentum_defect(moments, x, j):
     return sum(moments[i] * (moments[i] - moments[j]) * x[i] for i in range(3) if i != j)
 
 
+@jax.custom_jvp
 def _safe_div(num, den):
+    """``num / den``, 0 where ``den = 0`` (with a zero derivative there)."""
     ok = den != 0
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+@functools.partial(_safe_div.defjvp, symbolic_zeros=True)
+def _safe_div_jvp(primals, tangents):
+    # The tangent (d num - num d den / den) / den divides tangents only. JAX's rule for a division
+    # multiplies by 1 / den^2, a division of the values alone that every derivative program then
+    # computed in a kernel of its own (the tangents' kernels read it broadcast over the directions).
+    num, den = primals
+    d_num, d_den = tangents
+    ok = den != 0
+    safe = jnp.where(ok, den, 1.0)
+    value = _safe_div(num, den)
+    if isinstance(d_num, SymbolicZero) and isinstance(d_den, SymbolicZero):
+        return value, jnp.zeros_like(value)
+    change = jnp.zeros_like(value) if isinstance(d_num, SymbolicZero) else d_num
+    if not isinstance(d_den, SymbolicZero):
+        change = change - num * (d_den / safe)
+    return value, jnp.broadcast_to(jnp.where(ok, change / safe, 0.0), value.shape)
 
 
 def _clip(x, low, high):
@@ -93,13 +116,22 @@ def _solution_parameters(moments, omega):
     Da = jnp.where(around_largest, D[0], D[2])
     Dc = jnp.where(around_largest, D[2], D[0])
     Db = D[1]
-    amp_a = jnp.sqrt(jnp.maximum(_safe_div(-Dc, Ia * (Ic - Ia)), 0.0))
-    amp_b = jnp.sqrt(jnp.maximum(_safe_div(-Dc, Ib * (Ic - Ib)), 0.0))
-    amp_c = jnp.sqrt(jnp.maximum(_safe_div(Da, Ic * (Ic - Ia)), 0.0))
-    rate = jnp.sqrt(jnp.maximum(_safe_div((Ic - Ib) * Da, Ia * Ib * Ic), 0.0))
-    m = _clip(_safe_div((Ib - Ia) * -Dc, (Ic - Ib) * Da), 0.0, 1.0)
-    p = _clip(_safe_div((Ic - Ia) * Db, (Ic - Ib) * Da), 0.0, 1.0)
-    nu = _safe_div(Ic * Da, Ia * -Dc)
+    # The seven quotients in one division and the four roots in one square root: each operation
+    # that XLA evaluates apart is a kernel of its own (also in the derivative programs, which read
+    # every quotient), and stacked they are one.
+    nums = [-Dc, -Dc, Da, (Ic - Ib) * Da, (Ib - Ia) * -Dc, (Ic - Ia) * Db, Ic * Da]
+    dens = [
+        Ia * (Ic - Ia),
+        Ib * (Ic - Ib),
+        Ic * (Ic - Ia),
+        Ia * Ib * Ic,
+        (Ic - Ib) * Da,
+        (Ic - Ib) * Da,
+        Ia * -Dc,
+    ]
+    quotients = _safe_div(jnp.stack(jnp.broadcast_arrays(*nums)), jnp.stack(jnp.broadcast_arrays(*dens)))
+    amp_a, amp_b, amp_c, rate = jnp.sqrt(jnp.maximum(quotients[:4], 0.0))
+    m, p, nu = _clip(quotients[4], 0.0, 1.0), _clip(quotients[5], 0.0, 1.0), quotients[6]
     return around_largest, (amp_a, amp_b, amp_c), rate, m, p, nu
 
 

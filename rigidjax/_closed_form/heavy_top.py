@@ -59,14 +59,9 @@ from .._numerics import safe_norm, safe_sqrt
 from .barrier import _materialised
 from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
-from .frame import largest_phase
+from .frame import _safe_div, largest_phase
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
 from .heavy_pole import epsilon_step, pole_root_terms
-
-
-def _safe_div(num, den):
-    ok = den != 0
-    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
 def _times(x, z):
@@ -240,13 +235,19 @@ def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, 
 
     pole_side = jnp.minimum(near, far)
     refine = pole_side < 1e-3 * jnp.maximum(dist0, jnp.maximum(jnp.abs(x_s), jnp.abs(x_o)))
-    d = polished(pole_side, refine, 1.0)
+    weight = jnp.abs(beta_k)
+    refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0))) & ~refine
+    # Both roots polished at once, on a leading axis: each step's operations are then compiled once.
+    shape = jnp.broadcast_shapes(pole_side.shape, third.shape, weight.shape)
+
+    def pair(x, y):
+        return jnp.stack([jnp.broadcast_to(x, shape), jnp.broadcast_to(y, shape)])
+
+    sign = jnp.asarray([1.0, -1.0], pole_side.dtype).reshape((2,) + (1,) * len(shape))
+    d, d3 = polished(pair(pole_side, -_safe_div(third, weight)), pair(refine, refine_third), sign)
     start_on_pole_side = near <= far
     near = jnp.where(refine & start_on_pole_side, d, near)
     far = jnp.where(refine & ~start_on_pole_side, d, far)
-    weight = jnp.abs(beta_k)
-    refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0))) & ~refine
-    d3 = polished(-_safe_div(third, weight), refine_third, -1.0)
     third = jnp.where(refine_third, weight * jnp.abs(d3), third)
     return near, far, third
 
@@ -566,8 +567,11 @@ def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):
     rate_up = -_times_i(z_up**2 * omega0_t)
     rate_down = _times_i(z_down**2 * jnp.conj(omega0_t))
     turn = _sin_cos(a * t / 2)[::-1]
-    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, beta, tilt0, rate_up, t, turn)
-    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, beta, tilt0, rate_down, t, turn)
+    # Both poles at once, on a leading axis (s = +1, -1): their operations are compiled once.
+    shape = jnp.broadcast_shapes(rate_up.shape, rate_down.shape)
+    rates = jnp.stack([jnp.broadcast_to(rate_up, shape), jnp.broadcast_to(rate_down, shape)])
+    s = jnp.asarray([1.0, -1.0], a.dtype).reshape((2,) + (1,) * len(shape))
+    (tilt_up, tilt_down), (tilt_rate_up, tilt_rate_down) = _tilt_modes(s, a, beta, tilt0, rates, t, turn)
     zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
     big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
     return (
@@ -604,7 +608,7 @@ def _tilt_modes(s, a, beta, tilt0, rate0, t, turn):
     sw = jnp.where(w > 0, jnp.where(w2 < 0, sinh_wt, sin_wt) / w_safe, t)
     drift = rate0 - _times_i(_times(sigma, tilt0))  # T'(0) - i sigma T(0)
     cos_h, sin_h = turn
-    rotor = jax.lax.complex(cos_h, s * sin_h)
+    rotor = jax.lax.complex(*jnp.broadcast_arrays(cos_h, s * sin_h))
     tilt = rotor * (_times(c, tilt0) + _times(sw, drift))
     tilt_rate = _times_i(_times(sigma, tilt)) + rotor * (_times(-w2 * sw, tilt0) + _times(c, drift))
     return tilt, tilt_rate
