@@ -58,9 +58,9 @@ import jax.numpy as jnp
 from .._numerics import safe_norm, safe_sqrt
 from .barrier import _materialised
 from .derivatives import sample_jacobians
-from .elliptic import _ellipj_checked, _sin_cos
+from .elliptic import _ellipj_of_parameters, _sin_cos
 from .frame import _safe_div, largest_phase
-from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
+from .heavy_phase import _quarter_period, _start_phase, _start_phase_args, _theta_parts, _theta_phase
 from .heavy_pole import epsilon_step, pole_root_terms
 
 
@@ -157,24 +157,29 @@ def _body(A, C, weight_l, omega0, q0):
     x_o = jnp.where(standing, x2, x1)
     g_s = g0 - beta * x_s
     g_o = g0 - beta * x_o
-    rate = safe_sqrt(g_s) / 2  # lambda
-    m = _safe_div(jnp.abs(beta) * amp, g_s)
-    p = jnp.where(g_s > 0, jnp.maximum(_safe_div(g_o, g_s), 0.0), 1.0)
     # sn0^2 = |x_s| / amp, cn0^2 = |x_o| / amp, sign(sn0 cn0) = sigma sign(du/dt). The smaller of the
     # two is formed from |x_s x_o| = (du/dt)^2 / G0 with the sign of du/dt: smooth through a start on
     # a turning circle (a top released with theta' = 0), where its square root alone is not.
     moving = amp > 0
     at_start = jnp.abs(x_s) <= jnp.abs(x_o)
     larger = jnp.where(at_start, jnp.abs(x_o), jnp.abs(x_s))
-    root_large = safe_sqrt(_safe_div(larger, amp))
-    root_small = sigma * _safe_div(udot, safe_sqrt(g0 * larger * amp))
+    # The quotients and the square roots below each in one operation on a leading axis: each that XLA
+    # evaluates apart is a kernel of its own (and another in the derivative programs).
+    m, p, ratio0, ratio_large = _safe_div(
+        _stacked(jnp.abs(beta) * amp, g_o, g0, larger), _stacked(g_s, g_s, g_s, amp)
+    )
+    p = jnp.where(g_s > 0, jnp.maximum(p, 0.0), 1.0)
+    root_rate, root_large, root_small, root_dn = safe_sqrt(
+        _stacked(g_s, ratio_large, g0 * larger * amp, ratio0)
+    )
+    rate = root_rate / 2  # lambda
+    root_small = sigma * _safe_div(udot, root_small)
     sn0 = jnp.where(moving, jnp.where(at_start, root_small, root_large), 0.0)
     cn0 = jnp.where(moving, jnp.where(at_start, root_large, root_small), 1.0)
-    dn0 = jnp.where(g_s > 0, safe_sqrt(_safe_div(g0, g_s)), 1.0)
+    dn0 = jnp.where(g_s > 0, root_dn, 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
     quarter = _quarter_period(m, p)
-    rho0 = _start_phase(sn0, cn0, dn0, p, quarter)
     # The two halves (k = +1: w + iz, pole u = -1; k = -1: x + iy, pole u = 1) on a leading axis of
     # every array: their arithmetic is written, traced and compiled once.
     batch = jnp.broadcast_shapes(u0.shape, a.shape, beta.shape, g0.shape)
@@ -199,7 +204,9 @@ def _body(A, C, weight_l, omega0, q0):
     )
     closest = jnp.minimum(near, far)
     reached = (coeff == 0) & ((closest * jnp.abs(beta) < third) | (closest == 0))
-    phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
+    phase, rho0 = _phase_parts(
+        k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, (sn0, cn0, dn0)
+    )
     halves = dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0,
                   phase=phase)  # fmt: skip
     halves = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + batch), halves)
@@ -208,6 +215,11 @@ def _body(A, C, weight_l, omega0, q0):
         start=(sn0, cn0, dn0), halves=halves, k1=k1, g0=g0, beta=beta, w1=w1, w2=w2,
         pole_gap=2 * jnp.minimum(up, down), rho0=rho0, quarter=quarter,
     )  # fmt: skip
+
+
+def _stacked(*arrays):
+    """``arrays`` broadcast together, on a new leading axis."""
+    return jnp.stack(jnp.broadcast_arrays(*arrays))
 
 
 def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, beta_k):
@@ -252,8 +264,10 @@ def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, 
     return near, far, third
 
 
-def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, rho0):
-    """Per body and half: ``int_0^t dt / (1 + k u) = slope t + wave (V(x0 + lambda t) - V(x0))``.
+def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, start):
+    """Per body and half: ``int_0^t dt / (1 + k u) = slope t + wave (V(x0 + lambda t) - V(x0))``, and
+    per body the initial phase ``rho0`` (:func:`.heavy_phase._start_phase` of ``start``, the Jacobi
+    functions of the start: its ``R_F`` shares the duplication loop of the halves' imaginary shifts).
 
     ``beyond``: the pole lies beyond the start circle (``P <= P'``); otherwise the integral is taken
     half a period on (see :mod:`.heavy_phase`), with ``n' = amp |beta (1 + k u3)| / (G_s P')`` and
@@ -265,13 +279,14 @@ def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, rho0):
     g_s = jnp.where(valid, g_s, 1.0)
     n = jnp.where(valid, jnp.where(beyond, amp / near_s, amp * third_s / (g_s * far_s)), 1.0)
     ratio = jnp.where(valid, jnp.where(beyond, weight * near_s / g_s, weight * far_s / third_s), 0.5)
-    parts = _theta_parts(m, p, n, ratio)
+    parts = _theta_parts(m, p, n, ratio, extra=_start_phase_args(*start, p))
+    rho0 = _start_phase(*start, p, parts["quarter"], rf=parts.pop("extra_rf"))
     quarter = parts["quarter"]
     quarter = jnp.where(jnp.isfinite(quarter), quarter, 0.0)
     x0 = jnp.where(beyond, rho0, jnp.where(rho0 >= 0, rho0 - quarter, rho0 + quarter))
     slope = jnp.where(beyond, parts["slope"] / near_s, (parts["slope"] - ratio * parts["deficit"]) / far_s)
     wave = jnp.where(beyond, 1 / near_s, (1 + ratio) / far_s) * parts["c"]
-    return parts, x0, slope, wave, valid
+    return (parts, x0, slope, wave, valid), rho0
 
 
 def _select_some(mask, branch, values):
@@ -442,7 +457,7 @@ def _jacobi_now(body, t):
     """``lambda t`` and ``(sn, cn, dn)(tau0 + lambda t)``."""
     sn0, cn0, dn0 = body["start"]
     v = body["rate"] * t
-    sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
+    sn_v, cn_v, dn_v, _ = _ellipj_of_parameters(v, body["m"], body["p"])
     m = body["m"]
     # Addition theorem, written without cancellation where sn and sn0 are both near 1.
     den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
