@@ -34,8 +34,8 @@ def tangents_held():
         _TANGENTS_HELD.reset(token)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
-def _materialised(arrays, parts=None):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1, 2))
+def _materialised(arrays, parts=None, stacked=False):
     """``arrays`` (a tuple), computed in full before any of their consumers runs.
 
     The identity: one pass of a loop that multiplies by one, with the trip count read at run time
@@ -46,6 +46,11 @@ def _materialised(arrays, parts=None):
     boolean, at every sample). The tangents pass through unchanged (a custom JVP), so reverse mode
     sees no loop, except under :func:`tangents_held`.
 
+    ``stacked``: the arrays of each shape and dtype cross the loop as one array (stacked on a new
+    leading axis), not each on its own; each array that crosses the loop costs a kernel (the loop's
+    multiply), whatever its size. For arrays of cheap producers, or computed once per body: XLA
+    fuses the producers into the stacking, and an operation that several of them read is evaluated
+    there once for each (stacked, the heavy top's per-sample arrays took 3x as long).
     ``parts``: the lengths of consecutive runs of ``arrays`` that are never stacked together (the
     values and the tangents, whose batch axes differ under ``vmap``); one run by default.
     """
@@ -56,13 +61,11 @@ def _materialised(arrays, parts=None):
         raise TypeError("_materialised needs a floating-point array to read its trip count from")
     first = jnp.ravel(floating[0])[0]
     trips = (first == first).astype(jnp.int32)
-    # One array per shape and dtype crosses the loop: each array that crossed it on its own cost
-    # two kernels (the loop's multiply and the trip count's conversion), whatever its size.
     arrays = [jnp.asarray(a) for a in arrays]
     runs = np.repeat(np.arange(len(parts or (len(arrays),))), parts or (len(arrays),))
     groups = {}
     for index, (a, run) in enumerate(zip(arrays, runs, strict=True)):
-        groups.setdefault((run, a.shape, a.dtype), []).append(index)
+        groups.setdefault((run, a.shape, a.dtype) if stacked else index, []).append(index)
     stacked = tuple(
         jnp.stack([arrays[i] for i in members]) if len(members) > 1 else arrays[members[0]]
         for members in groups.values()
@@ -81,13 +84,13 @@ def _materialised(arrays, parts=None):
 
 
 @_materialised.defjvp
-def _materialised_jvp(parts, primals, tangents):
+def _materialised_jvp(parts, stacked, primals, tangents):
     (arrays,), (dots,) = primals, tangents
     if _TANGENTS_HELD.get() and all(jnp.issubdtype(d.dtype, jnp.inexact) for d in dots):
         parts = tuple(parts or (len(arrays),))
-        held = _materialised(tuple(arrays) + tuple(dots), parts + parts)
+        held = _materialised(tuple(arrays) + tuple(dots), parts + parts, stacked)
         return held[: len(arrays)], held[len(arrays) :]
-    return _materialised(arrays, parts), dots
+    return _materialised(arrays, parts, stacked), dots
 
 
 def _held_per_body(arrays, t):
@@ -98,4 +101,4 @@ def _held_per_body(arrays, t):
     samples = jnp.broadcast_shapes(jnp.shape(t), *(jnp.shape(a) for a in arrays))
     if max(int(np.prod(jnp.shape(a))) for a in arrays) >= int(np.prod(samples)):
         return tuple(arrays)
-    return _materialised(tuple(arrays))
+    return _materialised(tuple(arrays), stacked=True)

@@ -180,7 +180,7 @@ def _jacobi_parameters(m, p):
         v_scale=jnp.where(upper, jnp.pi * agm / jnp.where(upper, big_l, 1.0), agm),
     )
     names = sorted(body)
-    return dict(zip(names, _materialised(tuple(body[k] for k in names)), strict=True))
+    return dict(zip(names, _materialised(tuple(body[k] for k in names), stacked=True), strict=True))
 
 
 # pi/2 in three parts (fdlibm's pio2_1, pio2_2, pio2_2t): the first two have 33 significant bits, so

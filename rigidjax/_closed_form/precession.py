@@ -97,7 +97,7 @@ def _precession_parts(m, p, n, nu, start):
     nome2 = nome * nome
 
     b, (_, cos_b, sin_2b, cos_2b), zeta = _upper_zeta(agm, shift, from_zero, nome, factors)
-    b, cos_b, sin_2b, cos_2b, zeta = _materialised((b, cos_b, sin_2b, cos_2b, zeta))
+    b, cos_b, sin_2b, cos_2b, zeta = _materialised((b, cos_b, sin_2b, cos_2b, zeta), stacked=True)
     slope_upper = 1 / (1 + nu) + c_factor * agm * zeta
     nu_upper = jnp.where(upper, nu, 1.0)  # finite there (m > 1/2); inf only for m = 0
     rest_upper = nu_upper / (1 + nu_upper) - c_factor * agm * zeta

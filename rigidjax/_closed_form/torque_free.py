@@ -120,7 +120,7 @@ def _frame(inertia, omega0, held=True):
     moments = [jnp.where(steady, float(k + 1), i) for k, i in enumerate(moments)]
     omega = [jnp.where(steady, 1.0, w) for w in omega]
     if held:  # read by many kernels, each of which would sort the axes again
-        kept = _materialised((*moments, *omega, parity))
+        kept = _materialised((*moments, *omega, parity), stacked=True)
         moments, omega, parity = list(kept[:3]), list(kept[3:6]), kept[6]
     return dict(swaps=swaps, index=index, moments=moments, omega=omega, parity=parity, steady=steady)
 
