@@ -168,7 +168,9 @@ def _motion_parts(frame, t, held=False):
     m, p, sign_c = first["m"], first["p"], first["sign_c"]
     sn0, cn0, dn0 = first["start"]
     u = first["speed"] * t
-    sn, cn, dn, _ = _ellipj_of_parameters(u, m, p)  # the AGM stays per body, shared with the precession
+    # 1 - p, not m: the derivative with respect to m is that of p (sn, cn, dn take the tangent of m),
+    # which keeps its accuracy on the separatrix, where d/dm grows like 1 / p.
+    sn, cn, dn, _ = _ellipj_of_parameters(u, 1 - p, p)  # the AGM of p stays per body
     sn, cn, dn = _materialised((sn, cn, dn))  # read by every component of omega and q
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
     # separatrix, where m = 1).
