@@ -11,13 +11,11 @@ contraction (the same gradient: 0.08 s, 10 forward evaluations). The torque-free
 reverse mode is cheap as it is, is not wrapped (see ``torque_free._motion_core``).
 """
 
-import functools
 from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
-from jax.extend.core import Literal, primitives
 
 from .barrier import tangents_held
 
@@ -38,7 +36,6 @@ def sample_jacobians(motion: Callable, components: Sequence[int]) -> Callable:
     ``6 x 7`` for a free body's omega and q differentiated in inertia and ``omega0``.
     """
     wrapped = jax.custom_jvp(motion)
-    quotients = _tangent_quotients(motion)
 
     def jvp(primals, tangents):
         directions, coefficients = [], []
@@ -55,85 +52,10 @@ def sample_jacobians(motion: Callable, components: Sequence[int]) -> Callable:
             return outputs, jax.tree.map(jnp.zeros_like, outputs)
         stacked = [jnp.stack([d[i] for d in directions]) for i in range(len(primals))]
         with tangents_held():
-            outputs, columns = jax.vmap(lambda *d: jax.jvp(quotients, primals, d), out_axes=(None, 0))(
-                *stacked
-            )
+            outputs, columns = jax.vmap(lambda *d: jax.jvp(motion, primals, d), out_axes=(None, 0))(*stacked)
         batch = jax.tree.leaves(outputs)[0].shape[:-1]
         weights = jnp.stack([jnp.broadcast_to(c, batch) for c in coefficients])[..., None]
         return outputs, jax.tree.map(lambda column: jnp.sum(column * weights, axis=0), columns)
 
     wrapped.defjvp(jvp, symbolic_zeros=True)
     return wrapped
-
-
-@jax.custom_jvp
-def _quotient(x, y):
-    return x / y
-
-
-@functools.partial(_quotient.defjvp, symbolic_zeros=True)
-def _quotient_jvp(primals, tangents):
-    # (dx - x dy / y) / y: every division is of tangents. JAX's rule multiplies dy by x / y^2, which
-    # XLA on CPU computes from the values alone in a kernel of its own (its readers, the tangents'
-    # kernels, read it broadcast over the directions, and an expensive operation is not duplicated
-    # into them): one kernel for every division of the closed forms.
-    (x, y), (dx, dy) = primals, tangents
-    value = x / y
-    if isinstance(dx, SymbolicZero) and isinstance(dy, SymbolicZero):
-        return value, jnp.zeros_like(value)
-    change = jnp.zeros_like(value) if isinstance(dx, SymbolicZero) else dx
-    if not isinstance(dy, SymbolicZero):
-        change = change - x * (dy / y)
-    return value, change / y
-
-
-@jax.custom_jvp
-def _root(x):
-    return jnp.sqrt(x)
-
-
-@_root.defjvp
-def _root_jvp(primals, tangents):
-    # dx / (2 sqrt x), for the reason of _quotient_jvp (JAX's rule reads 0.5 / sqrt x).
-    (x,), (dx,) = primals, tangents
-    value = jnp.sqrt(x)
-    return value, dx / (2 * value)
-
-
-def _tangent_quotients(fun: Callable) -> Callable:
-    """``fun`` with its divisions and square roots (outside loops, conditionals and custom
-    derivatives) differentiated by :func:`_quotient` and :func:`_root`: the same values, and
-    derivatives that differ by rounding, in about one kernel fewer for each such operation."""
-
-    def rewritten(*args):
-        closed, shapes = jax.make_jaxpr(fun, return_shape=True)(*args)
-        flat = _evaluate(closed.jaxpr, closed.consts, jax.tree.leaves(args))
-        return jax.tree.unflatten(jax.tree.structure(shapes), flat)
-
-    return rewritten
-
-
-def _evaluate(jaxpr, consts, args):
-    env = dict(zip(jaxpr.constvars, consts, strict=True)) | dict(zip(jaxpr.invars, args, strict=True))
-
-    def read(v):
-        return v.val if isinstance(v, Literal) else env[v]
-
-    for eqn in jaxpr.eqns:
-        inputs = [read(v) for v in eqn.invars]
-        floating = all(jnp.issubdtype(v.aval.dtype, jnp.floating) for v in eqn.outvars)
-        if eqn.primitive is primitives.div_p and floating:
-            outputs = [_quotient(*inputs)]
-        elif eqn.primitive is primitives.sqrt_p and floating:
-            outputs = [_root(*inputs)]
-        elif eqn.primitive is primitives.jit_p:
-            inner = eqn.params["jaxpr"]
-            outputs = _evaluate(inner.jaxpr, inner.consts, inputs)
-        else:
-            bound = eqn.primitive.get_bind_params(eqn.params)  # (subfuns, params) in older JAX
-            subfuns, params = bound if isinstance(bound, tuple) else ((), bound)
-            with eqn.ctx.manager:
-                outputs = eqn.primitive.bind(*subfuns, *inputs, **params)
-            outputs = outputs if eqn.primitive.multiple_results else [outputs]
-        env.update(zip(eqn.outvars, outputs, strict=True))
-    return [read(v) for v in jaxpr.outvars]
