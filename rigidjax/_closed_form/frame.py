@@ -116,22 +116,15 @@ def _solution_parameters(moments, omega):
     Da = jnp.where(around_largest, D[0], D[2])
     Dc = jnp.where(around_largest, D[2], D[0])
     Db = D[1]
-    # The seven quotients in one division and the four roots in one square root: each operation
-    # that XLA evaluates apart is a kernel of its own (also in the derivative programs, which read
-    # every quotient), and stacked they are one.
-    nums = [-Dc, -Dc, Da, (Ic - Ib) * Da, (Ib - Ia) * -Dc, (Ic - Ia) * Db, Ic * Da]
-    dens = [
-        Ia * (Ic - Ia),
-        Ib * (Ic - Ib),
-        Ic * (Ic - Ia),
-        Ia * Ib * Ic,
-        (Ic - Ib) * Da,
-        (Ic - Ib) * Da,
-        Ia * -Dc,
-    ]
-    quotients = _safe_div(jnp.stack(jnp.broadcast_arrays(*nums)), jnp.stack(jnp.broadcast_arrays(*dens)))
-    amp_a, amp_b, amp_c, rate = jnp.sqrt(jnp.maximum(quotients[:4], 0.0))
-    m, p, nu = _clip(quotients[4], 0.0, 1.0), _clip(quotients[5], 0.0, 1.0), quotients[6]
+    # Each quotient on its own: stacked in one division (one kernel fewer in derivative programs), 10^4
+    # bodies' omega and q at one sample ran 13 % slower (2.51 -> 2.84 ms, side by side).
+    amp_a = jnp.sqrt(jnp.maximum(_safe_div(-Dc, Ia * (Ic - Ia)), 0.0))
+    amp_b = jnp.sqrt(jnp.maximum(_safe_div(-Dc, Ib * (Ic - Ib)), 0.0))
+    amp_c = jnp.sqrt(jnp.maximum(_safe_div(Da, Ic * (Ic - Ia)), 0.0))
+    rate = jnp.sqrt(jnp.maximum(_safe_div((Ic - Ib) * Da, Ia * Ib * Ic), 0.0))
+    m = _clip(_safe_div((Ib - Ia) * -Dc, (Ic - Ib) * Da), 0.0, 1.0)
+    p = _clip(_safe_div((Ic - Ia) * Db, (Ic - Ib) * Da), 0.0, 1.0)
+    nu = _safe_div(Ic * Da, Ia * -Dc)
     return around_largest, (amp_a, amp_b, amp_c), rate, m, p, nu
 
 

@@ -72,7 +72,7 @@ def _quarter_period(m, p):
     return _quarter(upper, agm, big_l)
 
 
-def _theta_parts(m, p, n, ratio, extra=None):
+def _theta_parts(m, p, n, ratio):
     """Per body: ``G(x) = int_0^x dx' / (1 + n sn^2(x' | m)) = g x + c V(x)`` for ``n > 0``.
 
     The construction of :func:`.precession._precession_parts` (Jacobi's form with the imaginary
@@ -89,12 +89,8 @@ def _theta_parts(m, p, n, ratio, extra=None):
     - `m`, `p`: the parameter and ``p = 1 - m``.
     - `n`: the characteristic, ``> 0``; `ratio`: ``m / n`` (``>= 0``, finite).
 
-    - `extra`: ``(x, y, z)`` of another ``R_F`` (of ``m``'s shape), evaluated in the same duplication
-      loop (:func:`_start_phase_args`); one loop for both is one loop's kernels fewer to compile.
-
     **Returns:** a dict with ``quarter`` (``K``, ``inf`` at ``m = 1``), ``slope`` (``g``), ``deficit``
-    (``1 - g``), ``c``, and the fields that :func:`.precession._precession_phase` reads; with
-    ``extra``, also that ``R_F`` (``extra_rf``).
+    (``1 - g``), ``c``, and the fields that :func:`.precession._precession_phase` reads.
     """
     upper, agm, nome, big_l = _nome_parts(m, p)
     finite_l = jnp.isfinite(big_l)
@@ -107,18 +103,7 @@ def _theta_parts(m, p, n, ratio, extra=None):
         jnp.where(from_zero, ratio_safe * (1 + n), n + m),
         jnp.where(from_zero, 1 + ratio_safe, 1 + n),
     )
-    if extra is None:
-        shift, _ = _carlson_rf_rd(*args, with_rd=False)  # beta or K' - beta
-    else:
-        shape = jnp.broadcast_shapes(*(jnp.shape(a) for a in (*args, *extra)))
-        rf, _ = _carlson_rf_rd(
-            *(
-                jnp.concatenate([jnp.broadcast_to(e, (1,) + shape[1:]), jnp.broadcast_to(a, shape)])
-                for a, e in zip(args, extra, strict=True)
-            ),
-            with_rd=False,
-        )
-        extra_rf, shift = rf[0], rf[1:]
+    shift, _ = _carlson_rf_rd(*args, with_rd=False)  # beta or K' - beta
     c_factor = 1 / jnp.sqrt((1 + ratio) * (1 + n))
     factors = _steps(_THETA_FACTORS, m.dtype)
     nome2 = nome * nome
@@ -151,9 +136,7 @@ def _theta_parts(m, p, n, ratio, extra=None):
                 jnp.where(upper, power * sin_2b, r_k - s_k),
             )
         )
-    extras = {} if extra is None else {"extra_rf": extra_rf}
     return dict(
-        **extras,
         quarter=quarter,
         slope=jnp.where(upper, slope_upper, slope_lower),
         deficit=jnp.where(upper, deficit_upper, deficit_lower),
@@ -202,23 +185,14 @@ def _theta_phase(x, parts):
     return sign * (b + _atan2(im, re)) + 2 * turns * b
 
 
-def _start_phase_args(sn0, cn0, dn0, p):
-    """The arguments of the ``R_F`` of :func:`_start_phase`."""
+def _start_phase(sn0, cn0, dn0, p, quarter):
+    """``tau0 = F(am0 | m)`` reduced to ``[-K, K]`` (``cn0 < 0``: ``tau0 = rho0 +- 2K``) from
+    ``(sn0, cn0, dn0)``: Carlson's ``R_F`` (DLMF 19.25.5) on ``|sn| <= 1/sqrt 2``, measured back from
+    ``K`` above (accurate as ``p -> 0``); ``atanh(sn0)`` on the separatrix (``p = 0``)."""
     s, c = jnp.abs(sn0), jnp.abs(cn0)
     direct = s * s <= 0.5
     pc = jnp.where(p > 0, p, 1.0)
-    return jnp.where(direct, c * c, pc * s * s), dn0 * dn0, jnp.where(direct, 1.0, pc)
-
-
-def _start_phase(sn0, cn0, dn0, p, quarter, rf=None):
-    """``tau0 = F(am0 | m)`` reduced to ``[-K, K]`` (``cn0 < 0``: ``tau0 = rho0 +- 2K``) from
-    ``(sn0, cn0, dn0)``: Carlson's ``R_F`` (DLMF 19.25.5) on ``|sn| <= 1/sqrt 2``, measured back from
-    ``K`` above (accurate as ``p -> 0``); ``atanh(sn0)`` on the separatrix (``p = 0``). ``rf``: that
-    ``R_F`` of :func:`_start_phase_args`, where the caller evaluated it."""
-    s, c = jnp.abs(sn0), jnp.abs(cn0)
-    direct = s * s <= 0.5
-    if rf is None:
-        rf, _ = _carlson_rf_rd(*_start_phase_args(sn0, cn0, dn0, p), False)
+    rf, _ = _carlson_rf_rd(jnp.where(direct, c * c, pc * s * s), dn0 * dn0, jnp.where(direct, 1.0, pc), False)
     quarter_safe = jnp.where(jnp.isfinite(quarter), quarter, 1.0)
     c_safe = jnp.where(c > 0, c, 1.0)
     f = jnp.where(direct, s * rf, jnp.where(p > 0, quarter_safe - c * rf, jnp.log((1 + s) / c_safe)))

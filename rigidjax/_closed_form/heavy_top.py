@@ -60,7 +60,7 @@ from .barrier import _materialised
 from .derivatives import sample_jacobians
 from .elliptic import _ellipj_of_parameters, _sin_cos
 from .frame import _safe_div, largest_phase
-from .heavy_phase import _quarter_period, _start_phase, _start_phase_args, _theta_parts, _theta_phase
+from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
 from .heavy_pole import epsilon_step, pole_root_terms
 
 
@@ -180,6 +180,7 @@ def _body(A, C, weight_l, omega0, q0):
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
     quarter = _quarter_period(m, p)
+    rho0 = _start_phase(sn0, cn0, dn0, p, quarter)
     # The two halves (k = +1: w + iz, pole u = -1; k = -1: x + iy, pole u = 1) on a leading axis of
     # every array: their arithmetic is written, traced and compiled once.
     batch = jnp.broadcast_shapes(u0.shape, a.shape, beta.shape, g0.shape)
@@ -204,9 +205,7 @@ def _body(A, C, weight_l, omega0, q0):
     )
     closest = jnp.minimum(near, far)
     reached = (coeff == 0) & ((closest * jnp.abs(beta) < third) | (closest == 0))
-    phase, rho0 = _phase_parts(
-        k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, (sn0, cn0, dn0)
-    )
+    phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
     halves = dict(k=k, z0=z0, zdot0=zdot0, coeff=coeff, near=near, far=far, reached=reached, dist0=dist0,
                   phase=phase)  # fmt: skip
     halves = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + batch), halves)
@@ -264,10 +263,8 @@ def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, 
     return near, far, third
 
 
-def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, start):
-    """Per body and half: ``int_0^t dt / (1 + k u) = slope t + wave (V(x0 + lambda t) - V(x0))``, and
-    per body the initial phase ``rho0`` (:func:`.heavy_phase._start_phase` of ``start``, the Jacobi
-    functions of the start: its ``R_F`` shares the duplication loop of the halves' imaginary shifts).
+def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, rho0):
+    """Per body and half: ``int_0^t dt / (1 + k u) = slope t + wave (V(x0 + lambda t) - V(x0))``.
 
     ``beyond``: the pole lies beyond the start circle (``P <= P'``); otherwise the integral is taken
     half a period on (see :mod:`.heavy_phase`), with ``n' = amp |beta (1 + k u3)| / (G_s P')`` and
@@ -279,14 +276,13 @@ def _phase_parts(beyond, near, far, third, amp, g_s, weight, m, p, start):
     g_s = jnp.where(valid, g_s, 1.0)
     n = jnp.where(valid, jnp.where(beyond, amp / near_s, amp * third_s / (g_s * far_s)), 1.0)
     ratio = jnp.where(valid, jnp.where(beyond, weight * near_s / g_s, weight * far_s / third_s), 0.5)
-    parts = _theta_parts(m, p, n, ratio, extra=_start_phase_args(*start, p))
-    rho0 = _start_phase(*start, p, parts["quarter"], rf=parts.pop("extra_rf"))
+    parts = _theta_parts(m, p, n, ratio)
     quarter = parts["quarter"]
     quarter = jnp.where(jnp.isfinite(quarter), quarter, 0.0)
     x0 = jnp.where(beyond, rho0, jnp.where(rho0 >= 0, rho0 - quarter, rho0 + quarter))
     slope = jnp.where(beyond, parts["slope"] / near_s, (parts["slope"] - ratio * parts["deficit"]) / far_s)
     wave = jnp.where(beyond, 1 / near_s, (1 + ratio) / far_s) * parts["c"]
-    return (parts, x0, slope, wave, valid), rho0
+    return parts, x0, slope, wave, valid
 
 
 def _select_some(mask, branch, values):

@@ -40,7 +40,7 @@ from .._types import Quaternion, QuaternionOut, Scalar, ScalarOut, Vector, Vecto
 from .barrier import _held_per_body, _materialised
 from .carlson import _carlson_rf_rd
 from .derivatives import sample_jacobians
-from .elliptic import _ellipj_of_parameters, ellipkm1
+from .elliptic import _ellipj_checked, ellipkm1
 from .frame import (
     PHASE_ROUNDING_LIMIT,
     _safe_div,
@@ -170,7 +170,7 @@ def _motion_parts(frame, t, held=False):
     u = first["speed"] * t
     # 1 - p, not m: the derivative with respect to m is that of p (sn, cn, dn take the tangent of m),
     # which keeps its accuracy on the separatrix, where d/dm grows like 1 / p.
-    sn, cn, dn, _ = _ellipj_of_parameters(u, 1 - p, p)  # the AGM of p stays per body
+    sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
     sn, cn, dn = _materialised((sn, cn, dn))  # read by every component of omega and q
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
     # separatrix, where m = 1).
