@@ -316,3 +316,15 @@ def variational_dop853(rhs, z, z0, dz0, t1, second=False, tol=1e-13):
     y = sol.y[:, -1]
     S = y[n : n + n * m].reshape(n, m)
     return (y[:n], S, y[n + n * m :].reshape(n, m, m)) if second else (y[:n], S)
+
+
+def counted_calls(monkeypatch, module, name):
+    """A list that grows by one at each call of ``module.<name>`` (replaced by a counting wrapper)."""
+    calls, original = [], getattr(module, name)
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, counted)
+    return calls

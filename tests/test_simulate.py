@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import sympy as sp
-from helpers import variational_dop853
+from helpers import counted_calls, variational_dop853
 
 import rigidjax as rj
 
@@ -784,14 +784,7 @@ def test_a_batch_in_chunks_traces_its_solve_once(monkeypatch):
     batch of 40 bodies in 4 chunks, and the samples against the closed form."""
     from rigidjax._integrate import driver
 
-    calls = []
-    solve = driver.solve
-
-    def counted(*args, **kwargs):
-        calls.append(1)
-        return solve(*args, **kwargs)
-
-    monkeypatch.setattr(driver, "solve", counted)
+    calls = counted_calls(monkeypatch, driver, "solve")
     rng = np.random.default_rng(3)
     inertia = jnp.asarray(np.array([1.0, 2.0, 2.5]) * (1 + 0.05 * rng.uniform(-1, 1, (40, 3))))
     omega0 = jnp.asarray(np.array([0.3, 1.0, 0.2]) + 0.05 * rng.normal(size=(40, 3)))

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from helpers import (
     central_difference,
+    counted_calls,
     dop853_free_body,
     perturbed_inertia,
     perturbed_omega,
@@ -792,14 +793,7 @@ def test_blocks_of_bodies_trace_the_closed_form_once(monkeypatch):
     while JAX traces 30 bodies in blocks of 8 (the last overlapping), and the one-block values."""
     from rigidjax._integrate import exact
 
-    calls = []
-    motion = exact._torque_free_motion
-
-    def counted(*args, **kwargs):
-        calls.append(1)
-        return motion(*args, **kwargs)
-
-    monkeypatch.setattr(exact, "_torque_free_motion", counted)
+    calls = counted_calls(monkeypatch, exact, "_torque_free_motion")
     rng = np.random.default_rng(13)
     inertia = jnp.asarray(perturbed_inertia(rng, 30, 0.05))
     omega0, q0 = jnp.asarray(perturbed_omega(rng, 30, 0.3)), jnp.asarray(random_quaternions(rng, 30))
