@@ -33,24 +33,11 @@ def short_norm(x, axis=-1, keepdims=False):
     return jnp.sqrt(short_sum(x * x, axis, keepdims))
 
 
-@jax.custom_jvp
 def safe_sqrt(x):
     """``sqrt(max(x, 0))`` whose derivative is 0 where ``x <= 0`` instead of infinite: the square root
     sees 1 there, so the unused branch passes no NaN or inf to a derivative."""
     positive = x > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
-
-
-@safe_sqrt.defjvp
-def _safe_sqrt_jvp(primals, tangents):
-    # d x / (2 sqrt x): JAX's rule multiplies by 0.5 / sqrt(x), a division of the values alone that
-    # derivative programs compiled for XLA on CPU computed in a kernel of its own.
-    (x,), (dx,) = primals, tangents
-    root = safe_sqrt(x)
-    positive = x > 0
-    return root, jnp.where(
-        positive, dx / jnp.where(positive, 2 * root, jnp.ones_like(root)), jnp.zeros_like(root)
-    )
 
 
 def safe_norm(v, axis=-1, keepdims=False):

@@ -10,7 +10,6 @@ fusion); a loop whose trip count XLA cannot know does.
 
 import contextlib
 import contextvars
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -34,8 +33,8 @@ def tangents_held():
         _TANGENTS_HELD.reset(token)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(1, 2))
-def _materialised(arrays, parts=None, stacked=False):
+@jax.custom_jvp
+def _materialised(arrays):
     """``arrays`` (a tuple), computed in full before any of their consumers runs.
 
     The identity: one pass of a loop that multiplies by one, with the trip count read at run time
@@ -45,14 +44,6 @@ def _materialised(arrays, parts=None, stacked=False):
     loop, and every reader recomputed the arrays (the precession's per-body constants, led by a
     boolean, at every sample). The tangents pass through unchanged (a custom JVP), so reverse mode
     sees no loop, except under :func:`tangents_held`.
-
-    ``stacked``: the arrays of each shape and dtype cross the loop as one array (stacked on a new
-    leading axis), not each on its own; each array that crosses the loop costs a kernel (the loop's
-    multiply), whatever its size. For arrays of cheap producers, or computed once per body: XLA
-    fuses the producers into the stacking, and an operation that several of them read is evaluated
-    there once for each (stacked, the heavy top's per-sample arrays took 3x as long).
-    ``parts``: the lengths of consecutive runs of ``arrays`` that are never stacked together (the
-    values and the tangents, whose batch axes differ under ``vmap``); one run by default.
     """
     if not arrays or any(jnp.size(a) == 0 for a in arrays):
         return arrays
@@ -61,36 +52,20 @@ def _materialised(arrays, parts=None, stacked=False):
         raise TypeError("_materialised needs a floating-point array to read its trip count from")
     first = jnp.ravel(floating[0])[0]
     trips = (first == first).astype(jnp.int32)
-    arrays = [jnp.asarray(a) for a in arrays]
-    runs = np.repeat(np.arange(len(parts or (len(arrays),))), parts or (len(arrays),))
-    groups = {}
-    for index, (a, run) in enumerate(zip(arrays, runs, strict=True)):
-        groups.setdefault((run, a.shape, a.dtype) if stacked else index, []).append(index)
-    stacked = tuple(
-        jnp.stack([arrays[i] for i in members]) if len(members) > 1 else arrays[members[0]]
-        for members in groups.values()
-    )
 
-    def body(i, xs):
-        # 1 on the only pass, formed in the loop: a conversion outside it was a kernel per dtype.
-        return tuple(x * (trips - i).astype(x.dtype) for x in xs)
+    def body(_, xs):
+        return tuple(x * trips.astype(x.dtype) for x in xs)
 
-    held = jax.lax.fori_loop(0, trips, body, stacked)
-    out = [None] * len(arrays)
-    for members, block in zip(groups.values(), held, strict=True):
-        for row, index in enumerate(members):
-            out[index] = block[row] if len(members) > 1 else block
-    return tuple(out)
+    return jax.lax.fori_loop(0, trips, body, tuple(arrays))
 
 
 @_materialised.defjvp
-def _materialised_jvp(parts, stacked, primals, tangents):
+def _materialised_jvp(primals, tangents):
     (arrays,), (dots,) = primals, tangents
     if _TANGENTS_HELD.get() and all(jnp.issubdtype(d.dtype, jnp.inexact) for d in dots):
-        parts = tuple(parts or (len(arrays),))
-        held = _materialised(tuple(arrays) + tuple(dots), parts + parts, stacked)
+        held = _materialised(tuple(arrays) + tuple(dots))
         return held[: len(arrays)], held[len(arrays) :]
-    return _materialised(arrays, parts, stacked), dots
+    return _materialised(arrays), dots
 
 
 def _held_per_body(arrays, t):
@@ -101,4 +76,4 @@ def _held_per_body(arrays, t):
     samples = jnp.broadcast_shapes(jnp.shape(t), *(jnp.shape(a) for a in arrays))
     if max(int(np.prod(jnp.shape(a))) for a in arrays) >= int(np.prod(samples)):
         return tuple(arrays)
-    return _materialised(tuple(arrays), stacked=True)
+    return _materialised(tuple(arrays))

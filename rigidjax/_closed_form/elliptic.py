@@ -450,13 +450,3 @@ def _ellipj_checked(u, m, p):
     p_ok = jnp.where(bad, jnp.ones_like(p), p)
     out = _ellipj(u, m_ok, p_ok)
     return tuple(jnp.where(failed, jnp.nan, o) for o in out)
-
-
-def _ellipj_of_parameters(u, m, p):
-    """``(sn, cn, dn, am)`` of a closed form's own ``0 <= m <= 1`` and ``p = 1 - m`` (each computed
-    on its own), with NaN beyond ``|u| = 0.5 / eps`` as :func:`_ellipj_checked`. ``m`` and ``p`` go in
-    unmasked: the theta series' parameters (the AGM, the nome) are then the same expressions as
-    those the closed form derives from ``m`` and ``p`` elsewhere, which XLA evaluates once."""
-    beyond = (jnp.abs(u) > 0.5 / float(jnp.finfo(u.dtype).eps)) & (p != 0)
-    out = _ellipj(jnp.where(beyond, jnp.zeros_like(u), u), m, p)
-    return tuple(jnp.where(beyond, jnp.nan, o) for o in out)

@@ -108,20 +108,19 @@ def _theta_parts(m, p, n, ratio):
     factors = _steps(_THETA_FACTORS, m.dtype)
     nome2 = nome * nome
 
-    b, (_, cos_b, sin_2b, cos_2b), zeta = _upper_zeta(agm, shift, from_zero, nome, factors, stacked=True)
+    b, (_, cos_b, sin_2b, cos_2b), zeta = _upper_zeta(agm, shift, from_zero, nome, factors)
     slope_upper = ratio / (1 + ratio) + c_factor * agm * zeta
     deficit_upper = 1 / (1 + ratio) - c_factor * agm * zeta
 
     # m <= 1/2 (from K': y' = agm beta').
     e, r_lower, s_lower, gap_lower = _lower_terms(agm, shift, from_zero, nome)
 
-    # Im Z at i beta and at i beta', both series at once on a leading axis.
+    def im_zeta(r, s, gap):
+        return _im_zeta(r, s, gap, nome2, factors)
+
+    deficit_lower = c_factor * agm * im_zeta(r_lower, s_lower, gap_lower)
     r_prime = jnp.where(from_zero, 0.0, nome * jnp.exp(e))
-    terms = (r_lower, r_prime), (s_lower, nome * jnp.exp(-e)), (gap_lower, 1 - r_prime)
-    stacked = (jnp.stack(jnp.broadcast_arrays(*pair)) for pair in terms)
-    zeta_lower, zeta_prime = _im_zeta(*stacked, nome2, factors, stacked=True)
-    deficit_lower = c_factor * agm * zeta_lower
-    near_pole = c_factor * agm * (1 + zeta_prime)
+    near_pole = c_factor * agm * (1 + im_zeta(r_prime, nome * jnp.exp(-e), 1 - r_prime))
     slope_lower = jnp.where(from_zero, 1 - deficit_lower, near_pole)
 
     # The factors of _theta_phase in pairs (k >= 1): A + B X + i C Y, the per-sample X, Y below.

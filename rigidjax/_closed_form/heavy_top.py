@@ -58,10 +58,15 @@ import jax.numpy as jnp
 from .._numerics import safe_norm, safe_sqrt
 from .barrier import _materialised
 from .derivatives import sample_jacobians
-from .elliptic import _ellipj_of_parameters, _sin_cos
-from .frame import _safe_div, largest_phase
+from .elliptic import _ellipj_checked, _sin_cos
+from .frame import largest_phase
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
 from .heavy_pole import epsilon_step, pole_root_terms
+
+
+def _safe_div(num, den):
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
 def _times(x, z):
@@ -157,26 +162,20 @@ def _body(A, C, weight_l, omega0, q0):
     x_o = jnp.where(standing, x2, x1)
     g_s = g0 - beta * x_s
     g_o = g0 - beta * x_o
+    rate = safe_sqrt(g_s) / 2  # lambda
+    m = _safe_div(jnp.abs(beta) * amp, g_s)
+    p = jnp.where(g_s > 0, jnp.maximum(_safe_div(g_o, g_s), 0.0), 1.0)
     # sn0^2 = |x_s| / amp, cn0^2 = |x_o| / amp, sign(sn0 cn0) = sigma sign(du/dt). The smaller of the
     # two is formed from |x_s x_o| = (du/dt)^2 / G0 with the sign of du/dt: smooth through a start on
     # a turning circle (a top released with theta' = 0), where its square root alone is not.
     moving = amp > 0
     at_start = jnp.abs(x_s) <= jnp.abs(x_o)
     larger = jnp.where(at_start, jnp.abs(x_o), jnp.abs(x_s))
-    # The quotients and the square roots below each in one operation on a leading axis: each that XLA
-    # evaluates apart is a kernel of its own (and another in the derivative programs).
-    m, p, ratio0, ratio_large = _safe_div(
-        _stacked(jnp.abs(beta) * amp, g_o, g0, larger), _stacked(g_s, g_s, g_s, amp)
-    )
-    p = jnp.where(g_s > 0, jnp.maximum(p, 0.0), 1.0)
-    root_rate, root_large, root_small, root_dn = safe_sqrt(
-        _stacked(g_s, ratio_large, g0 * larger * amp, ratio0)
-    )
-    rate = root_rate / 2  # lambda
-    root_small = sigma * _safe_div(udot, root_small)
+    root_large = safe_sqrt(_safe_div(larger, amp))
+    root_small = sigma * _safe_div(udot, safe_sqrt(g0 * larger * amp))
     sn0 = jnp.where(moving, jnp.where(at_start, root_small, root_large), 0.0)
     cn0 = jnp.where(moving, jnp.where(at_start, root_large, root_small), 1.0)
-    dn0 = jnp.where(g_s > 0, root_dn, 1.0)
+    dn0 = jnp.where(g_s > 0, safe_sqrt(_safe_div(g0, g_s)), 1.0)
     # The time derivative of q0 (for the phase of a half that starts at its pole).
     qdot0 = _quat_times_omega(q0, omega0)
     quarter = _quarter_period(m, p)
@@ -216,11 +215,6 @@ def _body(A, C, weight_l, omega0, q0):
     )  # fmt: skip
 
 
-def _stacked(*arrays):
-    """``arrays`` broadcast together, on a new leading axis."""
-    return jnp.stack(jnp.broadcast_arrays(*arrays))
-
-
 def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, beta_k):
     """``near`` and ``far`` (``1 + k u`` on the start circle and on the other) and ``third``
     (``|beta (1 + k u3)|``), each solved for directly where it is far smaller than the numbers it was
@@ -246,19 +240,13 @@ def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, 
 
     pole_side = jnp.minimum(near, far)
     refine = pole_side < 1e-3 * jnp.maximum(dist0, jnp.maximum(jnp.abs(x_s), jnp.abs(x_o)))
-    weight = jnp.abs(beta_k)
-    refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0))) & ~refine
-    # Both roots polished at once, on a leading axis: each step's operations are then compiled once.
-    shape = jnp.broadcast_shapes(pole_side.shape, third.shape, weight.shape)
-
-    def pair(x, y):
-        return jnp.stack([jnp.broadcast_to(x, shape), jnp.broadcast_to(y, shape)])
-
-    sign = jnp.asarray([1.0, -1.0], pole_side.dtype).reshape((2,) + (1,) * len(shape))
-    d, d3 = polished(pair(pole_side, -_safe_div(third, weight)), pair(refine, refine_third), sign)
+    d = polished(pole_side, refine, 1.0)
     start_on_pole_side = near <= far
     near = jnp.where(refine & start_on_pole_side, d, near)
     far = jnp.where(refine & ~start_on_pole_side, d, far)
+    weight = jnp.abs(beta_k)
+    refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0))) & ~refine
+    d3 = polished(-_safe_div(third, weight), refine_third, -1.0)
     third = jnp.where(refine_third, weight * jnp.abs(d3), third)
     return near, far, third
 
@@ -453,7 +441,7 @@ def _jacobi_now(body, t):
     """``lambda t`` and ``(sn, cn, dn)(tau0 + lambda t)``."""
     sn0, cn0, dn0 = body["start"]
     v = body["rate"] * t
-    sn_v, cn_v, dn_v, _ = _ellipj_of_parameters(v, body["m"], body["p"])
+    sn_v, cn_v, dn_v, _ = _ellipj_checked(v, body["m"], body["p"])
     m = body["m"]
     # Addition theorem, written without cancellation where sn and sn0 are both near 1.
     den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
@@ -578,11 +566,8 @@ def _sleeping(a, beta, z_up, z_down, w1, w2, t, ph_p, ph_m):
     rate_up = -_times_i(z_up**2 * omega0_t)
     rate_down = _times_i(z_down**2 * jnp.conj(omega0_t))
     turn = _sin_cos(a * t / 2)[::-1]
-    # Both poles at once, on a leading axis (s = +1, -1): their operations are compiled once.
-    shape = jnp.broadcast_shapes(rate_up.shape, rate_down.shape)
-    rates = jnp.stack([jnp.broadcast_to(rate_up, shape), jnp.broadcast_to(rate_down, shape)])
-    s = jnp.asarray([1.0, -1.0], a.dtype).reshape((2,) + (1,) * len(shape))
-    (tilt_up, tilt_down), (tilt_rate_up, tilt_rate_down) = _tilt_modes(s, a, beta, tilt0, rates, t, turn)
+    tilt_up, tilt_rate_up = _tilt_modes(1.0, a, beta, tilt0, rate_up, t, turn)
+    tilt_down, tilt_rate_down = _tilt_modes(-1.0, a, beta, tilt0, rate_down, t, turn)
     zeta = _times_i(tilt_up * jnp.conj(ph_p)) / 2
     big_w = _times_i(tilt_down * jnp.conj(ph_m)) / 2
     return (
@@ -619,7 +604,7 @@ def _tilt_modes(s, a, beta, tilt0, rate0, t, turn):
     sw = jnp.where(w > 0, jnp.where(w2 < 0, sinh_wt, sin_wt) / w_safe, t)
     drift = rate0 - _times_i(_times(sigma, tilt0))  # T'(0) - i sigma T(0)
     cos_h, sin_h = turn
-    rotor = jax.lax.complex(*jnp.broadcast_arrays(cos_h, s * sin_h))
+    rotor = jax.lax.complex(cos_h, s * sin_h)
     tilt = rotor * (_times(c, tilt0) + _times(sw, drift))
     tilt_rate = _times_i(_times(sigma, tilt)) + rotor * (_times(-w2 * sw, tilt0) + _times(c, drift))
     return tilt, tilt_rate

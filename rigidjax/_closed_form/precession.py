@@ -97,7 +97,7 @@ def _precession_parts(m, p, n, nu, start):
     nome2 = nome * nome
 
     b, (_, cos_b, sin_2b, cos_2b), zeta = _upper_zeta(agm, shift, from_zero, nome, factors)
-    b, cos_b, sin_2b, cos_2b, zeta = _materialised((b, cos_b, sin_2b, cos_2b, zeta), stacked=True)
+    b, cos_b, sin_2b, cos_2b, zeta = _materialised((b, cos_b, sin_2b, cos_2b, zeta))
     slope_upper = 1 / (1 + nu) + c_factor * agm * zeta
     nu_upper = jnp.where(upper, nu, 1.0)  # finite there (m > 1/2); inf only for m = 0
     rest_upper = nu_upper / (1 + nu_upper) - c_factor * agm * zeta
@@ -161,34 +161,21 @@ def _carlson_rf_jvp(primals, tangents):
     return _carlson_rf(*primals), tangent
 
 
-def _upper_zeta(agm, shift, from_zero, nome, factors, stacked=False):
+def _upper_zeta(agm, shift, from_zero, nome, factors):
     """``m > 1/2``: ``b = pi beta / (2 K') = agm beta`` (``shift`` is ``beta`` from 0, or from ``pi/2``
     where not ``from_zero``), ``(sin b, cos b, sin 2b, cos 2b)`` and ``Z(beta | 1 - m) / agm``, the
-    logarithmic derivative of ``theta_4(b | q')`` (``nome = q'``), by ``factors`` terms.
-
-    ``stacked``: the terms evaluated on a leading axis, one division for all (fewer kernels where
-    the result is differentiated; unrolled, the terms fuse into their reader)."""
+    logarithmic derivative of ``theta_4(b | q')`` (``nome = q'``), by ``factors`` terms."""
     angle = agm * shift
     sin_a, cos_a = _sin_cos(angle)
     sin_b, cos_b = jnp.where(from_zero, sin_a, cos_a), jnp.where(from_zero, cos_a, sin_a)
     b = jnp.where(from_zero, angle, jnp.pi / 2 - angle)
     sin_2b, cos_2b = 2 * sin_b * cos_b, (cos_b - sin_b) * (cos_b + sin_b)
-    powers, nome2 = [nome], nome * nome
-    for _ in range(factors - 1):
-        powers.append(powers[-1] * nome2)
-    if stacked:
-        shape = jnp.broadcast_shapes(nome.shape, sin_2b.shape, cos_2b.shape)
-        powers = jnp.stack([jnp.broadcast_to(x, shape) for x in powers])
     zeta = jnp.zeros_like(b)
-    for term in (
-        _zeta_term(powers, sin_2b, cos_2b) if stacked else [_zeta_term(x, sin_2b, cos_2b) for x in powers]
-    ):
-        zeta = zeta + term
+    power, nome2 = nome, nome * nome
+    for _ in range(factors):
+        zeta = zeta + 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power)
+        power = power * nome2
     return b, (sin_b, cos_b, sin_2b, cos_2b), zeta
-
-
-def _zeta_term(power, sin_2b, cos_2b):
-    return 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power)
 
 
 def _lower_terms(agm, shift, from_zero, nome):
@@ -201,23 +188,13 @@ def _lower_terms(agm, shift, from_zero, nome):
     return e, r, s, gap
 
 
-def _im_zeta(r, s, gap, nome2, factors, stacked=False):
-    """``Im Z(i beta | m) / agm`` from the terms of :func:`_lower_terms`: a sum of positive terms
-    (``stacked`` as in :func:`_upper_zeta`)."""
-    rs, ss, gaps = [r], [s], [gap]
-    for _ in range(factors - 1):
-        rs.append(rs[-1] * nome2)
-        ss.append(ss[-1] * nome2)
-        gaps.append(1 - rs[-1])
-    if stacked:
-        shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in (*rs, *ss, *gaps)))
-        r, s, gap = (jnp.stack([jnp.broadcast_to(v, shape) for v in x]) for x in (rs, ss, gaps))
-        terms = list(2 * (r - s) / (gap * (1 - s)))
-    else:
-        terms = [2 * (r - s) / (gap * (1 - s)) for r, s, gap in zip(rs, ss, gaps, strict=True)]
-    total = jnp.zeros_like(terms[0])
-    for term in terms:
-        total = total + term
+def _im_zeta(r, s, gap, nome2, factors):
+    """``Im Z(i beta | m) / agm`` from the terms of :func:`_lower_terms`: a sum of positive terms."""
+    total = jnp.zeros_like(r)
+    for _ in range(factors):
+        total = total + 2 * (r - s) / (gap * (1 - s))
+        r, s = r * nome2, s * nome2
+        gap = 1 - r
     return total
 
 

@@ -120,7 +120,7 @@ def _frame(inertia, omega0, held=True):
     moments = [jnp.where(steady, float(k + 1), i) for k, i in enumerate(moments)]
     omega = [jnp.where(steady, 1.0, w) for w in omega]
     if held:  # read by many kernels, each of which would sort the axes again
-        kept = _materialised((*moments, *omega, parity), stacked=True)
+        kept = _materialised((*moments, *omega, parity))
         moments, omega, parity = list(kept[:3]), list(kept[3:6]), kept[6]
     return dict(swaps=swaps, index=index, moments=moments, omega=omega, parity=parity, steady=steady)
 
@@ -168,8 +168,6 @@ def _motion_parts(frame, t, held=False):
     m, p, sign_c = first["m"], first["p"], first["sign_c"]
     sn0, cn0, dn0 = first["start"]
     u = first["speed"] * t
-    # 1 - p, not m: the derivative with respect to m is that of p (sn, cn, dn take the tangent of m),
-    # which keeps its accuracy on the separatrix, where d/dm grows like 1 / p.
     sn, cn, dn, _ = _ellipj_checked(u, 1 - p, p)  # the AGM of p stays per body
     sn, cn, dn = _materialised((sn, cn, dn))  # read by every component of omega and q
     # = 1 - m sn^2 sn0^2, written without its cancellation when sn and sn0 are both near 1 (the
