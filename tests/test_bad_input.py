@@ -768,6 +768,49 @@ def test_once_silent_bad_values_now_raise(case):
     _raises_or_nan(_ONCE_SILENT[case][0])
 
 
+@pytest.mark.parametrize("gravity", [0.0, -9.81, (0.0, 0.0, -9.81)], ids=["zero", "negative", "vector"])
+def test_gravity_is_a_positive_magnitude(gravity):
+    """gravity = 0 or -9.81 ran (and sleeping_top called an upright top stable at any spin), and a
+    gravity vector (0, 0, -9.81) ran as three tops with g = 0, 0 and -9.81; also under jit."""
+    gravity = jnp.asarray(gravity)
+    state, ts = rj.State(W, Q), jnp.linspace(0.0, 0.1, 3)
+    pattern = r"model field '(torques\[0\]\.)?gravity' must be positive \(m/s\^2\).*not a vector"
+    for model in (
+        lambda g: rj.HeavyTop(I3, 0.5, COM, gravity=g),
+        lambda g: rj.RigidBody(I3, torque=rj.GravityTorque(0.5, COM, gravity=g)),
+    ):
+        with pytest.raises(ValueError, match=pattern):
+            rj.simulate(model(gravity), state, ts)
+        with pytest.raises(Exception, match=pattern):
+            jax.jit(lambda g, model=model: rj.simulate(model(g), state, ts).omega)(
+                gravity
+            ).block_until_ready()
+    if gravity.ndim == 0:
+        with pytest.raises(ValueError, match=r"sleeping_top: gravity must be positive"):
+            rj.sleeping_top(I3, 0.5, COM, 5.0, gravity)
+        with pytest.raises(ValueError, match=r"split_heavy_top: gravity must be positive"):
+            rj.solvers.split_heavy_top(I3, 0.5, COM, gravity, I3 * W, Q, 0.1, 3)
+
+
+def test_a_solver_without_an_error_estimate_asks_for_a_fixed_step():
+    """diffrax.Euler() with dt0 and no controller raised diffrax's bare RuntimeError ("Cannot use
+    adaptive step sizes with a solver that does not provide error estimates"), naming no argument.
+    With a constant step it runs: against the closed form, Euler's error is first order in dt."""
+    state, ts = rj.State(W, Q), jnp.linspace(0.0, 1.0, 3)
+    for solver in (diffrax.Euler(), diffrax.SemiImplicitEuler()):
+        with pytest.raises(
+            ValueError, match=rf"solver={type(solver).__name__}\(\) has no error estimate.*ConstantStepSize"
+        ):
+            rj.simulate(rj.FreeBody(I3), state, ts, solver=solver, dt0=0.01)
+    exact = rj.simulate(rj.FreeBody(I3), state, ts, accuracy="exact").omega
+    errors = [
+        float(jnp.max(jnp.abs(rj.simulate(rj.FreeBody(I3), state, ts, solver=diffrax.Euler(), dt0=dt,
+                                          stepsize_controller=diffrax.ConstantStepSize()).omega - exact)))
+        for dt in (0.01, 0.005)
+    ]  # fmt: skip
+    assert 1.8 < errors[0] / errors[1] < 2.2
+
+
 def test_the_fixed_step_runs_and_rkmk_step_name_their_arguments(without_runtime_typecheck):
     """A negative or fractional n_steps returned the initial state or a raw fori_loop TypeError;
     lists made the jitted run raise TracerArrayConversionError; a bad mass came out as "INTERNAL:

@@ -529,6 +529,35 @@ def test_one_fast_body_cannot_hide_in_a_slow_batch():
     assert rms[0] > 5 * batch[fast], (rms[0], batch[fast])
 
 
+@pytest.mark.parametrize("accuracy, rtol", [("fast", 5e-2), ("balanced", 1e-4), ("precise", 1e-7)])
+def test_derivatives_at_rest_follow_the_linearised_motion(accuracy, rtol):
+    """A top at rest hanging below its pivot and one balanced above it: the state never changes, and
+    the controller, which sees only the state's error, took one step over the whole run; the
+    derivatives were those of that step (d omega_1(T) / d omega_1(0) = -1044 instead of -0.887).
+    Reference: the linearised motion, a pendulum of rate k = sqrt(m g l / I_1): hanging,
+    d omega_1(T) / d omega_1(0) = cos(k T) and d q_x(T) / d omega_1(0) = sin(k T) / (2 k); upright,
+    cosh and sinh. Forward mode, and reverse mode for "balanced"."""
+    inertia, mass, arm, T = np.array([1e-2, 1e-2, 5e-3]), 0.5, 0.05, 2.0
+    top = rj.HeavyTop(jnp.asarray(np.tile(inertia, (2, 1))), jnp.full(2, mass),
+                      jnp.array([[0.0, 0.0, -arm], [0.0, 0.0, arm]]))  # fmt: skip
+    q0, ts = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (2, 1)), jnp.linspace(0.0, T, 2)
+
+    def final(omega0):  # (2 tops, 3) -> (2 tops, 2): omega_1(T), q_x(T)
+        trajectory = rj.simulate(top, rj.State(omega0, q0), ts, accuracy=accuracy)
+        return jnp.stack([trajectory.omega[:, -1, 0], trajectory.orientation[:, -1, 1]], axis=-1)
+
+    k = np.sqrt(mass * 9.81 * arm / inertia[0])
+    expected = np.array(
+        [[np.cos(k * T), np.sin(k * T) / (2 * k)], [np.cosh(k * T), np.sinh(k * T) / (2 * k)]]
+    )
+    jacobian = np.asarray(jax.jacfwd(final)(jnp.zeros((2, 3))))  # (2, 2, 2, 3)
+    along_omega_1 = jacobian[np.arange(2), :, np.arange(2), 0]
+    np.testing.assert_allclose(along_omega_1, expected, rtol=rtol)
+    if accuracy == "balanced":
+        gradient = np.asarray(jax.grad(lambda w: jnp.sum(final(w)[:, 0]))(jnp.zeros((2, 3))))
+        np.testing.assert_allclose(gradient[:, 0], expected[:, 0], rtol=rtol)
+
+
 @pytest.mark.slow
 def test_heavy_top_gradients_wrt_mass_omega0_and_com():
     """jax.grad through simulate w.r.t. the model's and the state's numbers, against central

@@ -258,6 +258,12 @@ def sleeping_top(
         for x, name in ((mass, "mass"), (com, "com"), (omega3, "omega3"), (gravity, "gravity"))
     )
     mass = error_if(mass, jnp.any(mass <= 0), "sleeping_top: mass must be positive (kg).")
+    gravity = error_if(
+        gravity,
+        jnp.any(gravity <= 0),
+        "sleeping_top: gravity must be positive (m/s^2): the magnitude of gravity, which points along "
+        "space -Z.",
+    )
     inertia = _principal_moments(inertia, "sleeping_top")
     check_batch_shapes(
         "sleeping_top",

@@ -112,6 +112,11 @@ def _known_torques(torque, inertia_trace, known_moment, *, orientation_data: boo
                 raise ValueError(f"{name} holds NaN or inf; a known torque must be finite.")
         if isinstance(known, GravityTorque) and np.any(np.asarray(known.mass) <= 0):
             raise ValueError(f"{name}: the mass must be positive (kg), got {np.asarray(known.mass)}.")
+        if isinstance(known, GravityTorque) and np.any(np.asarray(known.gravity) <= 0):
+            raise ValueError(
+                f"{name}: gravity must be positive (m/s^2): the magnitude of gravity, along space -Z; "
+                f"got {np.asarray(known.gravity)}."
+            )
         for field, (bad, rule) in known._leaf_rules().items():
             value = np.asarray(getattr(known, field))
             if np.any(bad(value)):

@@ -23,6 +23,7 @@ from .._dynamics.inertia import principal_axes
 from .._dynamics.state import State
 from .._numerics import short_norm
 from . import batching, driver
+from .presets import FaultStopPIDController
 from .trajectory import Trajectory, first_failed_sample
 
 
@@ -126,6 +127,22 @@ def _kept_samples(omega, q):
     return omega, jnp.where(keep[..., None], q / q_norm, jnp.nan), first_bad, q_norm_error
 
 
+def _presets_pid(controller):
+    """The presets' PID controller (``FaultStopPIDController``), bare or inside diffrax's
+    ``ClipStepSizeController`` (sample times as step ends); None for any other controller."""
+    inner = controller.controller if isinstance(controller, diffrax.ClipStepSizeController) else controller
+    return inner if isinstance(inner, FaultStopPIDController) else None
+
+
+def _with_dtmax(controller, bound):
+    """``controller`` with its PID controller's ``dtmax`` lowered to ``bound``."""
+    clipped = isinstance(controller, diffrax.ClipStepSizeController)
+    pid = controller.controller if clipped else controller
+    dtmax = bound if pid.dtmax is None else jnp.minimum(pid.dtmax, bound)
+    pid = eqx.tree_at(lambda c: c.dtmax, pid, dtmax, is_leaf=lambda x: x is None)
+    return eqx.tree_at(lambda c: c.controller, controller, pid) if clipped else pid
+
+
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces, for the no-recompile tests
 def _integrate_traced(
     model,
@@ -170,6 +187,12 @@ def _integrate_traced(
             adaptive = not isinstance(controller, diffrax.ConstantStepSize | diffrax.StepTo)
             if first_step is None and adaptive and formulation.uses_scale:
                 first_step = formulation.first_step(vector_field, y0, s, ts, args)
+            if _presets_pid(controller) is not None:
+                pid = _presets_pid(controller)
+                bound = formulation.step_bound(vector_field, y0, s, ts, args, pid.rtol, solver.order(None))
+                controller = _with_dtmax(controller, bound)
+                if first_step is not None:  # diffrax takes a given first step as it is
+                    first_step = jnp.minimum(first_step, bound)
             solution = driver.solve(
                 vector_field,
                 formulation.chunk_solver(solver, values, leaves),

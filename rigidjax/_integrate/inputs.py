@@ -28,6 +28,26 @@ from .formulations import lock_distance
 __all__ = ["check_model", "check_options", "check_state", "checked_inputs"]
 
 
+GRAVITY_RULE = (
+    "must be positive (m/s^2): the magnitude of gravity, which points along space -Z, one number per "
+    "body (not a vector); without gravity use a torque-free scene"
+)
+
+
+def check_solver_steps(solver, stepsize_controller):
+    """A diffrax ``solver`` without an error estimate needs a fixed-step controller: diffrax's own
+    error names neither argument."""
+    if solver is None or isinstance(solver, diffrax.AbstractAdaptiveSolver):
+        return
+    if not isinstance(stepsize_controller, diffrax.ConstantStepSize | diffrax.StepTo):
+        raise ValueError(
+            f"simulate: solver={type(solver).__name__}() has no error estimate, so an adaptive step-size "
+            "controller cannot choose its steps: pass a fixed step, dt0=... with "
+            "stepsize_controller=diffrax.ConstantStepSize() (or the steps' times with "
+            "diffrax.StepTo(ts=...)), or a solver with an error estimate such as diffrax.Tsit5()."
+        )
+
+
 def check_state(omega0, q0, where: str):
     """The initial state's run-time checks: finite ``omega``, unit ``orientation`` (or None)."""
     omega0 = check_finite(omega0, "state0.omega", where)
@@ -45,6 +65,8 @@ def check_model_field(label: str, value, where: str, core: int | None = None):
     value = error_if(value, ~jnp.isfinite(value), f"{where}: model field {label!r} contains NaN or inf.")
     if label.split(".")[-1] == "mass":
         value = error_if(value, value <= 0, f"{where}: model field {label!r} must be positive (kg).")
+    if label.split(".")[-1] == "gravity":
+        value = error_if(value, value <= 0, f"{where}: model field {label!r} {GRAVITY_RULE}.")
     return value
 
 

@@ -34,7 +34,7 @@ from .chunked import NON_FINITE, integrate, max_norm
 from .error_estimate import with_error_estimate
 from .exact import nan_from_first_failure, simulate_exact
 from .formulations import LieGroupODE, ScaledODE, SplittingODE
-from .inputs import check_options, checked_inputs
+from .inputs import check_options, check_solver_steps, checked_inputs
 from .presets import (
     MIN_MAX_STEPS,
     PRESETS,
@@ -302,7 +302,9 @@ def simulate(
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
         formulation, grid, n_steps = _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given)
-    elif stepsize_controller is not None and (rtol is not None or atol is not None):
+    else:
+        check_solver_steps(solver, stepsize_controller)
+    if not fixed_step and stepsize_controller is not None and (rtol is not None or atol is not None):
         raise ValueError(
             "simulate: rtol and atol set the preset's step-size controller; with stepsize_controller "
             f"given, set the tolerances on it instead (got rtol={rtol!r}, atol={atol!r})."

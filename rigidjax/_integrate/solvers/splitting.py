@@ -424,7 +424,11 @@ def _checked_top_parameters(mass, com, gravity, where):
     )
     mass = check_finite(mass, "mass", where)
     mass = error_if(mass, jnp.any(mass <= 0), f"{where}: mass must be positive (kg).")
-    return mass, check_finite(com, "com", where), check_finite(gravity, "gravity", where)
+    gravity = check_finite(gravity, "gravity", where)
+    gravity = error_if(
+        gravity, jnp.any(gravity <= 0), f"{where}: gravity must be positive (m/s^2), along space -Z."
+    )
+    return mass, check_finite(com, "com", where), gravity
 
 
 def heavy_top_weight_com(mass, com, gravity, dtype=None):
