@@ -260,9 +260,9 @@ def sleeping_top(
     mass = error_if(mass, jnp.any(mass <= 0), "sleeping_top: mass must be positive (kg).")
     gravity = error_if(
         gravity,
-        jnp.any(gravity <= 0),
-        "sleeping_top: gravity must be positive (m/s^2): the magnitude of gravity, which points along "
-        "space -Z.",
+        jnp.any(gravity < 0),
+        "sleeping_top: gravity must not be negative (m/s^2): the magnitude of gravity, which points "
+        "along space -Z (0: no gravity).",
     )
     inertia = _principal_moments(inertia, "sleeping_top")
     check_batch_shapes(
