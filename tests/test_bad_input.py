@@ -785,6 +785,8 @@ def test_gravity_is_a_positive_magnitude(gravity):
             jax.jit(lambda g, model=model: rj.simulate(model(g), state, ts).omega)(
                 gravity
             ).block_until_ready()
+    with pytest.raises(ValueError, match=r"torque \(GravityTorque\): gravity must be positive.*not a vector"):
+        rj.fit_inertia_to_orientation(_TS_FIT, _Q_FIT, torque=rj.GravityTorque(0.5, COM, gravity=gravity))
     if gravity.ndim == 0 and gravity < 0:  # sleeping_top takes g = 0: a spinning top without gravity
         with pytest.raises(ValueError, match=r"sleeping_top: gravity must not be negative"):
             rj.sleeping_top(I3, 0.5, COM, 5.0, gravity)
@@ -1317,7 +1319,7 @@ KNOWN_TORQUE_CASES = {
     ),
     "gravity-negative-mass": (
         lambda: rj.fit_inertia_to_orientation(_TS_FIT, _Q_FIT, torque=rj.GravityTorque(-1.0, COM)),
-        r"the mass must be positive",
+        r"torque \(GravityTorque\): mass must be positive \(kg\)",
     ),
     "gravity-nan-com": (
         lambda: rj.fit_inertia_to_orientation(

@@ -25,7 +25,7 @@ from .._kinematics.quaternion import _quat_rotate
 from .._repr import dataclass_fields, fields_repr, summarizing
 from .equations import _euler_equations, _inertia_times, is_full_tensor
 from .state import State
-from .torques import _as_torque_tuple, _total_torque, gravity_torque
+from .torques import GRAVITY_RULES, _as_torque_tuple, _total_torque, gravity_torque
 
 # ---------------------------------------------------------------------------------------------
 # Models
@@ -148,14 +148,21 @@ class AbstractModel(eqx.Module):
                 leaves.append(BodyLeaf(f"torques[{i}].{n}", _torque_field_getter(i, n), c))
         return leaves
 
+    def _leaf_rules(self) -> dict[str, tuple[Callable, str]]:
+        """Value rules of the scene's own per-body fields beyond finiteness (and a physical
+        inertia), checked by ``simulate`` at run time (also under ``jit``): field name to
+        ``(bad(value) -> bool array, what it must be)``. None by default."""
+        return {}
+
     def leaf_rules(self) -> dict[str, tuple[Callable, str]]:
-        """The torques' value rules (:meth:`AbstractTorque._leaf_rules`) by the labels of
-        :meth:`body_leaves`."""
-        return {
+        """The value rules of the scene's own fields (:meth:`_leaf_rules`) and of its torques'
+        (:meth:`AbstractTorque._leaf_rules`), by the labels of :meth:`body_leaves`."""
+        torques = {
             f"torques[{i}].{name}": rule
             for i, torque in enumerate(getattr(self, "torques", ()))
             for name, rule in torque._leaf_rules().items()
         }
+        return {**type(self)._leaf_rules(self), **torques}
 
     def replace_body_leaves(self, leaves: list[BodyLeaf], values: list) -> "AbstractModel":
         """A copy with the arrays of ``leaves`` (from :meth:`body_leaves`) replaced by ``values``."""
@@ -393,6 +400,9 @@ class HeavyTop(AbstractModel):
 
     def per_body_ndims(self):
         return {"inertia": self.inertia_core_ndim, "mass": 0, "com": 1, "gravity": 0}
+
+    def _leaf_rules(self):
+        return GRAVITY_RULES
 
 
 # ---------------------------------------------------------------------------------------------

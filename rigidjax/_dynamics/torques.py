@@ -117,6 +117,13 @@ class ConstantTorque(AbstractTorque):
         return tau
 
 
+POSITIVE_MASS = "must be positive (kg): a body without mass feels no gravity, use a torque-free scene"
+POSITIVE_GRAVITY = (
+    "must be positive (m/s^2): the magnitude of gravity, which points along space -Z, one number per "
+    "body (not a vector); without gravity use a torque-free scene"
+)
+GRAVITY_RULES = {"mass": (lambda m: m <= 0, POSITIVE_MASS), "gravity": (lambda g: g <= 0, POSITIVE_GRAVITY)}
+
 _NON_NEGATIVE_DAMPING = (
     "must be non-negative (N m s): a negative damping coefficient feeds energy in (write such a "
     "torque as Torque(fn))"
@@ -252,6 +259,9 @@ class GravityTorque(AbstractTorque):
 
     def per_body_ndims(self):
         return {"mass": 0, "com": 1, "gravity": 0}
+
+    def _leaf_rules(self):
+        return GRAVITY_RULES
 
     def __call__(self, t, state, args):
         dtype = state.omega.dtype

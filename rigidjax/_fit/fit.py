@@ -24,7 +24,7 @@ import numpy as np
 import optax
 
 from .._checks import is_positive_int
-from .._dynamics.torques import GravityTorque, _as_torque_tuple
+from .._dynamics.torques import _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
@@ -110,13 +110,6 @@ def _known_torques(torque, inertia_trace, known_moment, *, orientation_data: boo
         for value in jax.tree.leaves(eqx.filter(known, eqx.is_array_like)):
             if not np.all(np.isfinite(np.asarray(value))):
                 raise ValueError(f"{name} holds NaN or inf; a known torque must be finite.")
-        if isinstance(known, GravityTorque) and np.any(np.asarray(known.mass) <= 0):
-            raise ValueError(f"{name}: the mass must be positive (kg), got {np.asarray(known.mass)}.")
-        if isinstance(known, GravityTorque) and np.any(np.asarray(known.gravity) <= 0):
-            raise ValueError(
-                f"{name}: gravity must be positive (m/s^2): the magnitude of gravity, along space -Z; "
-                f"got {np.asarray(known.gravity)}."
-            )
         for field, (bad, rule) in known._leaf_rules().items():
             value = np.asarray(getattr(known, field))
             if np.any(bad(value)):

@@ -25,13 +25,7 @@ from .._dynamics.inertia_checks import check_inertia
 from .._kinematics.euler import _euler_from_quat
 from .formulations import lock_distance
 
-__all__ = ["check_model", "check_options", "check_state", "checked_inputs"]
-
-
-GRAVITY_RULE = (
-    "must be positive (m/s^2): the magnitude of gravity, which points along space -Z, one number per "
-    "body (not a vector); without gravity use a torque-free scene"
-)
+__all__ = ["check_model", "check_options", "check_solver_steps", "check_state", "checked_inputs"]
 
 
 def check_solver_steps(solver, stepsize_controller):
@@ -58,15 +52,12 @@ def check_state(omega0, q0, where: str):
 
 def check_model_field(label: str, value, where: str, core: int | None = None):
     """Run-time checks of one per-body array of a scene: a physical ``inertia`` (``core`` its
-    per-body ndim, None: from its shape), finite values, positive masses."""
+    per-body ndim, None: from its shape), finite values; each scene's own rules are
+    :meth:`AbstractModel.leaf_rules`."""
     if label == "inertia":
         return check_inertia(value, name=f"{where}: inertia", tensor=None if core is None else core == 2)
     value = as_float_array(value, f"model field {label!r}")
     value = error_if(value, ~jnp.isfinite(value), f"{where}: model field {label!r} contains NaN or inf.")
-    if label.split(".")[-1] == "mass":
-        value = error_if(value, value <= 0, f"{where}: model field {label!r} must be positive (kg).")
-    if label.split(".")[-1] == "gravity":
-        value = error_if(value, value <= 0, f"{where}: model field {label!r} {GRAVITY_RULE}.")
     return value
 
 
