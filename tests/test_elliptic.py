@@ -666,4 +666,8 @@ def test_edges_of_the_domains_against_mpmath():
                 return mpmath.elliprj(*shifted)
 
             np.testing.assert_allclose(float(value), float(mpmath.diff(along, 0)), rtol=1e-13)
+        # Forward mode: the tangent is linear in the inputs' tangents, so the -inf of the argument
+        # at 0 times a zero tangent is NaN, as for jnp.sqrt at 0 (the documented behaviour).
+        columns = jax.jacfwd(elliprj, argnums=(0, 1, 2, 3))(0.0, 1.0, 2.0, 3.0)
+        assert float(columns[0]) == -np.inf and np.all(np.isnan(np.array(columns[1:], float)))
     assert float(jax.grad(ellipkinc, argnums=1)(-4.0, 1.0)) == -np.inf  # -2 K of a whole turn back

@@ -529,21 +529,37 @@ def test_one_fast_body_cannot_hide_in_a_slow_batch():
     assert rms[0] > 5 * batch[fast], (rms[0], batch[fast])
 
 
-@pytest.mark.parametrize("accuracy, rtol", [("fast", 5e-2), ("balanced", 1e-4), ("precise", 1e-7)])
-def test_derivatives_at_rest_follow_the_linearised_motion(accuracy, rtol):
+_OWN_CONTROLLER = {
+    "solver": diffrax.Tsit5(),
+    "stepsize_controller": diffrax.PIDController(rtol=1e-8, atol=1e-8),
+}
+
+
+@pytest.mark.parametrize(
+    "settings, rtol",
+    [
+        ({"accuracy": "fast"}, 5e-2),
+        ({"accuracy": "balanced"}, 1e-4),
+        ({"accuracy": "precise"}, 1e-7),
+        pytest.param(_OWN_CONTROLLER, 1e-5, id="own-PIDController"),
+    ],
+    ids=lambda x: x.get("accuracy") if isinstance(x, dict) else None,
+)
+def test_derivatives_at_rest_follow_the_linearised_motion(settings, rtol):
     """A top at rest hanging below its pivot and one balanced above it: the state never changes, and
     the controller, which sees only the state's error, took one step over the whole run; the
     derivatives were those of that step (d omega_1(T) / d omega_1(0) = -1044 instead of -0.887).
     Reference: the linearised motion, a pendulum of rate k = sqrt(m g l / I_1): hanging,
     d omega_1(T) / d omega_1(0) = cos(k T) and d q_x(T) / d omega_1(0) = sin(k T) / (2 k); upright,
-    cosh and sinh. Forward mode, and reverse mode for "balanced"."""
+    cosh and sinh. Forward mode, and reverse mode for "balanced". A diffrax ``PIDController`` of
+    one's own without a ``dtmax`` gets the same bound (-1044 before too)."""
     inertia, mass, arm, T = np.array([1e-2, 1e-2, 5e-3]), 0.5, 0.05, 2.0
     top = rj.HeavyTop(jnp.asarray(np.tile(inertia, (2, 1))), jnp.full(2, mass),
                       jnp.array([[0.0, 0.0, -arm], [0.0, 0.0, arm]]))  # fmt: skip
     q0, ts = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (2, 1)), jnp.linspace(0.0, T, 2)
 
     def final(omega0):  # (2 tops, 3) -> (2 tops, 2): omega_1(T), q_x(T)
-        trajectory = rj.simulate(top, rj.State(omega0, q0), ts, accuracy=accuracy)
+        trajectory = rj.simulate(top, rj.State(omega0, q0), ts, **settings)
         return jnp.stack([trajectory.omega[:, -1, 0], trajectory.orientation[:, -1, 1]], axis=-1)
 
     k = np.sqrt(mass * 9.81 * arm / inertia[0])
@@ -553,7 +569,7 @@ def test_derivatives_at_rest_follow_the_linearised_motion(accuracy, rtol):
     jacobian = np.asarray(jax.jacfwd(final)(jnp.zeros((2, 3))))  # (2, 2, 2, 3)
     along_omega_1 = jacobian[np.arange(2), :, np.arange(2), 0]
     np.testing.assert_allclose(along_omega_1, expected, rtol=rtol)
-    if accuracy == "balanced":
+    if settings.get("accuracy") == "balanced":
         gradient = np.asarray(jax.grad(lambda w: jnp.sum(final(w)[:, 0]))(jnp.zeros((2, 3))))
         np.testing.assert_allclose(gradient[:, 0], expected[:, 0], rtol=rtol)
 

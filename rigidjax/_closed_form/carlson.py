@@ -192,7 +192,10 @@ def elliprj(x: Scalar, y: Scalar, z: Scalar, p: Scalar) -> ScalarOut:
 
     ``R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t + p) sqrt((t + x) (t + y) (t + z)))``. Gradients by
     automatic differentiation through the duplication, finite wherever all arguments are positive;
-    ``-inf`` with respect to an argument at 0.
+    ``-inf`` with respect to an argument at 0. Reverse mode (``jax.grad``) then gives the other
+    arguments' finite partials; forward mode (``jax.jvp``, ``jax.jacfwd``) gives NaN in every
+    direction, as for ``jnp.sqrt`` at 0: the tangent is linear in the inputs' tangents, and the
+    ``-inf`` times a zero tangent is NaN.
     Within a few ulp of mpmath (at 300 digits) for arguments spread over 240 decades (float32: 30);
     5e-14 at 280 decades, 2e-9 at 300. Where one argument lies far from the others (the first
     duplication step's ``lambda`` below 1e-2 of the largest), the batch runs the duplication over

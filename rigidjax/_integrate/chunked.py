@@ -127,11 +127,15 @@ def _kept_samples(omega, q):
     return omega, jnp.where(keep[..., None], q / q_norm, jnp.nan), first_bad, q_norm_error
 
 
-def _presets_pid(controller):
-    """The presets' PID controller (``FaultStopPIDController``), bare or inside diffrax's
-    ``ClipStepSizeController`` (sample times as step ends); None for any other controller."""
+def _bounded_pid(controller):
+    """The PID controller whose steps :meth:`ScaledODE.step_bound` bounds, bare or inside diffrax's
+    ``ClipStepSizeController`` (sample times as step ends): the presets' ``FaultStopPIDController``
+    and a diffrax ``PIDController`` of one's own without a ``dtmax`` (one with a ``dtmax`` is used
+    as given); None for any other controller."""
     inner = controller.controller if isinstance(controller, diffrax.ClipStepSizeController) else controller
-    return inner if isinstance(inner, FaultStopPIDController) else None
+    if isinstance(inner, FaultStopPIDController):
+        return inner
+    return inner if isinstance(inner, diffrax.PIDController) and inner.dtmax is None else None
 
 
 def _with_dtmax(controller, bound):
@@ -187,8 +191,8 @@ def _integrate_traced(
             adaptive = not isinstance(controller, diffrax.ConstantStepSize | diffrax.StepTo)
             if first_step is None and adaptive and formulation.uses_scale:
                 first_step = formulation.first_step(vector_field, y0, s, ts, args)
-            if _presets_pid(controller) is not None:
-                pid = _presets_pid(controller)
+            pid = _bounded_pid(controller)
+            if pid is not None:
                 bound = formulation.step_bound(vector_field, y0, s, ts, args, pid.rtol, solver.order(None))
                 controller = _with_dtmax(controller, bound)
                 if first_step is not None:  # diffrax takes a given first step as it is

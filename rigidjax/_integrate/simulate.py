@@ -162,9 +162,12 @@ def simulate(
       both below the dtype's roundoff unit; ``atol`` defaults to ``rtol``.
     - `stepsize_controller`: any diffrax step-size controller (e.g. ``ConstantStepSize`` with
       ``dt0``) instead of the preset's ``PIDController``; it carries its own tolerances (``rtol``
-      and ``atol`` beside it are an error). With ``accuracy="exact"``, which integrates nothing,
-      ``solver``, ``rtol``, ``atol``, ``stepsize_controller``, ``dt0``, ``adjoint`` and
-      ``representation="euler"`` are an error rather than unused.
+      and ``atol`` beside it are an error). A ``PIDController`` without a ``dtmax`` gets the
+      presets' bound on each step, the time scale of the motion linearised about the initial
+      state (for derivatives at rest; moving bodies' steps stay below it). With
+      ``accuracy="exact"``, which integrates nothing, ``solver``, ``rtol``, ``atol``,
+      ``stepsize_controller``, ``dt0``, ``adjoint`` and ``representation="euler"`` are an error
+      rather than unused.
     - `dt0`: the first (or fixed) step (s).
     - `adjoint`: a diffrax adjoint, always used when given (not ``BacksolveAdjoint``, which does
       not support the way the samples are saved). Default: ``diffrax.ForwardMode()``
