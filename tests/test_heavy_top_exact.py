@@ -410,6 +410,13 @@ def test_random_tops_against_dop853():
         (0.4, [1e-8, 0.0, 1e-8], -0.3, 2e-9),
         # Standing 1e-8 rad from the upward vertical, tilting away from it at 3 rad/s.
         (1e-8, [3.0, 0.0, 50.0], 0.3, 2e-9),
+        # Released 1e-8 and 1e-7 rad from upright below the sleeping threshold (6.9 rad/s), spinning
+        # and at rest: the resolvent's roots are 0, ~1e-16 and -4, and the deflated pair's sum
+        # s2 + lone cancelled (the top at rest never fell; 2.4e-3 and 8.5e-6 off spinning). At rest
+        # the fall time is ill-conditioned: two DOP853 references differ by 8e-9.
+        (1e-8, [0.0, 0.0, 4.0], 0.3, 2e-9),
+        (1e-7, [0.0, 0.0, 4.0], 0.3, 2e-9),
+        (1e-8, [0.0, 0.0, 0.0], 0.3, 1e-7),
     ],
 )
 def test_near_separatrix_and_near_the_poles(theta, w0, com_z, tol):

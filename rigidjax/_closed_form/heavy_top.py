@@ -115,9 +115,13 @@ def _largest_root(c2, c1, c0):
     for _ in range(2):
         g_new = newton(lone, (s2, s1, s0))
         lone = jnp.where(jnp.isfinite(g_new), g_new, lone)
-    # (G - lone)(G^2 + B G + C): B = s2 + lone, C = -s0 / lone (or s1 + lone B when lone = 0).
-    B = s2 + lone
-    C = jnp.where(lone != 0, -_safe_div(s0, lone), s1 + lone * B)
+    # (G - lone)(G^2 + B G + C): C = -s0 / lone (or s1 + lone B when lone = 0), and B = s2 + lone or
+    # B = (C - s1) / lone, whichever cancels less (the first where lone^2 < |C|): a pair far closer to
+    # each other's negative than to lone (a top released at rest 1e-8 rad from upright, its roots
+    # 0, ~1e-16 and -4) keeps its sum only in the second.
+    vieta_sum = s2 + lone
+    C = jnp.where(lone != 0, -_safe_div(s0, lone), s1 + lone * vieta_sum)
+    B = jnp.where(lone * lone >= jnp.abs(C), _safe_div(C - s1, lone), vieta_sum)
     root_disc = safe_sqrt(B * B - 4 * C)
     big = -(B + jnp.where(B >= 0, root_disc, -root_disc)) / 2
     pair_max = jnp.maximum(big, _safe_div(C, big))
