@@ -30,8 +30,10 @@ body-frame ``omega`` follows from ``(w1 + i w2) = (i/2)(h + i du/dt) / (conj(x +
 Accuracy (``tests/test_heavy_top_exact.py``, against DOP853 at rtol 1e-13 over 10 or more nutation
 periods): ``omega`` within 4e-11 of ``max |omega|`` and ``q`` within 4e-11 in every regime tested (fast,
 cusped, looping, hanging, sleeping at theta = 0 and 1e-5, falling through the vertical, steady
-precession, ``l = 0``); 1.4e-10 for a very slow top over 2e4 s. float32: ``q`` within 2e-5 over
-20 s (1.4e-4 for a looping top, 8e-5 for a fast top at ``|omega| t = 1600`` rad).
+precession, ``l = 0``); 1.4e-10 for a very slow top over 2e4 s. Next to the heavy top's separatrix
+(a top rising towards upright for ever: a double root of ``f`` at the pole) ``omega`` within 5e-8,
+the double root being known from the cubic's coefficients to about ``sqrt(eps)``. float32: ``q``
+within 2e-5 over 20 s (1.4e-4 for a looping top, 8e-5 for a fast top at ``|omega| t = 1600`` rad).
 
 Derivatives (forward and reverse) are those of the motion, including a start on a turning circle
 (a top released with ``theta' = 0``), tops passing close to the vertical and steady precession
@@ -127,7 +129,11 @@ def _largest_root(c2, c1, c0):
     pair_max = jnp.maximum(big, _safe_div(C, big))
     pair_max = jnp.where(big != 0, pair_max, 0.0)
     g = jax.lax.stop_gradient(jnp.maximum(lone, pair_max)) * scale
-    return newton(g, (c2, c1, c0)).astype(dtype)
+    # At a root of a close pair (a top next to its separatrix) the slope vanishes: the step, meant to
+    # move the value by its rounding only, would throw it off the root (22.5 -> 13.8).
+    polished = newton(g, (c2, c1, c0))
+    moved = jax.lax.stop_gradient(jnp.abs(polished - g) > 1e-8 * jnp.abs(g))
+    return jnp.where(moved, g, polished).astype(dtype)
 
 
 def _body(A, C, weight_l, omega0, q0):
@@ -164,8 +170,39 @@ def _body(A, C, weight_l, omega0, q0):
     sigma = jnp.where(standing, 1.0, -1.0).astype(dtype)
     x_s = jnp.where(standing, x1, x2)  # the turning circle the expansion starts from
     x_o = jnp.where(standing, x2, x1)
-    g_s = g0 - beta * x_s
+    # The two halves (k = +1: w + iz, pole u = -1; k = -1: x + iy, pole u = 1) on a leading axis of
+    # every array: their arithmetic is written, traced and compiled once.
+    batch = jnp.broadcast_shapes(u0.shape, a.shape, beta.shape, g0.shape)
+    k = jnp.asarray([1.0, -1.0], dtype).reshape((2,) + (1,) * len(batch))
+
+    def pair(plus, minus):
+        return jnp.stack([jnp.broadcast_to(plus, batch), jnp.broadcast_to(minus, batch)])
+
+    dist0 = pair(2 * up, 2 * down)
+    coeff = h + k * a * dist0  # b + k a
+    near = dist0 + k * x_s  # 1 + k u at the start circle (P) and at the other (P')
+    far = dist0 + k * x_o
+    near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
+    # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root. A top
+    # that starts on the pole has reached it, also below the sleeping threshold, where G0 (the
+    # largest root of the resolvent) is 0 and says nothing of the third root.
+    third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
+    near, far, third = _pole_distances(
+        near, far, third, dist0, x_s, x_o, g0, coeff, perp2 + beta * k * dist0, a * k, beta * k
+    )
+    # Next to the separatrix (a top rising towards a pole it nearly reaches: the other turning circle
+    # and the third root close together by that pole) g0 - beta x_o cancels (g0 itself is the root of
+    # a close pair of the resolvent, to ~sqrt(eps)); on the pole's side (the half k = -sigma) it is
+    # |beta| (1 + k u_o) + |beta (1 + k u3)|, two distances solved for directly.
     g_o = g0 - beta * x_o
+    g_s = g0 - beta * x_s
+
+    def pole_side(x):
+        return jnp.where(standing, x[1], x[0])
+
+    close = g_o < 1e-3 * jnp.abs(g0)
+    g_o = jnp.where(close, jnp.abs(beta) * pole_side(far) + pole_side(third), g_o)
+    g_s = jnp.where(close, g_o + jnp.abs(beta) * amp, g_s)
     rate = safe_sqrt(g_s) / 2  # lambda
     m = _safe_div(jnp.abs(beta) * amp, g_s)
     p = jnp.where(g_s > 0, jnp.maximum(_safe_div(g_o, g_s), 0.0), 1.0)
@@ -184,28 +221,8 @@ def _body(A, C, weight_l, omega0, q0):
     qdot0 = _quat_times_omega(q0, omega0)
     quarter = _quarter_period(m, p)
     rho0 = _start_phase(sn0, cn0, dn0, p, quarter)
-    # The two halves (k = +1: w + iz, pole u = -1; k = -1: x + iy, pole u = 1) on a leading axis of
-    # every array: their arithmetic is written, traced and compiled once.
-    batch = jnp.broadcast_shapes(u0.shape, a.shape, beta.shape, g0.shape)
-    k = jnp.asarray([1.0, -1.0], dtype).reshape((2,) + (1,) * len(batch))
-
-    def pair(plus, minus):
-        return jnp.stack([jnp.broadcast_to(plus, batch), jnp.broadcast_to(minus, batch)])
-
     z0 = pair(jax.lax.complex(w, z), jax.lax.complex(x, y))
     zdot0 = pair(jax.lax.complex(qdot0[..., 0], qdot0[..., 3]), jax.lax.complex(qdot0[..., 1], qdot0[..., 2]))
-    dist0 = pair(2 * up, 2 * down)
-    coeff = h + k * a * dist0  # b + k a
-    near = dist0 + k * x_s  # 1 + k u at the start circle (P) and at the other (P')
-    far = dist0 + k * x_o
-    near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
-    # b + k a = 0 puts the pole on a root of f: a turning circle (reached) or the third root. A top
-    # that starts on the pole has reached it, also below the sleeping threshold, where G0 (the
-    # largest root of the resolvent) is 0 and says nothing of the third root.
-    third = jnp.abs(dist0 * beta + k * g0)  # |beta (1 + k u3)|
-    near, far, third = _pole_distances(
-        near, far, third, dist0, x_s, x_o, g0, coeff, perp2 + beta * k * dist0, a * k, beta * k
-    )
     closest = jnp.minimum(near, far)
     reached = (coeff == 0) & ((closest * jnp.abs(beta) < third) | (closest == 0))
     phase = _phase_parts(k * sigma > 0, near, far, third, amp, g_s, jnp.abs(beta), m, p, rho0)
@@ -249,8 +266,12 @@ def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, 
     near = jnp.where(refine & start_on_pole_side, d, near)
     far = jnp.where(refine & ~start_on_pole_side, d, far)
     weight = jnp.abs(beta_k)
-    refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0))) & ~refine
-    d3 = polished(-_safe_div(third, weight), refine_third, -1.0)
+    refine_third = (weight > 0) & (third < 1e-3 * (dist0 * weight + jnp.abs(g0)))
+    # Beside a circle at d > 0 by the pole (a top next to the separatrix) the third root is the other
+    # small root of F: the quadratic part gives their product, coeff^2 / (alpha_k + 2 beta_k + a_k^2).
+    product = _safe_div(coeff * coeff, alpha_k + 2 * beta_k + a_k * a_k)
+    beside = refine & (d > 0) & (product < 0)
+    d3 = polished(jnp.where(beside, _safe_div(product, d), -_safe_div(third, weight)), refine_third, -1.0)
     third = jnp.where(refine_third, weight * jnp.abs(d3), third)
     return near, far, third
 
