@@ -295,6 +295,18 @@ def test_bad_bodies_and_missing_orientations(free, top):
         rplot.euler_angles(top, sequence="abc")
 
 
+@pytest.mark.parametrize("function", ["poinsot", "cones", "euler_angles", "invariant_drift", "animate"])
+def test_a_trajectory_argument_that_is_not_a_trajectory_is_named(free, function, tmp_path):
+    """A trajectory's omega array or a dict in its place failed with an AttributeError on the first
+    field read."""
+    extra = (str(tmp_path / "a.gif"),) if function == "animate" else ()
+    for wrong, kind in [(free.omega, "ArrayImpl"), ({"omega": free.omega}, "dict")]:
+        with pytest.raises(
+            TypeError, match=rf"^{function}: trajectory must be a rigidjax.Trajectory.*got {kind}"
+        ):
+            getattr(rplot, function)(wrong, *extra)
+
+
 def test_a_figure_argument_that_is_not_a_figure_is_named(free, top):
     # An Axes or an array where a Figure goes failed inside matplotlib with an AttributeError.
     _, ax = plt.subplots()

@@ -123,6 +123,7 @@ def animate(trajectory, path, bodies=(0,), *, fps=20, frames=60, dpi=80) -> str:
     ``FileNotFoundError`` or ``PermissionError`` when `path`'s directory is missing or not
     writable. All before any frame is drawn.
     """
+    data.check_trajectory(trajectory, "animate")
     path = check_animation_path(path)
     path = check_writable(path, where="animate")
     data.need_orientation(trajectory, "animate")

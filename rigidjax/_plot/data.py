@@ -7,7 +7,18 @@ import operator
 
 import numpy as np
 
+from .._integrate.trajectory import Trajectory
 from .._kinematics.quaternion import matrix_from_quat
+
+
+def check_trajectory(trajectory, where: str) -> None:
+    """A ``TypeError`` naming ``where``'s argument unless it is a :class:`rigidjax.Trajectory`
+    (anything else failed with an ``AttributeError`` on the first field read)."""
+    if not isinstance(trajectory, Trajectory):
+        raise TypeError(
+            f"{where}: trajectory must be a rigidjax.Trajectory (what rigidjax.simulate returns, or "
+            f"rigidjax.Trajectory.load reads), got {type(trajectory).__name__}."
+        )
 
 
 def n_bodies(trajectory) -> int:

@@ -83,6 +83,7 @@ def poinsot(trajectory, body=0, *, fig=None):
     ``ValueError`` naming `body` when it is not an index of the batch or does not rotate (no
     invariable plane), and naming `trajectory` when its scene has torques or it has no orientations.
     """
+    data.check_trajectory(trajectory, "poinsot")
     if not trajectory.model.torque_free:
         raise ValueError(
             "poinsot: Poinsot's construction is for a torque-free rigid body (a FreeBody, or a "
@@ -156,6 +157,7 @@ def cones(trajectory, body=0, *, fig=None):
     `body` for an index outside the batch, naming `trajectory` when it has no orientations.
     Samples where ``omega`` is zero or not finite are left out.
     """
+    data.check_trajectory(trajectory, "cones")
     data.need_orientation(trajectory, "cones")
     i = data.body_index(trajectory, body)
     omega = data.omega(trajectory, i)
@@ -215,6 +217,7 @@ def euler_angles(trajectory, body=0, sequence: str = "zxz", *, fig=None):
     when it has no orientations, and for an unknown `sequence`. Samples whose orientation is not
     finite (a failed body) are left out.
     """
+    data.check_trajectory(trajectory, "euler_angles")
     _parse_seq(sequence, "sequence")
     data.need_orientation(trajectory, "euler_angles")
     i = data.body_index(trajectory, body)
@@ -292,6 +295,7 @@ def invariant_drift(trajectory, bodies=None, *, ax=None):
     and naming `trajectory` when its scene conserves none of these quantities (torques that are
     not conservative).
     """
+    data.check_trajectory(trajectory, "invariant_drift")
     series = _drift_series(trajectory)
     if not series:
         raise ValueError(
