@@ -132,8 +132,10 @@ def _largest_root(c2, c1, c0):
     # At a root of a close pair (a top next to its separatrix) the slope vanishes: the step, meant to
     # move the value by its rounding only, would throw it off the root (22.5 -> 13.8).
     polished = newton(g, (c2, c1, c0))
-    moved = jax.lax.stop_gradient(jnp.abs(polished - g) > 1e-8 * jnp.abs(g))
-    return jnp.where(moved, g, polished).astype(dtype)
+    rounding = jnp.sqrt(jnp.finfo(dtype).eps)  # far above a step's rounding, far below a throw
+    moved = jax.lax.stop_gradient(jnp.abs(polished - g) > rounding * jnp.abs(g))
+    # There the value stays the pair's root, the derivative the step's (-dh / h'), as elsewhere.
+    return jnp.where(moved, g + (polished - jax.lax.stop_gradient(polished)), polished).astype(dtype)
 
 
 def _body(A, C, weight_l, omega0, q0):
