@@ -1,7 +1,8 @@
 """Derivatives with respect to ``omega0`` of the exact heavy top (``simulate(HeavyTop, accuracy="exact")``)
 where ``w3 = 0`` and ``L_z = 0``: released from rest at a tilt, swinging in a vertical plane through the
 pivot (below and over the top), hanging at rest; and with respect to the tilt of ``q0`` for a top started
-exactly at a pole with a wobble. A Cayley-Klein half has ``b + k a = 0`` there.
+exactly at a pole with a wobble, or at a pole up to the rounding of ``q0``. A Cayley-Klein half has
+``b + k a = 0`` there (or within rounding of it).
 
 Reference: central differences of scipy's DOP853 (rtol 1e-12) on Euler's equations with the gravity
 torque and the quaternion kinematics, written below in numpy.
@@ -92,6 +93,13 @@ def tilted(theta, axis=1):
     return q
 
 
+def euler_swing(phi, theta, psi, rate):
+    """A planar swing from 3-1-3 angles (``q0`` by :func:`rigidjax.quat_from_euler`, whose rounding
+    leaves ``L_z / I1`` at ~1e-16 rad/s instead of 0): ``omega0 = theta' (cos psi, -sin psi, 0)``."""
+    q0 = np.asarray(rj.quat_from_euler(jnp.array([phi, theta, psi])))
+    return rate * np.array([np.cos(psi), -np.sin(psi), 0.0]), q0
+
+
 CASES = {
     "rest_tilt": (np.zeros(3), tilted(0.2), 1.0),
     "rest_tilt_y": (np.zeros(3), tilted(0.3, axis=2), 0.6),
@@ -101,6 +109,16 @@ CASES = {
     # Started exactly at a pole with a wobble: the tilt of q0 moves b + k a off 0.
     "upright_wobble": (np.array([1.0, 0.5, 3.0]), np.array([1.0, 0.0, 0.0, 0.0]), 0.8),
     "hanging_wobble": (np.array([1.0, 0.5, 3.0]), np.array([0.0, 1.0, 0.0, 0.0]), 0.8),
+    # At a pole up to the rounding of q0 (cos(pi / 2) = 6e-17, as from Euler angles), spinning.
+    "hanging_spinning_rounded": (
+        np.array([0.0, 0.0, 30.0]),
+        np.array([np.cos(np.pi / 2), 1.0, 0.0, 0.0]),
+        1.0,
+    ),
+    "hanging_fast_rounded": (np.array([0.0, 0.0, 300.0]), np.array([np.cos(np.pi / 2), 1.0, 0.0, 0.0]), 0.1),
+    "planar_swing_rounded": (*euler_swing(0.3, 0.4, 0.7, 1.5), 1.3),
+    "planar_over_the_top_rounded": (*euler_swing(1.1, 0.4, -0.4, 12.0), 0.9),
+    "upright_wobble_rounded": (np.array([1.0, 0.5, 3.0]), np.array([1.0, 0.0, 1e-17, 0.0]), 0.8),
 }
 
 

@@ -19,11 +19,19 @@ derivatives of their own (so only first derivatives are the motion's), in ``E(x)
   without division by ``J``. ``dR/dt = Q / 4`` with ``Q = (1 + 4 R dS/dt) / S``, likewise finite.
 """
 
+import jax
 import jax.numpy as jnp
 
 from .._numerics import safe_sqrt
 from .carlson import _carlson_rf_rd
 from .precession import _reduce
+
+
+def taken_as_zero(x, mask):
+    """``x`` as zero in value where ``mask``, keeping its derivative: a top in the family above up to
+    the rounding of its inputs is taken as in it (the general form's derivatives are not the
+    motion's there)."""
+    return jnp.where(mask, x - jax.lax.stop_gradient(x), x)
 
 
 def _epsilon(s, c, m, p):

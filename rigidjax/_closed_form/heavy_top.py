@@ -46,13 +46,15 @@ carry the derivative of ``b + k a`` from :mod:`.heavy_pole`: against central dif
 (``tests/test_heavy_top_rest_gradients.py``: at rest at a tilt, planar swings below and over the
 top, hanging at rest, started upright or hanging with a wobble) the Jacobian with respect to
 ``omega0`` and the tilt of ``q0`` is within 4e-9 of its largest entry. Those terms are held constant
-under differentiation, so second derivatives there lack their part. A top only within roundoff of
-that family (``b + k a`` of 1e-17 rad/s, as from an orientation built from Euler angles) takes the
-general form, whose derivative after a pass by the pole is off by up to about ``1e-15 / |b + k a|``
-relative (a planar swing over 1.3 s: 2.9 at 1e-17, 2e-3 at 4e-13, 3e-8 at 4e-9 rad/s).
-Reverse mode transposes every sample's Jacobian (:mod:`.derivatives`). Only ``com_z`` and the mean
-of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``, ``com_y`` (zero) and
-``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
+under differentiation, so second derivatives there lack their part. A top in that family up to
+rounding is taken as in it in value, keeping its derivatives: ``b + k a`` within the rounding of
+its terms (``8 eps (|omega_perp| + |a| (1 + k u0))``; a planar swing whose ``q0`` comes from Euler angles has
+1e-16 rad/s) as 0, and a half of ``q0`` below ``eps`` (``quat_from_euler((0, pi, 0))``) as 0. A
+top farther off, yet close to it, takes the general form, whose derivative after a pass by the pole
+is off by up to about ``1e-15 / |b + k a|`` relative (a planar swing over 1.3 s: 2e-3 at 4e-13,
+3e-8 at 4e-9 rad/s). Reverse mode transposes every sample's Jacobian (:mod:`.derivatives`). Only
+``com_z`` and the mean of ``I1`` and ``I2`` enter, so the derivatives with respect to ``com_x``,
+``com_y`` (zero) and ``I1 - I2`` are not the motion's (they leave Lagrange's case)."""
 
 import jax
 import jax.numpy as jnp
@@ -63,7 +65,7 @@ from .derivatives import sample_jacobians
 from .elliptic import _ellipj_checked, _sin_cos
 from .frame import largest_phase
 from .heavy_phase import _quarter_period, _start_phase, _theta_parts, _theta_phase
-from .heavy_pole import epsilon_step, pole_root_terms
+from .heavy_pole import epsilon_step, pole_root_terms, taken_as_zero
 
 
 def _safe_div(num, den):
@@ -143,6 +145,13 @@ def _body(A, C, weight_l, omega0, q0):
     dtype = omega0.dtype
     q0 = q0 / safe_norm(q0, keepdims=True)
     w, x, y, z = (q0[..., i] for i in range(4))
+    # A top at a pole up to the rounding of q0 (a half below eps, as from quat_from_euler((0, pi, 0)))
+    # takes the pole's form, whose derivatives are the motion's (the general form's are not there).
+    eps = jnp.finfo(q0.dtype).eps
+    up_tiny, down_tiny = w * w + z * z <= eps**2, x * x + y * y <= eps**2
+    w, z = taken_as_zero(w, up_tiny), taken_as_zero(z, up_tiny)
+    x, y = taken_as_zero(x, down_tiny), taken_as_zero(y, down_tiny)
+    q0 = jnp.stack([w, x, y, z], axis=-1)
     w1, w2, w3 = omega0[..., 0], omega0[..., 1], omega0[..., 2]
     # e: the space vertical in body components (third row of R).
     e1, e2 = 2 * (x * z - w * y), 2 * (y * z + w * x)
@@ -182,6 +191,8 @@ def _body(A, C, weight_l, omega0, q0):
 
     dist0 = pair(2 * up, 2 * down)
     coeff = h + k * a * dist0  # b + k a
+    # Within its terms' rounding (a planar swing's q0 from Euler angles: 1e-16 rad/s) it is taken as 0.
+    coeff = taken_as_zero(coeff, jnp.abs(coeff) <= 8 * eps * (safe_sqrt(perp2) + jnp.abs(a) * dist0))
     near = dist0 + k * x_s  # 1 + k u at the start circle (P) and at the other (P')
     far = dist0 + k * x_o
     near, far = jnp.maximum(near, 0.0), jnp.maximum(far, 0.0)
@@ -250,7 +261,8 @@ def _pole_distances(near, far, third, dist0, x_s, x_o, g0, coeff, alpha_k, a_k, 
     ``d = 1 + k u`` the cubic is ``F(d) = d (2 - d)(alpha_k - beta_k d) - (coeff - a_k d)^2`` with
     ``F(0) = -(b + k a)^2``, its coefficients formed without cancellation: Newton steps from the
     cancelled value find its small root (a turning circle's ``d >= 0``, the third root's ``d < 0``)
-    to roundoff, the other roots being at least the nutation amplitude away."""
+    to roundoff; next to the separatrix, where a circle and the third root are both by the pole, the
+    third root's steps start from the two small roots' product over the circle's ``d``."""
 
     def polished(d, refine, sign):
         d = jnp.where(refine, d, 0.0)
