@@ -28,6 +28,7 @@ from .._repr import module_repr
 from .._types import Inertia, Scalar, Vector
 from .equations import is_full_tensor
 from .inertia import check_inertia
+from .torques import POSITIVE_MASS
 
 # Default relative tolerance on ``I1 = I2`` and on the centre of mass lying on the symmetry axis in
 # :func:`sleeping_top`: well above the roundoff of moments from ``principal_axes`` (a few eps times
@@ -257,7 +258,7 @@ def sleeping_top(
         check_finite(x, name, "sleeping_top")
         for x, name in ((mass, "mass"), (com, "com"), (omega3, "omega3"), (gravity, "gravity"))
     )
-    mass = error_if(mass, jnp.any(mass <= 0), "sleeping_top: mass must be positive (kg).")
+    mass = error_if(mass, jnp.any(mass <= 0), f"sleeping_top: mass {POSITIVE_MASS}.")
     gravity = error_if(
         gravity,
         jnp.any(gravity < 0),

@@ -131,20 +131,24 @@ def _bounded_pid(controller):
     """The PID controller whose steps :meth:`ScaledODE.step_bound` bounds, bare or inside diffrax's
     ``ClipStepSizeController`` (sample times as step ends): the presets' ``FaultStopPIDController``
     and a diffrax ``PIDController`` of one's own without a ``dtmax`` (one with a ``dtmax`` is used
-    as given); None for any other controller."""
-    inner = controller.controller if isinstance(controller, diffrax.ClipStepSizeController) else controller
-    if isinstance(inner, FaultStopPIDController):
-        return inner
-    return inner if isinstance(inner, diffrax.PIDController) and inner.dtmax is None else None
-
-
-def _with_dtmax(controller, bound):
-    """``controller`` with its PID controller's ``dtmax`` lowered to ``bound``."""
+    as given), or None for any other controller; and a function that puts a changed PID controller
+    back in ``controller``'s place."""
     clipped = isinstance(controller, diffrax.ClipStepSizeController)
-    pid = controller.controller if clipped else controller
+    inner = controller.controller if clipped else controller
+    bounded = isinstance(inner, FaultStopPIDController) or (
+        isinstance(inner, diffrax.PIDController) and inner.dtmax is None
+    )
+
+    def put_back(pid):
+        return eqx.tree_at(lambda c: c.controller, controller, pid) if clipped else pid
+
+    return (inner if bounded else None), put_back
+
+
+def _with_dtmax(pid, bound):
+    """``pid`` with its ``dtmax`` lowered to ``bound``."""
     dtmax = bound if pid.dtmax is None else jnp.minimum(pid.dtmax, bound)
-    pid = eqx.tree_at(lambda c: c.dtmax, pid, dtmax, is_leaf=lambda x: x is None)
-    return eqx.tree_at(lambda c: c.controller, controller, pid) if clipped else pid
+    return eqx.tree_at(lambda c: c.dtmax, pid, dtmax, is_leaf=lambda x: x is None)
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces, for the no-recompile tests
@@ -191,10 +195,10 @@ def _integrate_traced(
             adaptive = not isinstance(controller, diffrax.ConstantStepSize | diffrax.StepTo)
             if first_step is None and adaptive and formulation.uses_scale:
                 first_step = formulation.first_step(vector_field, y0, s, ts, args)
-            pid = _bounded_pid(controller)
+            pid, put_back = _bounded_pid(controller)
             if pid is not None:
                 bound = formulation.step_bound(vector_field, y0, s, ts, args, pid.rtol, solver.order(None))
-                controller = _with_dtmax(controller, bound)
+                controller = put_back(_with_dtmax(pid, bound))
                 if first_step is not None:  # diffrax takes a given first step as it is
                     first_step = jnp.minimum(first_step, bound)
             solution = driver.solve(

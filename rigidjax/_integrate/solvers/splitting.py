@@ -56,7 +56,7 @@ from ..._checks import (
 )
 from ..._dynamics.inertia import check_inertia
 from ..._dynamics.models import replace_static
-from ..._dynamics.torques import gravity_torque
+from ..._dynamics.torques import POSITIVE_GRAVITY, POSITIVE_MASS, gravity_torque
 from ..._kinematics.quaternion import _quat_kinematics, _quat_multiply
 from ..._numerics import short_norm
 from .direction import time_direction
@@ -423,11 +423,9 @@ def _checked_top_parameters(mass, com, gravity, where):
         as_float_array(x, n) for x, n in ((mass, "mass"), (com, "com"), (gravity, "gravity"))
     )
     mass = check_finite(mass, "mass", where)
-    mass = error_if(mass, jnp.any(mass <= 0), f"{where}: mass must be positive (kg).")
+    mass = error_if(mass, jnp.any(mass <= 0), f"{where}: mass {POSITIVE_MASS}.")
     gravity = check_finite(gravity, "gravity", where)
-    gravity = error_if(
-        gravity, jnp.any(gravity <= 0), f"{where}: gravity must be positive (m/s^2), along space -Z."
-    )
+    gravity = error_if(gravity, jnp.any(gravity <= 0), f"{where}: gravity {POSITIVE_GRAVITY}.")
     return mass, check_finite(com, "com", where), gravity
 
 
