@@ -364,10 +364,14 @@ def test_a_fit_the_record_does_not_support_is_flagged():
     from rigidjax._cli.fit import _fit_warnings
 
     noise = np.array([1e-3, 1e-3, 1e-3])
-    assert _fit_warnings(np.array([1e-3, 1e-3, 1e-3]), 1.2 * noise, noise) == []
-    [undetermined] = _fit_warnings(np.array([np.inf, 1e-3, np.inf]), noise, noise)
+    moments = np.array([0.2, 0.35, 0.45])
+    assert _fit_warnings(np.array([1e-3, 1e-3, 1e-3]), 1.2 * noise, noise, moments) == []
+    [undetermined] = _fit_warnings(np.array([np.inf, 1e-3, np.inf]), noise, noise, moments)
     assert "does not determine every moment" in undetermined
-    [misfit] = _fit_warnings(np.array([1e-7, 1e-7, 1e-7]), np.array([1.0, 1.0, 3.1]) * noise, noise)
+    # A flat body (I_z = I_x + I_y) is named as such, not as a record without a wobble.
+    [flat] = _fit_warnings(np.array([1e-3, 1e-3, np.inf]), noise, noise, np.array([1.0, 2.0, 3.0]) / 6)
+    assert "flat body" in flat and "wobble" not in flat
+    [misfit] = _fit_warnings(np.array([1e-7, 1e-7, 1e-7]), np.array([1.0, 1.0, 3.1]) * noise, noise, moments)
     assert "3.1 times the record's noise estimate" in misfit and "time unit" in misfit
     text = json.dumps(finite_or_none({"stderr": [0.1, float("inf")], "loss": float("nan")}), allow_nan=False)
     assert json.loads(text) == {"stderr": [0.1, None], "loss": None}

@@ -131,11 +131,19 @@ def _without_comment(cells: list[str]) -> list[str]:
     return cells
 
 
-def _fit_warnings(stderr, rms, noise) -> list[str]:
-    """What the numbers say against trusting the fit: moments the record does not determine, and
-    residuals well above the record's own noise (a wrong wobble frequency)."""
+def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
+    """What the numbers say against trusting the fit: moments the record does not determine (a flat
+    body's on the edge of the physical moments, or a record without a wobble), and residuals well
+    above the record's own noise (a wrong wobble frequency). ``moments``: the principal moments."""
     out = []
-    if not np.all(np.isfinite(stderr)):
+    low, middle, high = np.sort(np.asarray(moments, dtype=float))
+    if not np.all(np.isfinite(stderr)) and high >= (1 - 1e-6) * (low + middle):
+        out.append(
+            "the largest principal moment is the sum of the other two: a flat body (its mass in one "
+            "plane), on the edge of the physical moments, whose distance from that edge the record "
+            "cannot give (an infinite standard error); the moments shown are the edge's."
+        )
+    elif not np.all(np.isfinite(stderr)):
         out.append(
             "the record does not determine every moment (infinite standard errors): a spin about one "
             "principal axis, or a wobble below the noise, fixes no inertia ratio; the values shown for "
@@ -403,7 +411,7 @@ def run(args) -> int:
         f"({fit.method}, {seconds:.1f} s including compile)"
     )
     print("\n".join(lines))
-    warnings = _fit_warnings(err, rms, noise)
+    warnings = _fit_warnings(err, rms, noise, np.asarray(fit.principal_moments))
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
 

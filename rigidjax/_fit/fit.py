@@ -12,6 +12,7 @@ fitted, and the forward model is Dopri8 (rtol 1e-10, scaled units) instead of th
 """
 
 import dataclasses
+import itertools
 import math
 import sys
 from collections.abc import Callable
@@ -28,7 +29,7 @@ from .._dynamics.torques import _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
-from .problem import LOSSES, WINDOW_MAX_STEPS
+from .problem import LOSSES, WINDOW_MAX_STEPS, _inertia_params
 from .result import InertiaFit
 
 
@@ -210,6 +211,36 @@ def _covariance_out(covariance):
     return jnp.where(jnp.diag(hidden), jnp.inf, matrix)
 
 
+def _doubtful(out, data) -> bool:
+    """Whether a fit from the estimated start may have ended in the wrong basin: not finite, the
+    residuals over twice the noise estimate, or a second moment at 0 (the flat-body edge, where a
+    wrongly ordered start ends)."""
+    p, _, _, _, _, final_loss, rms = out
+    p = np.asarray(p, float)
+    if not (np.all(np.isfinite(p)) and np.isfinite(float(final_loss))):
+        return True
+    noise = np.asarray(data.noise, float)
+    ratio = np.asarray(rms, float) * data.residual_unit / np.where(noise > 0, noise, np.inf)
+    z = np.concatenate([p[:2], [0.0]])
+    second_moments = np.exp(z - z.max()) / np.sum(np.exp(z - z.max()))
+    return bool(np.any(ratio > 2.0) or second_moments.min() < 1e-6)
+
+
+def _reordered_starts(data, p0, full_tensor):
+    """``p0`` with the moments of a generic body, ``(2, 3, 4) / 9`` (well inside the physical moments
+    and well apart, where a start from very noisy data can lie by the flat-body edge or have two
+    moments nearly equal), in each of the six orders, about the estimate's axes."""
+    start = np.asarray(data.inertia_start, float)
+    axes = np.linalg.eigh(start)[1] if full_tensor else None
+    n = len(_inertia_params(start, full_tensor))
+    for order in itertools.permutations(range(3)):
+        reordered = np.array([2.0, 3.0, 4.0])[list(order)] / 9.0
+        inertia = reordered if axes is None else (axes * reordered) @ axes.T
+        start_p = np.array(p0, float)
+        start_p[:n] = _inertia_params(inertia, full_tensor)
+        yield start_p
+
+
 def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, callback, scale):
     """Runs the optimiser on a prepared problem and returns the fit in the user's units, with
     standard errors from the covariance of the scaled parameters."""
@@ -221,15 +252,26 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         _ACTIVE.append(callback)
     try:
         with jax.numpy_dtype_promotion("standard"):
-            out = _run(
-                problem,
-                p0,
-                method,
-                optimizer,
-                int(steps),
-                float(tol),
-                None if callback is None else _dispatch,
-            )
+
+            def run(start):
+                hook = None if callback is None else _dispatch
+                return _run(problem, start, method, optimizer, int(steps), float(tol), hook)
+
+            out = run(p0)
+            if data.estimated_start and _doubtful(out, data):
+                # The estimate comes from differentiated noisy data and can order the moments
+                # wrongly or lie by the flat-body edge; the fit then ends in another basin (on the
+                # edge, or with residuals far above the noise). Starts in every order, the best kept.
+                if callback is not None and callback.print_lines:
+                    print(
+                        "fit: the fit from the estimated start ended on the flat-body edge or above "
+                        "the noise; fitting again from the moments (2, 3, 4) in each order",
+                        file=sys.stderr,
+                    )
+                for start in _reordered_starts(data, p0, full_tensor):
+                    other = run(jnp.asarray(start, dtype))
+                    if bool(jnp.isfinite(other[5])) and not float(other[5]) >= float(out[5]):
+                        out = other
         if callback is not None:
             jax.block_until_ready(out)
             jax.effects_barrier()  # every iteration's call has run
@@ -334,6 +376,8 @@ def _user_values(problem, p, covariance, omega_scale, inertia_trace, known_momen
         # A value that depends on a direction the record does not determine (more than 1e-3 of its
         # gradient there) is not measured: infinite.
         hidden = jnp.einsum("ip,pq,iq->i", flat, undetermined, flat) > 1e-6 * jnp.sum(flat * flat, axis=-1)
+        # NaN (a covariance that is not finite, at a degenerate optimum) measures nothing either.
+        hidden = hidden | ~jnp.isfinite(variance)
         return jnp.where(hidden, jnp.inf, jnp.sqrt(jnp.maximum(variance, 0.0))).reshape(jac.shape[:-1])
 
     tensor = inertia if full_tensor else jnp.diag(inertia)
@@ -348,7 +392,10 @@ def _user_values(problem, p, covariance, omega_scale, inertia_trace, known_momen
 
 _COMMON_ARGS_DOC = """\
     - `inertia_init`: starting inertia (moments, or a tensor with ``full_tensor``); by default a
-      data-driven estimate (:func:`estimate_inertia`). Any positive scale; only ratios matter.
+      data-driven estimate (:func:`estimate_inertia`); a fit from the estimate that ends on the
+      flat-body edge or with residuals over twice the noise estimate is run again from the moments
+      ``(2, 3, 4)`` in each of the six orders, keeping the lowest loss (very noisy data can order
+      the estimate's moments wrongly). Any positive scale; only ratios matter.
     - `omega0_init`: starting ``omega0`` ``(3,)`` or ``(segments, 3)``; by default the smoothed
       (estimated) angular velocity at each window start.
     - `segments`: multiple shooting: the record is cut into this many windows of consecutive

@@ -30,6 +30,7 @@ class _Data(NamedTuple):
     residual_unit: float  # residuals are in units of this (omega_scale for omega, 1 rad for q)
     omega_scale: float
     noise: np.ndarray  # per-component noise estimate, in the residual's units (rad/s or rad)
+    estimated_start: bool = False  # the starting inertia is the estimate (no inertia_init given)
 
 
 def _prepare_omega(
@@ -116,6 +117,7 @@ def _prepare_omega(
         torques=torques,
         reverse_mode=reverse_mode,
         dtype=dtype,
+        estimated_start=inertia_init is None,
     )
 
 
@@ -182,6 +184,7 @@ def _prepare_orientation(
         torques=torques,
         reverse_mode=reverse_mode,
         dtype=dtype,
+        estimated_start=inertia_init is None,
     )
 
 
@@ -342,6 +345,7 @@ def _assemble(
     torques,
     reverse_mode,
     dtype,
+    estimated_start,
 ):
     """The :class:`_Problem` in ``dtype`` and the flat starting point: inertia parameters (with the
     log of the starting trace under a known torque), ``omega0 / omega_scale`` per window and, for
@@ -369,4 +373,6 @@ def _assemble(
         reverse_mode=reverse_mode,
         t_start=jnp.asarray(starts, dtype),
     )
-    return _Data(problem, np.concatenate(p0), starts, inertia_start, residual_unit, omega_scale, noise)
+    return _Data(
+        problem, np.concatenate(p0), starts, inertia_start, residual_unit, omega_scale, noise, estimated_start
+    )
