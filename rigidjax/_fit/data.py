@@ -115,16 +115,39 @@ def omega_from_orientations(ts, q_observed):
     T = ts.shape[0]
     if T < 2:  # no difference to take: the one sample's omega was [nan, inf, nan]
         raise ValueError(f"omega_from_orientations needs at least 2 samples, got {T}.")
-    conj = q[:-1] * np.array([1.0, -1.0, -1.0, -1.0])
-    rel = np.asarray(evaluated_now(_quat_multiply, conj, q[1:]))
-    rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)  # the shorter rotation: angle <= pi
-    vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
-    angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        step = np.where(vec_norm[:, None] > 0, rel[:, 1:] / vec_norm[:, None], 0.0) * angle[:, None]
+    step = _rotation_steps(q)
     h = np.diff(ts)[:, None]
     omega = np.empty((T, 3))
     omega[0], omega[-1] = step[0] / h[0], step[-1] / h[-1]
     h1, h2 = h[:-1], h[1:]
     omega[1:-1] = (h2 / h1 * step[:-1] + h1 / h2 * step[1:]) / (h1 + h2)
     return omega
+
+
+def _rotation_steps(q):
+    """The rotation vector of each step, ``log(q_k^* q_{k+1})`` (the shorter of the two rotations),
+    ``(T - 1, 3)``, NaN where a sample is missing."""
+    conj = q[:-1] * np.array([1.0, -1.0, -1.0, -1.0])
+    rel = np.asarray(evaluated_now(_quat_multiply, conj, q[1:]))
+    rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)  # the shorter rotation: angle <= pi
+    vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
+    angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(vec_norm[:, None] > 0, rel[:, 1:] / vec_norm[:, None], 0.0) * angle[:, None]
+
+
+def orientation_noise(ts, q):
+    """The noise of orientation samples (rad, the same for each body axis: the body turns its axes
+    through the observer's), or NaN where fewer than five consecutive samples are present.
+
+    Independent errors ``e_k`` (a small body-frame rotation per sample, standard deviation ``sigma``)
+    enter each step as ``e_{k+1} - e_k``; the third difference of the steps (scaled to the median
+    step length) carries them as a fourth difference, of variance ``70 sigma^2``, and the motion only
+    at fourth order in the step. ``sigma`` from the median absolute value (``1.4826 MAD``), which a
+    few outliers do not move."""
+    h = np.diff(ts)
+    steps = _rotation_steps(q) * (np.median(h) / h)[:, None]
+    fourth = steps[:-3] - 3.0 * steps[1:-2] + 3.0 * steps[2:-1] - steps[3:]
+    if fourth.shape[0] == 0 or not np.isfinite(fourth).any():
+        return np.full(3, np.nan)
+    return np.full(3, 1.4826 * np.nanmedian(np.abs(fourth)) / np.sqrt(70.0))

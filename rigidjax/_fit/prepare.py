@@ -17,7 +17,7 @@ from .._dynamics.inertia_checks import (
     _TRIANGLE,
     _inertia_failure,
 )
-from .data import _align_signs, _real_array, omega_from_orientations
+from .data import _align_signs, _real_array, omega_from_orientations, orientation_noise
 from .estimate import _NO_EQUATIONS, _dominant_period, _estimate, _torque_estimate
 from .problem import LOSSES, _inertia_params, _Problem
 
@@ -160,10 +160,14 @@ def _prepare_orientation(
     observed = np.where(valid_rows[:, None], np.nan_to_num(q_aligned), [1.0, 0.0, 0.0, 0.0])
     mask = np.broadcast_to(valid_rows[:, None], (ts.shape[0], 3))
     padded = _padded_windows(ts, windows, omega_scale, observed, mask, np.array([1.0, 0.0, 0.0, 0.0]))
-    # Noise of the orientation samples (rad) from the roughness of the finite-difference omega:
-    # central differences of independent angle errors e have scatter sqrt(2) e / (2 dt).
-    rough = float(np.sqrt(np.nanmean(estimate.noise**2)))
-    noise_rad = float(rough * 2.0 * np.median(np.diff(ts)) / np.sqrt(2.0))
+    # Noise of the orientation samples (rad) from fourth differences of their errors; with
+    # no five consecutive samples, from the roughness of the finite-difference omega (central
+    # differences of independent angle errors e have scatter sqrt(2) e / (2 dt)).
+    noise = orientation_noise(ts, q_aligned)
+    if not np.all(np.isfinite(noise)):
+        rough = float(np.sqrt(np.nanmean(estimate.noise**2)))
+        noise = np.full(3, rough * 2.0 * np.median(np.diff(ts)) / np.sqrt(2.0))
+    noise_rad = float(np.sqrt(np.mean(noise**2)))
     if f_scale is None:
         f_scale = 3.0 * max(noise_rad, 1e-12)
     return _assemble(
@@ -178,7 +182,7 @@ def _prepare_orientation(
         w0=w0,
         omega_scale=omega_scale,
         residual_unit=1.0,
-        noise=np.full(3, noise_rad),
+        noise=noise,
         full_tensor=full_tensor,
         loss=loss,
         torques=torques,
