@@ -1680,6 +1680,17 @@ def test_a_span_of_ten_million_turns_is_the_most_the_default_step_limit_takes():
         default_max_steps(omega0, np.array([0.0, 1.001 * most]))
 
 
+def test_the_default_step_limit_covers_a_step_per_sample_time():
+    """ "precise" ends a step on every sample time: a slow body (0.37 rad/s) sampled 150,001 times
+    over 10 s needs 150,000 steps, and stopped at the limit of 10^5 (checked without running; the
+    run itself takes ~40 s: 150,000 steps, success)."""
+    from rigidjax._integrate.presets import default_max_steps
+
+    omega0 = np.array([0.1, 0.2, 0.3])
+    assert default_max_steps(omega0, np.linspace(0.0, 10.0, 150_001)) >= 150_000 + 100 * 0.6
+    assert default_max_steps(omega0, np.linspace(0.0, 10.0, 1_001)) == 100_000
+
+
 def test_nan_in_the_params_of_a_torque_function_is_named_also_under_jit():
     """NaN in ``Torque(fn, params=...)`` ran and failed with a step size that collapsed at t = 0."""
     message = r"simulate: model field 'torques\[0\].params' contains NaN or inf"

@@ -66,6 +66,24 @@ def test_one_bad_body_in_a_shared_step_chunk_keeps_the_others():
     _check_isolated(traj, 17)
 
 
+def test_a_body_that_needs_more_steps_than_max_steps_is_the_one_named_and_flagged():
+    """Three bodies in one chunk, the middle one 100 times faster: with max_steps=50 (the slow ones
+    need 23 and 36 alone) the chunk stopped, the error named body 0 and every body was flagged, NaN
+    from the third sample. The chunk is run again body by body, as for a NaN torque."""
+    omega0 = np.array([[0.3, 0.1, 2.0], [30.0, 10.0, 200.0], [0.1, 3.0, 0.1]])
+    model, state = rj.FreeBody(jnp.asarray(INERTIA)), rj.State(jnp.asarray(omega0))
+    ts = jnp.linspace(0.0, 10.0, 101)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="body 1 failed between .* reached max_steps=50"):
+        rj.simulate(model, state, ts, max_steps=50)
+    traj = rj.simulate(model, state, ts, max_steps=50, throw=False)
+    assert np.asarray(traj.success).tolist() == [True, False, True]
+    for body in (0, 2):
+        expected = dop853_free_body(INERTIA, omega0[body], np.asarray(ts))[0]
+        np.testing.assert_allclose(np.asarray(traj.omega[body]), expected, rtol=0, atol=1e-5)
+    first = int(np.asarray(traj.stats["first_failed_sample"])[1])
+    assert np.all(np.isnan(np.asarray(traj.omega[1, first:]))) and not np.any(np.isnan(traj.omega[1, :first]))
+
+
 def test_a_failed_body_has_no_quaternion_drift_to_report():
     """The failed body's quaternion drift was the solver's record of its steps before the failure,
     a clean-looking number beside the NaN of its other invariants."""

@@ -152,6 +152,7 @@ def test_euler_angles_are_the_unwrapped_angles_of_the_orientations(top, sequence
     assert len(fig.axes) == 3
     assert [ax.get_ylabel() for ax in fig.axes] == ["phi (rad)", "theta (rad)", "psi (rad)"]
     assert fig.axes[-1].get_xlabel() == "t (s)" and sequence in fig.axes[0].get_title()
+    # The top's samples are dense: unwrapping by the nearest branch is right there.
     expected = np.unwrap(np.asarray(rj.euler_from_quat(top.orientation, sequence)), axis=0)
     for k, ax in enumerate(fig.axes):
         [line] = ax.get_lines()
@@ -160,6 +161,23 @@ def test_euler_angles_are_the_unwrapped_angles_of_the_orientations(top, sequence
     if sequence == "zxz":  # the same as the trajectory's own (unwrapped) angles
         np.testing.assert_allclose(expected, np.asarray(top.euler_angles("zxz")), atol=1e-10)
         assert np.ptp(expected[:, 0]) > 2 * np.pi or np.all(np.abs(np.diff(expected[:, 0])) < np.pi)
+
+
+def test_euler_angles_follow_a_spin_of_more_than_pi_per_sample():
+    """A torque-free symmetric top with L along space Z (Goldstein 5.6: phi' = C w3 / (A cos theta),
+    psi' = w3 (A - C) / A), sampled at 5.4 and 5 rad of phi and psi per sample: drawn as the
+    straight lines they are (numpy.unwrap ran them backwards)."""
+    a, c, omega3, theta = 1.0, 0.5, 200.0, 0.4
+    phi_rate, psi_rate = c * omega3 / (a * np.cos(theta)), omega3 * (a - c) / a
+    state = rj.State(
+        jnp.array([0.0, phi_rate * np.sin(theta), omega3]), rj.quat_from_euler(jnp.array([0.0, theta, 0.0]))
+    )
+    ts = jnp.linspace(0.0, 2.0, 41)
+    traj = rj.simulate(rj.FreeBody(jnp.array([a, a, c])), state, ts, accuracy="exact")
+    fig = rplot.euler_angles(traj)
+    for ax, rate in zip(fig.axes[::2], (phi_rate, psi_rate), strict=True):
+        [line] = ax.get_lines()
+        np.testing.assert_allclose(line.get_ydata(), rate * np.asarray(ts), rtol=0, atol=1e-9)
 
 
 def test_invariant_drift_draws_the_scenes_conserved_quantities(free, top):

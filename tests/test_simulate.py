@@ -230,6 +230,21 @@ def test_heavy_top_conservation_and_precession():
     assert np.max(np.abs(angles[:, 1] - theta0)) < 0.05
 
 
+def test_euler_angles_follow_a_spin_of_more_than_pi_per_sample():
+    """A torque-free symmetric top (A = 1, C = 0.5) with L along space Z: theta constant,
+    phi' = C w3 / (A cos theta), psi' = w3 (A - C) / A (Goldstein 5.6), here 108.6 and 100 rad/s,
+    sampled every 0.05 s (5.4 and 5 rad per sample). Unwrapping by the nearest branch ran both
+    angles backwards."""
+    a, c, omega3, theta = 1.0, 0.5, 200.0, 0.4
+    phi_rate, psi_rate = c * omega3 / (a * np.cos(theta)), omega3 * (a - c) / a
+    omega0 = jnp.array([0.0, phi_rate * np.sin(theta), omega3])
+    ts = jnp.linspace(0.0, 2.0, 41)
+    state = rj.State(omega0, rj.quat_from_euler(jnp.array([0.0, theta, 0.0])))
+    traj = rj.simulate(rj.FreeBody(jnp.array([a, a, c])), state, ts, accuracy="exact")
+    expected = np.stack([phi_rate * np.asarray(ts), np.full(41, theta), psi_rate * np.asarray(ts)], axis=-1)
+    np.testing.assert_allclose(np.asarray(traj.euler_angles()), expected, rtol=0, atol=1e-9)
+
+
 @pytest.mark.slow
 def test_sleeping_top_criterion():
     """(I3 w3)^2 > 4 I1 m g l: an upright top stays up; below it, it falls."""

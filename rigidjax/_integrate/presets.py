@@ -160,9 +160,10 @@ def _span(ts) -> float:
 
 def default_max_steps(omega0, ts) -> int:
     """The step limit per chunk when the caller names none: ``STEPS_PER_TURN`` steps per turn of the
-    fastest body over the span of ``ts`` (``max|omega0| (ts[-1] - ts[0]) / 2 pi`` turns), at least
-    ``MIN_MAX_STEPS``, rounded up to a power of two (the limit is compiled into the program: few
-    distinct values, few compilations); a span that needs more than ``LARGEST_DEFAULT_MAX_STEPS`` is a
+    fastest body over the span of ``ts`` (``max|omega0| (ts[-1] - ts[0]) / 2 pi`` turns) plus one per
+    sample interval (``"precise"`` ends a step on every sample time); ``MIN_MAX_STEPS`` when that is
+    less, else rounded up to a power of two (the limit is compiled into the program: few distinct
+    values, few compilations); a span that needs more than ``LARGEST_DEFAULT_MAX_STEPS`` is a
     ``ValueError``. Inside ``jit`` the values are unknown: ``MIN_MAX_STEPS``.
 
     The limit only bounds the solver's loop: it costs no memory or time when forward, and the
@@ -175,7 +176,7 @@ def default_max_steps(omega0, ts) -> int:
         return MIN_MAX_STEPS
     fastest, span = _largest_norm(omega0), _span(ts)
     turns = fastest * span / (2 * np.pi)
-    need = STEPS_PER_TURN * turns
+    need = STEPS_PER_TURN * turns + (ts.shape[0] - 1)
     if not np.isfinite(need) or need <= MIN_MAX_STEPS:  # non-finite input is reported by the checks
         return MIN_MAX_STEPS
     if need > LARGEST_DEFAULT_MAX_STEPS:

@@ -210,10 +210,10 @@ def simulate(
       non-unit quaternion, unsorted times) raise whatever ``throw`` says: a check of the inputs
       is never a failure of one body. With ``throw=False`` a failed body is flagged in
       ``Trajectory.success`` and is NaN from its failure on, while every other body keeps its
-      result: bodies share a step size within a chunk, so a chunk stopped by a body whose torque or
-      state turned NaN is run again body by body (not inside the user's ``jax.jit``, where the
-      chunk's bodies are flagged together: call ``simulate`` outside the ``jit``, or pass
-      ``chunk_size=1``). With ``accuracy="exact"`` a body fails where its
+      result: bodies share steps within a chunk, so a chunk stopped by a body whose torque or state
+      turned NaN, or that needed more than ``max_steps``, is run again body by body (not inside the
+      user's ``jax.jit``, where the chunk's bodies are flagged together: call ``simulate`` outside
+      the ``jit``, or pass ``chunk_size=1``). With ``accuracy="exact"`` a body fails where its
       closed form is NaN or inf (inputs beyond the dtype's range) or its phase is rounded by more
       than 1e-3 rad (float64: a phase of 4.5e12 rad, float32: 8.4e3 rad; the samples would be
       noise), and is NaN from that sample on too.
@@ -409,11 +409,11 @@ def _in_the_hemisphere_of(traj, q0):
 
 
 def _isolate_faults(traj, model, omega0, q0, run):
-    """Bodies share a step size within a chunk, so one body whose state or torque turns non-finite
-    (the step size collapses) stops its whole chunk. Those chunks' bodies are run again one by one:
-    each healthy body gets its full result, the faulty one is NaN from its fault on."""
+    """Bodies share steps within a chunk: one whose state or torque turns non-finite (the step size
+    collapses), or that needs more than ``max_steps``, stops its chunk. Those chunks' bodies are run
+    again one by one: each healthy body gets its full result, the faulty one is NaN from its fault on."""
     code = np.asarray(traj.stats["result"]).ravel()
-    redo = np.flatnonzero(code == driver.DT_MIN_REACHED)
+    redo = np.flatnonzero((code == driver.DT_MIN_REACHED) | (code == driver.MAX_STEPS_REACHED))
     if redo.size == 0 or traj.stats["chunk_size"] == 1:
         return traj
     batch = traj.batch_shape

@@ -3,13 +3,14 @@
 import os
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._dynamics.equations import _kinetic_energy
 from .._dynamics.models import AbstractModel
-from .._kinematics.euler import _euler_from_quat
+from .._kinematics.euler import _euler_from_quat, _euler_rates
 from .._kinematics.quaternion import _quat_rotate
 from .._repr import _concrete
 from . import storage
@@ -166,13 +167,19 @@ class Trajectory(eqx.Module):
     @eqx.filter_jit
     def euler_angles(self, seq: str = "zxz") -> Float[Array, "*batch T 3"]:
         """Euler angles ``(phi, theta, psi)`` along the trajectory, unwrapped in time so that angles
-        that keep turning (precession, spin) are continuous over many turns."""
+        that keep turning (precession, spin) are continuous over many turns.
+
+        Each step between samples is taken on the branch (a multiple of ``2 pi``) that the Euler
+        rates at its two ends predict (their mean times the step), so an angle that turns by more
+        than ``pi`` between samples (a fast spin sampled sparsely) is followed too. Where the rates
+        are unbounded (gimbal lock) or change by more than ``pi`` over the step, the step nearest to
+        zero is taken, as by ``jnp.unwrap``."""
         if self.orientation is None:
             raise ValueError(
                 "This trajectory has no orientation (omega-only scene); simulate with an orientation."
             )
         angles = _euler_from_quat(self.orientation, seq)
-        return jnp.unwrap(angles, axis=-2)
+        return _unwrapped_by_rates(angles, _euler_rates(angles, self.omega, seq, throw=False), self.ts)
 
     @eqx.filter_jit
     def kinetic_energy(self) -> Float[Array, "*batch T"]:
@@ -247,3 +254,18 @@ class Trajectory(eqx.Module):
             # The solver's own record keeps the steps before the failure: a clean-looking value.
             out["quaternion_norm"] = jnp.where(self.success, q_norm, jnp.nan)
         return out
+
+
+def _unwrapped_by_rates(angles, rates, ts):
+    """``angles`` ``(..., T, 3)`` unwrapped along the samples: each step gets the multiple of ``2 pi``
+    that brings it closest to the trapezoid of ``rates`` over it, where that is finite and the rates
+    change by less than ``pi`` over the step (else the closest to zero)."""
+    step = jnp.diff(angles, axis=-2)
+    dt = jnp.diff(ts)[:, None]
+    early, late = rates[..., :-1, :], rates[..., 1:, :]
+    predicted = 0.5 * (early + late) * dt
+    trusted = jnp.isfinite(predicted) & (jnp.abs(late - early) * dt < jnp.pi)
+    predicted = jnp.where(trusted, predicted, 0.0)
+    turns = jax.lax.stop_gradient(jnp.round((predicted - step) / (2 * jnp.pi)))  # a discrete choice
+    first = jnp.zeros_like(turns[..., :1, :])
+    return angles + 2 * jnp.pi * jnp.concatenate([first, jnp.cumsum(turns, axis=-2)], axis=-2)

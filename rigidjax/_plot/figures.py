@@ -8,7 +8,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from .._kinematics.euler import _parse_seq
+from .._integrate.trajectory import _unwrapped_by_rates
+from .._kinematics.euler import _euler_rates, _parse_seq
 from .._kinematics.euler import euler_from_quat as _euler_from_quat_public
 from . import data
 
@@ -197,8 +198,9 @@ def euler_angles(trajectory, body=0, sequence: str = "zxz", *, fig=None):
     """The Euler angles ``phi``, ``theta``, ``psi`` of one body over time, one panel each.
 
     The angles are :func:`rigidjax.euler_from_quat` of the trajectory's orientations in the given
-    sequence, unwrapped in time (``numpy.unwrap``) so that an angle that keeps turning (precession,
-    spin) is drawn continuously over many turns rather than jumping by ``2 pi``. For the default
+    sequence, unwrapped in time (as :meth:`rigidjax.Trajectory.euler_angles`: each step on the branch
+    the Euler rates predict) so that an angle that keeps turning (precession, spin) is drawn
+    continuously over many turns rather than jumping by ``2 pi``. For the default
     ``"zxz"`` sequence they are the precession, the nutation and the spin.
 
     **Arguments:**
@@ -224,7 +226,9 @@ def euler_angles(trajectory, body=0, sequence: str = "zxz", *, fig=None):
     q = data.orientation(trajectory, i)
     t = data.ts(trajectory)
     good = np.all(np.isfinite(q), axis=-1)
-    angles = np.unwrap(np.asarray(_euler_from_quat_public(q[good], sequence)), axis=0)
+    wrapped = _euler_from_quat_public(q[good], sequence)
+    rates = _euler_rates(wrapped, data.omega(trajectory, i)[good], sequence, throw=False)
+    angles = np.asarray(_unwrapped_by_rates(wrapped, rates, t[good]))
     fig = _new_figure(fig, (8, 7))
     axes = fig.subplots(3, 1, sharex=True)
     names = ("phi", "theta", "psi")
