@@ -353,3 +353,31 @@ def test_the_diffrax_check_switch_is_shared_by_threads():
     assert equinox_errors.EQX_ON_ERROR == "off"  # the second solve is still being traced
     second.__exit__(None, None, None)
     assert equinox_errors.EQX_ON_ERROR == "raise"
+
+
+def test_ctrl_c_between_blocks_starts_no_further_block(threads, monkeypatch):
+    """Ctrl-C (here a KeyboardInterrupt from the progress callback at the first finished block) while
+    two threads run six blocks of one body each: the blocks not yet started do not run (all six ran
+    before the interrupt was raised), and the running ones end before it is."""
+    from rigidjax._integrate import progress
+
+    model, state0 = _scene()
+    threads(2)
+    rj.simulate(model, state0, TS, chunk_size=1)  # compiled before counting
+    started = []
+    block_until_ready = jax.block_until_ready
+
+    def counted(x):
+        if threading.current_thread() is not threading.main_thread():
+            started.append(1)
+        return block_until_ready(x)
+
+    monkeypatch.setattr(progress.jax, "block_until_ready", counted)
+
+    def interrupt(done, total):
+        if done > 0:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        rj.simulate(model, state0, TS, chunk_size=1, progress=interrupt)
+    assert 1 <= len(started) <= 4, len(started)

@@ -14,6 +14,7 @@ core and chunk, the batch runs as one block per core, each from its own thread, 
 and steps, and so the same trajectories to the bit, as one call.
 """
 
+import concurrent.futures
 import functools
 import math
 import sys
@@ -255,9 +256,17 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
                 futures = [
                     pool.submit(lambda b: jax.block_until_ready(solve_block(b)), b) for b in range(n_blocks)
                 ]
-                for b, future in enumerate(futures, start=1):
-                    parts.append(future.result())
-                    report(min(n, b * size), n)
+                try:
+                    for b, future in enumerate(futures, start=1):
+                        parts.append(future.result())
+                        report(min(n, b * size), n)
+                except BaseException:
+                    # Ctrl-C: the blocks not yet started never start, and the running ones end first
+                    # (a compiled computation still running when Python exits can crash it).
+                    for future in futures:
+                        future.cancel()
+                    concurrent.futures.wait(futures)
+                    raise
                 return _assemble(parts, order, batch, n, n_chunks, model)
     for b in range(n_blocks + 1):
         if b < n_blocks:  # dispatched before the previous block is waited for: no idle gap
