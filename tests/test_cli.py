@@ -1044,3 +1044,18 @@ def test_the_wall_time_names_the_error_estimates_second_run(accuracy, dtype, sec
     from rigidjax._cli.simulate import _second_run
 
     assert _second_run(_simulate_args(accuracy=accuracy, dtype=dtype)) == second
+
+
+def test_a_directory_given_as_the_plot_is_answered_with_a_plot_name(tmp_path):
+    """``--plot pp.png`` naming a directory suggested 'pp.png/trajectory.npz', which --plot refuses."""
+    from rigidjax._cli.common import UsageError, check_output
+
+    folder = tmp_path / "pp.png"
+    folder.mkdir()
+    with pytest.raises(
+        UsageError, match=r"is a directory; give a file path such as '.*pp\.png/trajectory\.png'"
+    ):
+        check_output(str(folder), "--plot", (".png", ".pdf", ".svg"))
+    (tmp_path / "out.npz").mkdir()
+    with pytest.raises(UsageError, match=r"give a file path such as '.*out\.npz/trajectory\.npz'"):
+        check_output(str(tmp_path / "out.npz"), "--out", (".npz",))

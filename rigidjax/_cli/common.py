@@ -66,7 +66,7 @@ def check_output(path: str, option: str, extensions: tuple[str, ...]) -> str:
         choices = " or ".join(extensions)
         raise UsageError(f"{option} {path!r}: the file name must end in {choices}.")
     try:
-        return check_writable(path, where=option)
+        return check_writable(path, where=option, example=f"trajectory{extensions[0]}")
     except OSError as error:
         raise UsageError(str(error)) from None
 

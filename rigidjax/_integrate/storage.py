@@ -221,15 +221,14 @@ def checked_path(path, where: str) -> str:
     return path
 
 
-def check_writable(path, where: str = "Trajectory.save") -> str:
+def check_writable(path, where: str = "Trajectory.save", example: str = "trajectory.npz") -> str:
     """``path`` as a string, after checking that a file can be created there: a ``FileNotFoundError``,
     ``IsADirectoryError`` or ``PermissionError`` whose message starts with ``where`` and names the
-    path otherwise."""
+    path otherwise (for a directory, suggesting the file ``example`` in it)."""
     path = checked_path(path, where)
     if os.path.isdir(path):
         raise IsADirectoryError(
-            f"{where}: {path!r} is a directory; give a file path such as "
-            f"{os.path.join(path, 'trajectory.npz')!r}."
+            f"{where}: {path!r} is a directory; give a file path such as {os.path.join(path, example)!r}."
         )
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
