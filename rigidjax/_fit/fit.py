@@ -29,7 +29,7 @@ from .._dynamics.torques import _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
-from .problem import LOSSES, WINDOW_MAX_STEPS, _inertia_params
+from .problem import LOSSES, WINDOW_MAX_STEPS, _inertia_params, _moments_from_z, _on_flat_body_edge
 from .result import InertiaFit
 
 
@@ -221,9 +221,8 @@ def _doubtful(out, data) -> bool:
         return True
     noise = np.asarray(data.noise, float)
     ratio = np.asarray(rms, float) * data.residual_unit / np.where(noise > 0, noise, np.inf)
-    z = np.concatenate([p[:2], [0.0]])
-    second_moments = np.exp(z - z.max()) / np.sum(np.exp(z - z.max()))
-    return bool(np.any(ratio > 2.0) or second_moments.min() < 1e-6)
+    moments = np.asarray(_moments_from_z(jnp.asarray(p[:2])))
+    return bool(np.any(ratio > 2.0) or _on_flat_body_edge(moments))
 
 
 def _reordered_starts(data, p0, full_tensor):

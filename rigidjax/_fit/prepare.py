@@ -30,7 +30,7 @@ class _Data(NamedTuple):
     residual_unit: float  # residuals are in units of this (omega_scale for omega, 1 rad for q)
     omega_scale: float
     noise: np.ndarray  # per-component noise estimate, in the residual's units (rad/s or rad)
-    estimated_start: bool = False  # the starting inertia is the estimate (no inertia_init given)
+    estimated_start: bool  # the starting inertia is the estimate (no inertia_init given)
 
 
 def _prepare_omega(

@@ -41,6 +41,19 @@ def _moments_from_z(z):
     return 0.5 * jnp.stack([J[1] + J[2], J[0] + J[2], J[0] + J[1]])
 
 
+# How close to the flat-body edge (the largest moment the sum of the other two) a fitted body is taken
+# as on it: relative, the second moment J_min below about half of it.
+FLAT_BODY_EDGE = 1e-6
+
+
+def _on_flat_body_edge(moments) -> bool:
+    """Whether principal moments (numpy, any scale) lie on the flat-body edge of the physical moments:
+    the largest the sum of the other two within ``FLAT_BODY_EDGE``, relative. A fit ends there for a
+    flat body and from a start whose moments are wrongly ordered."""
+    low, middle, high = np.sort(np.asarray(moments, dtype=float))
+    return bool(high >= (1 - FLAT_BODY_EDGE) * (low + middle))
+
+
 def _z_from_moments(moments):
     """Inverse of :func:`_moments_from_z` for valid moments (numpy, used for the starting point)."""
     moments = np.asarray(moments, float)

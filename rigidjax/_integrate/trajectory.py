@@ -178,8 +178,7 @@ class Trajectory(eqx.Module):
             raise ValueError(
                 "This trajectory has no orientation (omega-only scene); simulate with an orientation."
             )
-        angles = _euler_from_quat(self.orientation, seq)
-        return _unwrapped_by_rates(angles, _euler_rates(angles, self.omega, seq, throw=False), self.ts)
+        return _unwrapped_euler_angles(self.orientation, self.omega, self.ts, seq)
 
     @eqx.filter_jit
     def kinetic_energy(self) -> Float[Array, "*batch T"]:
@@ -254,6 +253,14 @@ class Trajectory(eqx.Module):
             # The solver's own record keeps the steps before the failure: a clean-looking value.
             out["quaternion_norm"] = jnp.where(self.success, q_norm, jnp.nan)
         return out
+
+
+def _unwrapped_euler_angles(q, omega, ts, seq):
+    """Euler angles of the orientations ``q`` (``(..., T, 4)``), unwrapped in time along ``ts`` by the
+    Euler rates of the angular velocities ``omega`` (``(..., T, 3)``): see
+    :meth:`Trajectory.euler_angles`."""
+    angles = _euler_from_quat(q, seq)
+    return _unwrapped_by_rates(angles, _euler_rates(angles, omega, seq, throw=False), ts)
 
 
 def _unwrapped_by_rates(angles, rates, ts):

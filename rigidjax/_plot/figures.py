@@ -8,9 +8,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from .._integrate.trajectory import _unwrapped_by_rates
-from .._kinematics.euler import _euler_rates, _parse_seq
-from .._kinematics.euler import euler_from_quat as _euler_from_quat_public
+from .._integrate.trajectory import _unwrapped_euler_angles
+from .._kinematics.euler import _parse_seq
 from . import data
 
 _MAX_SEPARATE_BODIES = 8  # invariant_drift draws more bodies than this as their worst case
@@ -226,9 +225,7 @@ def euler_angles(trajectory, body=0, sequence: str = "zxz", *, fig=None):
     q = data.orientation(trajectory, i)
     t = data.ts(trajectory)
     good = np.all(np.isfinite(q), axis=-1)
-    wrapped = _euler_from_quat_public(q[good], sequence)
-    rates = _euler_rates(wrapped, data.omega(trajectory, i)[good], sequence, throw=False)
-    angles = np.asarray(_unwrapped_by_rates(wrapped, rates, t[good]))
+    angles = np.asarray(_unwrapped_euler_angles(q[good], data.omega(trajectory, i)[good], t[good], sequence))
     fig = _new_figure(fig, (8, 7))
     axes = fig.subplots(3, 1, sharex=True)
     names = ("phi", "theta", "psi")
