@@ -90,6 +90,43 @@ def without_runtime_typecheck():
         jaxtyping.config.update("jaxtyping_disable", old)
 
 
+# --- where the suite's time goes ----------------------------------------------------------------
+# RIGIDJAX_TEST_COMPILE_REPORT=path appends one JSON line per test to path: its wall time and the
+# seconds JAX spent in it tracing, lowering and compiling (XLA), with the number of compiles (a
+# program loaded from the persistent cache is not compiled). Compiling is most of a cold run.
+_JAX_SECONDS: dict[str, float] = {}
+_JAX_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "compile",
+}
+
+
+def _count_jax_seconds(event: str, duration: float, **_) -> None:
+    if event in _JAX_EVENTS:
+        key = _JAX_EVENTS[event]
+        _JAX_SECONDS[key] = _JAX_SECONDS.get(key, 0.0) + duration
+        if key == "compile":
+            _JAX_SECONDS["compiles"] = _JAX_SECONDS.get("compiles", 0) + 1
+
+
+if os.environ.get("RIGIDJAX_TEST_COMPILE_REPORT"):
+    jax.monitoring.register_event_duration_secs_listener(_count_jax_seconds)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        import json
+        import time
+
+        _JAX_SECONDS.clear()
+        start = time.perf_counter()
+        yield
+        record = {"test": item.nodeid, "wall": time.perf_counter() - start}
+        record.update({key: _JAX_SECONDS.get(key, 0) for key in ("trace", "lower", "compile", "compiles")})
+        with open(os.environ["RIGIDJAX_TEST_COMPILE_REPORT"], "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+
 # --- the published table of extremes -------------------------------------------------------------
 # Tests in the files listed in benchmarks/extremes_table.py (gimbal lock, bad input, extreme bodies,
 # long horizons) call `extreme(...)` with what they measured. The assertion in the test is the

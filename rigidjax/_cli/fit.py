@@ -20,7 +20,6 @@ import numpy as np
 
 import rigidjax as rj
 
-from .._fit.problem import _on_flat_body_edge
 from .common import (
     DocstringHelpFormatter,
     StatusLine,
@@ -137,7 +136,8 @@ def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
     body's on the edge of the physical moments, or a record without a wobble), and residuals well
     above the record's own noise (a wrong wobble frequency). ``moments``: the principal moments."""
     out = []
-    if not np.all(np.isfinite(stderr)) and _on_flat_body_edge(moments):
+    low, middle, high = np.sort(np.asarray(moments, dtype=float))
+    if not np.all(np.isfinite(stderr)) and high >= (1 - 1e-6) * (low + middle):
         out.append(
             "the largest principal moment is the sum of the other two: a flat body (its mass in one "
             "plane), on the edge of the physical moments, whose distance from that edge the record "

@@ -213,14 +213,15 @@ def _covariance_out(covariance):
 
 def _doubtful(out, data) -> bool:
     """Whether a fit from the estimated start may have ended in the wrong basin: not finite, the
-    residuals over twice the noise estimate, or a second moment at 0 (the flat-body edge, where a
-    wrongly ordered start ends)."""
-    p, _, _, _, _, final_loss, rms = out
+    residuals over twice the noise estimate, or on the flat-body edge (where a wrongly ordered start
+    ends). The residuals are measured robustly (median absolute value), as the noise is: a few
+    outliers in a squared-loss fit raise the rms, which no other start would lower."""
+    p, _, _, _, _, final_loss, _, robust_rms = out
     p = np.asarray(p, float)
     if not (np.all(np.isfinite(p)) and np.isfinite(float(final_loss))):
         return True
     noise = np.asarray(data.noise, float)
-    ratio = np.asarray(rms, float) * data.residual_unit / np.where(noise > 0, noise, np.inf)
+    ratio = np.asarray(robust_rms, float) * data.residual_unit / np.where(noise > 0, noise, np.inf)
     moments = np.asarray(_moments_from_z(jnp.asarray(p[:2])))
     return bool(np.any(ratio > 2.0) or _on_flat_body_edge(moments))
 
@@ -277,7 +278,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
     finally:
         if callback is not None:
             _ACTIVE.pop()
-    p, history, n_steps, converged, covariance, final_loss, rms = out
+    p, history, n_steps, converged, covariance, final_loss, rms, _ = out
     if not (bool(jnp.all(jnp.isfinite(p))) and bool(jnp.isfinite(final_loss))):
         if problem.torque is not None:
             raise FloatingPointError(

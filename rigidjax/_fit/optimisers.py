@@ -509,7 +509,8 @@ def _gauss_newton_covariance(J, variance):
 @eqx.filter_jit
 def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, callback):
     """The compiled fit: the optimum, its history and step count, whether it converged, the
-    Gauss–Newton covariance of the parameters, the final loss and the rms residual per component."""
+    Gauss–Newton covariance of the parameters, the final loss, the rms residual per component (robust,
+    1.4826 times the median absolute residual, for a robust loss) and the robust one for every loss."""
     # The loss resolves changes of about its dtype's epsilon only (float32: 1.2e-7): a tolerance
     # below that could be met only by chance.
     tol = max(tol, 10.0 * float(jnp.finfo(p0.dtype).eps))
@@ -533,5 +534,6 @@ def _run(problem: _Problem, p0, method: str, optimizer, steps: int, tol: float, 
     # The rms is read against the noise estimate; with a robust loss the outliers it discounts would
     # make that ratio hundreds, so there the rms is estimated the same robust way as the noise.
     robust_rms = 1.4826 * jnp.nanmedian(jnp.where(problem.mask, jnp.abs(raw), jnp.nan), axis=(0, 1))
-    rms = jnp.where(problem.loss_index == 0, rms, jnp.where(counts > 0, robust_rms, 0.0))
-    return p, history, n_steps, done, (covariance, undetermined), squares / n, rms
+    robust_rms = jnp.where(counts > 0, robust_rms, 0.0)
+    rms = jnp.where(problem.loss_index == 0, rms, robust_rms)
+    return p, history, n_steps, done, (covariance, undetermined), squares / n, rms, robust_rms
