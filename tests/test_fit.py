@@ -7,6 +7,7 @@ are what compile, not the loss), so the file compiles only a handful of times.
 
 import functools
 import types
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -201,8 +202,11 @@ def test_multiple_shooting_succeeds_where_single_shooting_fails():
     ts = long_times()
     obs = record(I_TRUE, W0_TRUE, ts, 0.02, rng)
     poor = np.array([1.0, 1.7, 2.6])
-    single = fit_inertia(ts, obs, inertia_init=poor)
-    multiple = fit_inertia(ts, obs, inertia_init=poor, segments="auto")
+    with pytest.warns(RuntimeWarning, match=r"residuals are \d+\.\d times the record's noise"):
+        single = fit_inertia(ts, obs, inertia_init=poor)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the right minimum: no warning
+        multiple = fit_inertia(ts, obs, inertia_init=poor, segments="auto")
     assert multiple.omega0.shape[0] >= 40
     assert np.max(np.abs(np.asarray(single.inertia) - TRUTH)) > 1e-2
     z = (np.asarray(multiple.inertia) - TRUTH) / np.asarray(multiple.inertia_stderr)
@@ -228,11 +232,14 @@ def test_missing_samples_and_outliers_need_a_robust_loss(monkeypatch):
     flat = rng.choice(obs.size, 40, replace=False)
     obs.flat[flat] = np.where(np.isnan(obs.flat[flat]), np.nan, obs.flat[flat] + 3.0)  # gross outliers
     segments = 45
-    squared = fit_inertia(ts, obs, segments=segments)
+    with pytest.warns(RuntimeWarning, match="times the record's noise"):
+        squared = fit_inertia(ts, obs, segments=segments)
     traces = []
     evaluate = _Problem.residuals_and_raw
     monkeypatch.setattr(_Problem, "residuals_and_raw", lambda self, p: traces.append(1) or evaluate(self, p))
-    robust = fit_inertia(ts, obs, segments=segments, loss="soft_l1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        robust = fit_inertia(ts, obs, segments=segments, loss="soft_l1")
     assert not traces  # the loss is a traced value: the squared fit's compiled program serves it
     assert np.all(np.isfinite(robust.inertia)) and bool(robust.converged)
     z = (np.asarray(robust.inertia) - TRUTH) / np.asarray(robust.inertia_stderr)
@@ -741,7 +748,9 @@ def test_a_few_outliers_in_a_squared_fit_start_no_restarts(monkeypatch):
     runs = []
     run = fit_module._run
     monkeypatch.setattr(fit_module, "_run", lambda *args: runs.append(1) or run(*args))
-    fit = fit_inertia(ts, observed, method="levenberg-marquardt")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nor a warning of residuals above the noise
+        fit = fit_inertia(ts, observed, method="levenberg-marquardt")
     assert np.max(np.asarray(fit.residual_rms / fit.noise_estimate)) > 2.0  # the plain rms
     assert len(runs) == 1
     z = (np.asarray(fit.inertia) - inertia / inertia.sum()) / np.asarray(fit.inertia_stderr)

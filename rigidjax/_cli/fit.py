@@ -14,6 +14,7 @@ import math
 import os
 import sys
 import time
+import warnings
 
 import jax
 import numpy as np
@@ -363,18 +364,21 @@ def run(args) -> int:
     progress = _Progress(steps, stream, not args.quiet)
     t0 = time.perf_counter()
     try:
-        fit = rj.fit_inertia(
-            ts,
-            omega,
-            segments=segments,
-            full_tensor=args.full_tensor,
-            loss=args.loss,
-            method=args.method,
-            steps=args.steps,
-            inertia_trace=args.trace,
-            known_moment=known_moment,
-            callback=None if args.quiet else progress,
-        )
+        with warnings.catch_warnings():
+            # The command says so itself, below, against the plain rms.
+            warnings.filterwarnings("ignore", message="the fit's residuals are", category=RuntimeWarning)
+            fit = rj.fit_inertia(
+                ts,
+                omega,
+                segments=segments,
+                full_tensor=args.full_tensor,
+                loss=args.loss,
+                method=args.method,
+                steps=args.steps,
+                inertia_trace=args.trace,
+                known_moment=known_moment,
+                callback=None if args.quiet else progress,
+            )
     except ValueError as error:
         progress.close()
         print(f"rigidjax fit: error: {error}", file=sys.stderr)
@@ -411,8 +415,8 @@ def run(args) -> int:
         f"({fit.method}, {seconds:.1f} s including compile)"
     )
     print("\n".join(lines))
-    warnings = _fit_warnings(err, rms, noise, np.asarray(fit.principal_moments))
-    for warning in warnings:
+    cautions = _fit_warnings(err, rms, noise, np.asarray(fit.principal_moments))
+    for warning in cautions:
         print(f"warning: {warning}", file=sys.stderr)
 
     result = {
@@ -428,7 +432,7 @@ def run(args) -> int:
         "loss": float(fit.loss),
         "residual_rms": rms.tolist(),
         "noise_estimate": noise.tolist(),
-        "warnings": warnings,
+        "warnings": cautions,
         "converged": bool(fit.converged),
         "iterations": fit.num_steps,
         "method": fit.method,

@@ -15,6 +15,7 @@ import dataclasses
 import itertools
 import math
 import sys
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -220,10 +221,17 @@ def _doubtful(out, data) -> bool:
     p = np.asarray(p, float)
     if not (np.all(np.isfinite(p)) and np.isfinite(float(final_loss))):
         return True
-    noise = np.asarray(data.noise, float)
-    ratio = np.asarray(robust_rms, float) * data.residual_unit / np.where(noise > 0, noise, np.inf)
     moments = np.asarray(_moments_from_z(jnp.asarray(p[:2])))
-    return bool(np.any(ratio > 2.0) or _on_flat_body_edge(moments))
+    return bool(_residual_ratio(robust_rms, data) > 2.0 or _on_flat_body_edge(moments))
+
+
+def _residual_ratio(robust_rms, data) -> float:
+    """The largest ratio of a component's median-based residual scale to its noise estimate: about 1
+    where the fitted motion follows the record, whatever its outliers."""
+    noise = np.asarray(data.noise, float)
+    return float(
+        np.max(np.asarray(robust_rms, float) * data.residual_unit / np.where(noise > 0, noise, np.inf))
+    )
 
 
 def _reordered_starts(data, p0, full_tensor):
@@ -292,6 +300,16 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
             f"the {method} optimiser diverged: its parameters turned NaN or inf within {int(n_steps)} "
             "iterations. Try method='levenberg-marquardt', a smaller learning rate, or more segments "
             "(shorter windows) for a long record."
+        )
+    ratio = _residual_ratio(out[7], data)
+    if ratio > 2.0:
+        warnings.warn(
+            f"the fit's residuals are {ratio:.1f} times the record's noise estimate (their median "
+            "absolute value, which outliers do not move): the fitted motion does not follow the record, "
+            "whatever `converged` says. Check the time unit (seconds), and try segments='auto' (a "
+            "wrong wobble frequency over a long record) or a robust loss (many outliers).",
+            RuntimeWarning,
+            stacklevel=3,
         )
     if callback is not None and callback.print_lines:
         verdict = "converged" if bool(converged) else "not converged (the iteration limit or a stall)"
@@ -481,6 +499,8 @@ def fit_inertia(
     {common}
 
     **Returns:** an :class:`InertiaFit` (``orientation0`` is None).
+    A ``RuntimeWarning`` says when the residuals (their median absolute value) are more than twice
+    the noise estimate: the fitted motion then does not follow the record.
     """
     ts, omega = _check_data(ts, omega_observed)
     method, steps, inertia_trace, known_moment, dtype = _check_options(
@@ -570,6 +590,8 @@ def fit_inertia_to_orientation(
 
     **Returns:** an :class:`InertiaFit` with ``orientation0`` and ``orientation0_stderr`` (rad, about
     the body axes).
+    A ``RuntimeWarning`` says when the residuals (their median absolute value) are more than twice
+    the noise estimate: the fitted motion then does not follow the record.
     """
     ts, q = _check_quaternions(ts, orientation_observed)
     method, steps, inertia_trace, known_moment, dtype = _check_options(
