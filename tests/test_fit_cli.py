@@ -361,7 +361,7 @@ def test_a_fit_the_record_does_not_support_is_flagged():
     in milliseconds fitted as a near-sphere with tiny errors, both as "converged", without a word;
     its JSON wrote Infinity, which JSON does not have."""
     from rigidjax._cli.common import finite_or_none
-    from rigidjax._cli.fit import _fit_warnings
+    from rigidjax._fit.result import _fit_warnings
 
     noise = np.array([1e-3, 1e-3, 1e-3])
     moments = np.array([0.2, 0.35, 0.45])

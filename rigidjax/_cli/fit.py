@@ -132,34 +132,6 @@ def _without_comment(cells: list[str]) -> list[str]:
     return cells
 
 
-def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
-    """What the numbers say against trusting the fit: moments the record does not determine (a flat
-    body's on the edge of the physical moments, or a record without a wobble), and residuals well
-    above the record's own noise (a wrong wobble frequency). ``moments``: the principal moments."""
-    out = []
-    low, middle, high = np.sort(np.asarray(moments, dtype=float))
-    if not np.all(np.isfinite(stderr)) and high >= (1 - 1e-6) * (low + middle):
-        out.append(
-            "the largest principal moment is the sum of the other two: a flat body (its mass in one "
-            "plane), on the edge of the physical moments, whose distance from that edge the record "
-            "cannot give (an infinite standard error); the moments shown are the edge's."
-        )
-    elif not np.all(np.isfinite(stderr)):
-        out.append(
-            "the record does not determine every moment (infinite standard errors): a spin about one "
-            "principal axis, or a wobble below the noise, fixes no inertia ratio; the values shown for "
-            "those moments are arbitrary."
-        )
-    ratio = np.max(rms / np.maximum(noise, np.finfo(float).tiny))
-    if np.all(np.isfinite(noise)) and np.all(noise > 0) and ratio > 2:
-        out.append(
-            f"the residuals are {ratio:.1f} times the record's noise estimate: the fit explains the record "
-            "worse than its noise, most often a wrong wobble frequency. Check the time unit (seconds) "
-            "and try --segments auto."
-        )
-    return out
-
-
 def _number(path: str, row: int, column: str, text: str) -> float:
     """One cell as a float: empty or ``nan`` is a missing sample (NaN); text that is not a number
     is a :class:`DataError` naming the row and the column."""
@@ -415,7 +387,7 @@ def run(args) -> int:
         f"({fit.method}, {seconds:.1f} s including compile)"
     )
     print("\n".join(lines))
-    cautions = _fit_warnings(err, rms, noise, np.asarray(fit.principal_moments))
+    cautions = fit.warnings
     for warning in cautions:
         print(f"warning: {warning}", file=sys.stderr)
 

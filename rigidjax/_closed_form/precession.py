@@ -131,8 +131,8 @@ def _carlson_rf(x, y, z):
 
     On CPU each step of the loop costs about ten dispatches of small kernels, most of the cost of
     the precession's parameters; unrolled, the steps fuse, and held in memory, the result is not
-    recomputed (steps included) by each of its readers. Differentiated, the unrolled steps would
-    lengthen the compile (the loop's derivative is one loop).
+    recomputed (steps included) by each of its readers. Differentiated, the value and derivative
+    are the loop's: unrolled steps would lengthen the compile (the loop's derivative is one loop).
 
     Every body takes the step count that arguments spread over 300 decades need, also where fewer
     would do: stopping after the first steps where all bodies had converged (a ``cond``) cost more
@@ -160,8 +160,8 @@ def _rf_steps(state, count):
 
 @_carlson_rf.defjvp
 def _carlson_rf_jvp(primals, tangents):
-    _, tangent = jax.jvp(lambda *a: _carlson_rf_rd(*a, with_rd=False)[0], primals, tangents)
-    return _carlson_rf(*primals), tangent
+    # The loop's own value (the same steps): the unrolled ones are left out of differentiated programs.
+    return jax.jvp(lambda *a: _carlson_rf_rd(*a, with_rd=False)[0], primals, tangents)
 
 
 def _upper_zeta(agm, shift, from_zero, nome, factors):
@@ -173,11 +173,14 @@ def _upper_zeta(agm, shift, from_zero, nome, factors):
     sin_b, cos_b = jnp.where(from_zero, sin_a, cos_a), jnp.where(from_zero, cos_a, sin_a)
     b = jnp.where(from_zero, angle, jnp.pi / 2 - angle)
     sin_2b, cos_2b = 2 * sin_b * cos_b, (cos_b - sin_b) * (cos_b + sin_b)
-    zeta = jnp.zeros_like(b)
-    power, nome2 = nome, nome * nome
-    for _ in range(factors):
-        zeta = zeta + 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power)
-        power = power * nome2
+    nome2 = nome * nome
+
+    def term(_, carry):
+        zeta, power = carry
+        return zeta + 4 * power * sin_2b / (1 - 2 * power * cos_2b + power * power), power * nome2
+
+    # Loops rather than unrolled terms here and in _im_zeta: smaller programs, faster to compile.
+    zeta, _ = jax.lax.fori_loop(0, factors, term, tuple(jnp.broadcast_arrays(jnp.zeros_like(b), nome)))
     return b, (sin_b, cos_b, sin_2b, cos_2b), zeta
 
 
@@ -193,12 +196,15 @@ def _lower_terms(agm, shift, from_zero, nome):
 
 def _im_zeta(r, s, gap, nome2, factors):
     """``Im Z(i beta | m) / agm`` from the terms of :func:`_lower_terms`: a sum of positive terms."""
-    total = jnp.zeros_like(r)
-    for _ in range(factors):
+
+    def term(_, carry):
+        total, r, s, gap = carry
         total = total + 2 * (r - s) / (gap * (1 - s))
         r, s = r * nome2, s * nome2
-        gap = 1 - r
-    return total
+        return total, r, s, 1 - r
+
+    r, s, gap = jnp.broadcast_arrays(r, s, gap, nome2)[:3]
+    return jax.lax.fori_loop(0, factors, term, (jnp.zeros_like(r), r, s, gap))[0]
 
 
 def _reduce(tau, quarter):

@@ -286,7 +286,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
     finally:
         if callback is not None:
             _ACTIVE.pop()
-    p, history, n_steps, converged, covariance, final_loss, rms, _ = out
+    p, history, n_steps, converged, covariance, final_loss, rms, robust_rms = out
     if not (bool(jnp.all(jnp.isfinite(p))) and bool(jnp.isfinite(final_loss))):
         if problem.torque is not None:
             raise FloatingPointError(
@@ -301,7 +301,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
             "iterations. Try method='levenberg-marquardt', a smaller learning rate, or more segments "
             "(shorter windows) for a long record."
         )
-    ratio = _residual_ratio(out[7], data)
+    ratio = _residual_ratio(robust_rms, data)
     if ratio > 2.0:
         warnings.warn(
             f"the fit's residuals are {ratio:.1f} times the record's noise estimate (their median "

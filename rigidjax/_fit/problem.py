@@ -42,7 +42,9 @@ def _moments_from_z(z):
 
 
 # How close to the flat-body edge (the largest moment the sum of the other two) a fitted body is taken
-# as on it: relative, the second moment J_min below about half of it.
+# as on it, relative: I3 >= (1 - FLAT_BODY_EDGE) (I1 + I2). A square plate whose thickness is 1/1000
+# of its side lies 1e-6 from the edge (I1 + I2 - I3 = 2 t^2 / (2 a^2 + 2 t^2) of I1 + I2), so only
+# thinner bodies count as on it.
 FLAT_BODY_EDGE = 1e-6
 
 

@@ -15,6 +15,7 @@ from .._dynamics.state import State
 from .._integrate.simulate import simulate
 from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
 from .._repr import summarize
+from .problem import _on_flat_body_edge
 
 
 class InertiaFit(eqx.Module):
@@ -59,6 +60,9 @@ class InertiaFit(eqx.Module):
     - `normalised`: True when `inertia` has trace 1 (no scale was given).
     - `method`: the optimiser, ``"optax"`` or ``"levenberg-marquardt"``.
     - `torque`: the known torque of the fit (a tuple of torques), or None: torque-free.
+
+    The property `warnings` lists what these numbers say against trusting the fit (empty when
+    nothing does): moments the record does not determine, and residuals over twice the noise.
     """
 
     inertia: Float[Array, "3"] | Float[Array, "3 3"]
@@ -81,6 +85,20 @@ class InertiaFit(eqx.Module):
     normalised: bool = eqx.field(static=True)
     method: str = eqx.field(static=True)
     torque: Any = None
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the fit's own numbers say against trusting it, one sentence each (empty when nothing
+        does): moments the record does not determine (infinite standard errors; a flat body's, on
+        the edge of the physical moments, named as such), and `residual_rms` over twice
+        `noise_estimate` (a wrong wobble frequency, a wrong time unit, or outliers under a squared
+        loss). The command line prints these."""
+        return _fit_warnings(
+            np.asarray(self.inertia_stderr, float),
+            np.asarray(self.residual_rms, float),
+            np.asarray(self.noise_estimate, float),
+            np.asarray(self.principal_moments, float),
+        )
 
     def __repr__(self) -> str:
         """A few lines: the fitted inertia and its standard errors, whether the optimiser converged,
@@ -216,3 +234,29 @@ class InertiaFit(eqx.Module):
             elapsed,
         )[1]
         return _quat_multiply(q, _quat_conjugate(q_axes))
+
+
+def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
+    """:attr:`InertiaFit.warnings` from the standard errors, residuals, noise estimate and principal
+    moments (numpy arrays)."""
+    out = []
+    if not np.all(np.isfinite(stderr)) and _on_flat_body_edge(moments):
+        out.append(
+            "the largest principal moment is the sum of the other two: a flat body (its mass in one "
+            "plane), on the edge of the physical moments, whose distance from that edge the record "
+            "cannot give (an infinite standard error); the moments shown are the edge's."
+        )
+    elif not np.all(np.isfinite(stderr)):
+        out.append(
+            "the record does not determine every moment (infinite standard errors): a spin about one "
+            "principal axis, or a wobble below the noise, fixes no inertia ratio; the values shown for "
+            "those moments are arbitrary."
+        )
+    ratio = np.max(rms / np.maximum(noise, np.finfo(float).tiny))
+    if np.all(np.isfinite(noise)) and np.all(noise > 0) and ratio > 2:
+        out.append(
+            f"the residuals are {ratio:.1f} times the record's noise estimate: the fit explains the record "
+            "worse than its noise, most often a wrong wobble frequency. Check the time unit (seconds), "
+            "and fit in windows (segments='auto') or with a robust loss (outliers)."
+        )
+    return out
