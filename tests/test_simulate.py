@@ -269,19 +269,17 @@ def test_constant_and_damping_torques_on_a_sphere():
     ts = jnp.linspace(0.0, 2.0, 21)
     w0 = jnp.array([1.0, -2.0, 0.5])
     tau = jnp.array([0.1, 0.2, -0.3])
+    # The closed forms in NumPy (eager jnp operations would each compile a program of their own).
+    t, w0_, tau_ = np.asarray(ts), np.asarray(w0), np.asarray(tau)
     traj = rj.simulate(rj.RigidBody(inertia, rj.ConstantTorque(tau)), rj.State(w0), ts)
-    np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(w0 + tau * ts[:, None] / I), rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(traj.omega), w0_ + tau_ * t[:, None] / I, rtol=1e-9)
     c = 0.3
     traj = rj.simulate(rj.RigidBody(inertia, rj.ViscousDamping(c)), rj.State(w0), ts, accuracy="precise")
-    np.testing.assert_allclose(
-        np.asarray(traj.omega), np.asarray(w0 * jnp.exp(-c * ts / I)[:, None]), rtol=1e-9
-    )
+    np.testing.assert_allclose(np.asarray(traj.omega), w0_ * np.exp(-c * t / I)[:, None], rtol=1e-9)
     q0 = rj.quat_from_euler(jnp.array([0.3, 0.7, -0.2]))
     traj = rj.simulate(rj.RigidBody(inertia, rj.ConstantTorque(tau, frame="space")), rj.State(w0, q0), ts)
-    L0 = rj.quat_rotate(q0, I * w0)
-    np.testing.assert_allclose(
-        np.asarray(traj.space_angular_momentum()), np.asarray(L0 + tau * ts[:, None]), atol=1e-7
-    )
+    L0 = np.asarray(rj.matrix_from_quat(q0)) @ (I * w0_)  # R(q0) L0 with a matrix, not quat_rotate
+    np.testing.assert_allclose(np.asarray(traj.space_angular_momentum()), L0 + tau_ * t[:, None], atol=1e-7)
 
 
 def test_user_torque_callable_and_no_recompilation():
@@ -368,7 +366,7 @@ def test_gradient_matches_finite_differences():
         return rj.simulate(rj.FreeBody(inertia), rj.State(w0), ts, accuracy="precise").omega[-1]
 
     inertia = jnp.array([1.0, 2.0, 2.5])
-    jac = np.asarray(jax.jacrev(final_omega)(inertia))
+    jac = np.asarray(jax.jit(jax.jacrev(final_omega))(inertia))  # one program, not op by op
     # Reference: the variational equations in the moments (states of zero rate), by scipy. Central
     # differences of the "precise" solve (h = 1e-6, the reference before) are within 1.7e-8 of it,
     # jacrev within 1.2e-11.
@@ -492,12 +490,14 @@ def test_per_body_torques_in_a_batch():
     w0 = jnp.array([1.0, -2.0, 0.5])
     tau = jnp.linspace(-0.3, 0.3, 3 * n).reshape(n, 3)
     traj = rj.simulate(rj.RigidBody(inertia, rj.ConstantTorque(tau)), rj.State(w0), ts, accuracy="precise")
-    expected = w0 + tau[:, None, :] * ts[None, :, None] / I
-    np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(expected), rtol=1e-9, atol=1e-12)
+    # The closed forms in NumPy (eager jnp operations would each compile a program of their own).
+    t, w0_, tau_ = np.asarray(ts), np.asarray(w0), np.asarray(tau)
+    expected = w0_ + tau_[:, None, :] * t[None, :, None] / I
+    np.testing.assert_allclose(np.asarray(traj.omega), expected, rtol=1e-9, atol=1e-12)
     c = jnp.linspace(0.1, 0.5, n)[:, None]  # per-body scalar coefficients: shape (N, 1)
     traj = rj.simulate(rj.RigidBody(inertia, rj.ViscousDamping(c)), rj.State(w0), ts, accuracy="precise")
-    expected = w0 * jnp.exp(-c[:, :, None] * ts[None, :, None] / I)
-    np.testing.assert_allclose(np.asarray(traj.omega), np.asarray(expected), rtol=1e-9)
+    expected = w0_ * np.exp(-np.asarray(c)[:, :, None] * t[None, :, None] / I)
+    np.testing.assert_allclose(np.asarray(traj.omega), expected, rtol=1e-9)
 
 
 @pytest.mark.slow
@@ -581,11 +581,11 @@ def test_derivatives_at_rest_follow_the_linearised_motion(settings, rtol):
     expected = np.array(
         [[np.cos(k * T), np.sin(k * T) / (2 * k)], [np.cosh(k * T), np.sinh(k * T) / (2 * k)]]
     )
-    jacobian = np.asarray(jax.jacfwd(final)(jnp.zeros((2, 3))))  # (2, 2, 2, 3)
+    jacobian = np.asarray(jax.jit(jax.jacfwd(final))(jnp.zeros((2, 3))))  # (2, 2, 2, 3)
     along_omega_1 = jacobian[np.arange(2), :, np.arange(2), 0]
     np.testing.assert_allclose(along_omega_1, expected, rtol=rtol)
     if settings.get("accuracy") == "balanced":
-        gradient = np.asarray(jax.grad(lambda w: jnp.sum(final(w)[:, 0]))(jnp.zeros((2, 3))))
+        gradient = np.asarray(jax.jit(jax.grad(lambda w: jnp.sum(final(w)[:, 0])))(jnp.zeros((2, 3))))
         np.testing.assert_allclose(gradient[:, 0], expected[:, 0], rtol=rtol)
 
 
@@ -603,7 +603,8 @@ def test_heavy_top_gradients_wrt_mass_omega0_and_com():
         return rj.quat_rotate(traj.orientation[-1], jnp.array([0.0, 0.0, 1.0]))[2]
 
     args = (jnp.asarray(0.5), jnp.array([0.3, -0.2, 40.0]), jnp.array([0.0, 0.01, 0.05]))
-    grads = np.concatenate([np.ravel(g) for g in jax.grad(height, argnums=(0, 1, 2))(*args)])
+    gradient = jax.jit(jax.grad(height, argnums=(0, 1, 2)))  # one program, not op by op
+    grads = np.concatenate([np.ravel(g) for g in gradient(*args)])
     # Reference: the variational equations of I w' = (I w) x w + (R^T Z) x (m g com), q' = q (0, w) / 2
     # in (mass, omega0, com), the mass and com states of zero rate, by scipy. Central differences of
     # the "precise" solve (relative step 1e-6, the reference before) are within 1.5e-7 of it, the
@@ -655,12 +656,13 @@ def test_simulate_routes_structure_preserving_solvers():
     top = rj.HeavyTop(inertia=jnp.array([1.0, 1.0, 0.4]), mass=1.0, com=jnp.array([0.0, 0.0, 0.3]))
     q0 = rj.quat_from_euler(jnp.array([0.0, 0.5, 0.0]))
     state0 = rj.State(jnp.array([0.0, 0.0, 12.0]), q0)
-    ts = jnp.linspace(0.0, 1.0, 5)
+    # 21 samples, as the heavy top of the Euler-angle test below: its "precise" program serves here.
+    ts = jnp.linspace(0.0, 1.0, 21)
     reference = rj.simulate(top, state0, ts, accuracy="precise")
     splitting = rj.solvers.HeavyTopSplitting.from_model(top, order=4)
     split = rj.simulate(top, state0, ts, solver=splitting, dt0=2e-3)
     np.testing.assert_allclose(split.omega, reference.omega, atol=1e-6)
-    assert float(jnp.max(jnp.abs(jnp.linalg.norm(split.orientation, axis=-1) - 1.0))) < 1e-13
+    assert np.max(np.abs(np.linalg.norm(np.asarray(split.orientation), axis=-1) - 1.0)) < 1e-13
     with pytest.raises(ValueError, match="fixed step: pass dt0"):
         rj.simulate(top, state0, ts, solver=rj.solvers.RKMK())
 
@@ -678,7 +680,8 @@ def test_simulate_inside_a_jit_that_closes_over_its_inputs(model, accuracy):
     """Arrays a jitted function closes over are constants of its program: their checks read their
     values while it is traced, the program gives the eager values, and a bad one raises the eager
     ``ValueError`` when the function is traced."""
-    omega0, ts = jnp.array([0.1, 2.0, 0.1]), jnp.linspace(0.0, 1.0, 5)
+    # 41 samples, as the spin test above: the eager "exact" free body is the program it compiled.
+    omega0, ts = jnp.array([0.1, 2.0, 0.1]), jnp.linspace(0.0, 1.0, 41)
     q0 = jnp.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
     eager = rj.simulate(model, rj.State(omega0, q0), ts, accuracy=accuracy)
     closed_over = jax.jit(lambda: rj.simulate(model, rj.State(omega0, q0), ts, accuracy=accuracy))()
@@ -751,9 +754,12 @@ def test_torque_free_bodies_share_chunks_by_period_and_phase():
     next_flip = grid[np.argmax(np.sign(w2) != np.sign(w2[:, :1]), axis=1)]
     ts = jnp.array([0.0, 20.0])
 
+    @jax.jit  # the planner as one program (eagerly, each of its operations compiles on its own)
+    def order(model, omega):
+        return chunked.plan_bodies(model, omega, None, ts, None, ScaledODE(), chunk, True)[-1].order
+
     def chunks_of(model, omega):
-        plan = chunked.plan_bodies(model, jnp.asarray(omega), None, ts, None, ScaledODE(), chunk, True)[-1]
-        return np.asarray(plan.order).reshape(-1, chunk)
+        return np.asarray(order(model, jnp.asarray(omega))).reshape(-1, chunk)
 
     chunks = chunks_of(free, omega0)
     np.testing.assert_array_equal(np.sort(chunks[0]), np.arange(chunk))  # the fast class first
@@ -915,7 +921,7 @@ def test_options_as_users_pass_them(without_runtime_typecheck):
         return jnp.sum(rj.simulate(rj.FreeBody(inertia), rj.State(w), ts, **options).omega[-1] ** 2)
 
     inertia = jnp.array([1.0, 2.0, 2.5])
-    twice = jax.jacrev(jax.jacrev(f))(inertia)
+    twice = jax.jit(jax.jacrev(jax.jacrev(f)))(inertia)  # one program, not op by op
     # sum_i w_i^2: its Hessian is 2 sum_i (dw_i/dI dw_i/dI^T + w_i d2w_i/dI^2), with the second
     # variational equations in the moments integrated by scipy (the closed form's jax.hessian, 10-30 s
     # to compile, agrees with it to 4e-15).
