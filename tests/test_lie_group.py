@@ -337,27 +337,31 @@ def test_simulate_rkmk_damped_sphere_closed_form_and_grad():
     model = RigidBody(jnp.full(3, I), ViscousDamping(c))
     ts = jnp.linspace(0.0, 1.5, 4)
     traj = simulate_structure_preserving(model, State(omega0, Q0), ts, RKMK("bosh3"), 0.01)
-    decay = jnp.exp(-c[:, :, None] * ts[None, :, None] / I)  # (2, T, 1)
-    np.testing.assert_allclose(traj.omega, omega0[:, None, :] * decay, rtol=0, atol=1e-8)
-    angle = jnp.linalg.norm(omega0, axis=-1)[:, None] * I / c * (1.0 - decay[..., 0])
-    axis = omega0 / jnp.linalg.norm(omega0, axis=-1, keepdims=True)
-    rot = Rotation.from_rotvec(np.array(angle[..., None] * axis[:, None, :]).reshape(-1, 3))
+    # The closed form in NumPy (eager jnp operations would each compile a program of their own).
+    c_, w0_, t_ = np.asarray(c), np.asarray(omega0), np.asarray(ts)
+    decay = np.exp(-c_[:, :, None] * t_[None, :, None] / I)  # (2, T, 1)
+    np.testing.assert_allclose(traj.omega, w0_[:, None, :] * decay, rtol=0, atol=1e-8)
+    angle = np.linalg.norm(w0_, axis=-1)[:, None] * I / c_ * (1.0 - decay[..., 0])
+    axis = w0_ / np.linalg.norm(w0_, axis=-1, keepdims=True)
+    rot = Rotation.from_rotvec((angle[..., None] * axis[:, None, :]).reshape(-1, 3))
     expected = Rotation.from_quat(np.asarray(Q0), scalar_first=True) * rot
     np.testing.assert_allclose(
         matrix_from_quat(traj.orientation).reshape(-1, 3, 3), expected.as_matrix(), rtol=0, atol=1e-8
     )
 
-    # Reverse mode through the fixed-step loop vs central differences (w.r.t. the damping).
+    # Reverse mode through the fixed-step loop vs central differences (w.r.t. the damping), each a
+    # compiled program (the differences' four evaluations share one).
+    @jax.jit
     def final_speed(coef):
         m = RigidBody(jnp.full(3, I), ViscousDamping(coef))
         return jnp.sum(
             simulate_structure_preserving(m, State(omega0, Q0), ts, RKMK("bosh3"), 0.01).omega[:, -1]
         )
 
-    g = jax.grad(final_speed)(c)
+    g = jax.jit(jax.grad(final_speed))(c)
     eps = 1e-6
-    fd = jnp.stack(
-        [(final_speed(c + eps * e) - final_speed(c - eps * e)) / (2 * eps) for e in jnp.eye(2)[:, :, None]]
+    fd = np.stack(
+        [(final_speed(c + eps * e) - final_speed(c - eps * e)) / (2 * eps) for e in np.eye(2)[:, :, None]]
     )
     np.testing.assert_allclose(g[:, 0], fd, rtol=1e-6, atol=0)
 
@@ -377,6 +381,21 @@ def test_simulate_errors():
         simulate_structure_preserving(TOP, state, ts[::-1], RKMK(), 0.1)
     with pytest.raises(ValueError, match="orientation"):
         simulate_structure_preserving(TOP, State(OMEGA0), ts, RKMK(), 0.1)
+
+
+def test_fixed_step_inside_a_jit_takes_the_times_it_closes_over():
+    """The step count comes from the sample times, so they must be known when a jitted function is
+    traced: NumPy times (and a list) it closes over are, and give the eager values. They raised
+    "ts must be concrete ... do not trace them under jit", as traced times still do."""
+    ts = np.linspace(0.0, 1.0, 3)
+    state = State(OMEGA0, Q0)
+    eager = simulate_structure_preserving(TOP, state, ts, RKMK("bosh3"), 0.1)
+    for given in (ts, list(ts)):
+        inside = jax.jit(lambda g=given: simulate_structure_preserving(TOP, state, g, RKMK("bosh3"), 0.1))()
+        np.testing.assert_allclose(inside.omega, eager.omega, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(inside.orientation, eager.orientation, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="ts must be concrete"):
+        jax.jit(lambda t: simulate_structure_preserving(TOP, state, t, RKMK("bosh3"), 0.1))(ts)
 
 
 def test_deprecated_simulate_structure_preserving_is_simulate():

@@ -300,11 +300,11 @@ def simulate(
         return _raise_if_exact_failed(traj) if throw else nan_from_first_failure(traj)
     if accuracy not in PRESETS:  # also with a fixed-step solver, which ignores it: a typo is named
         raise ValueError(f"accuracy must be one of 'fast', 'balanced', 'precise', 'exact'; got {accuracy!r}.")
-    ts = check_times_shape(ts)
+    ts, given_ts = check_times_shape(ts), ts  # NumPy times closed over by a jit are known, not traced
     fixed_step = isinstance(solver, STRUCTURE_PRESERVING)
     if fixed_step:
         tolerances_given = rtol is not None or atol is not None or stepsize_controller is not None
-        formulation, grid, n_steps = _fixed_step_setup(model, state0, ts, solver, dt0, tolerances_given)
+        formulation, grid, n_steps = _fixed_step_setup(model, state0, given_ts, solver, dt0, tolerances_given)
     else:
         check_solver_steps(solver, stepsize_controller)
     if not fixed_step and stepsize_controller is not None and (rtol is not None or atol is not None):
