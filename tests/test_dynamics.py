@@ -143,15 +143,16 @@ def test_gradients_match_finite_differences(case):
     f = functools.partial(rj.euler_equations, torque=tau)
     for argnum, x in ((0, inertia), (1, w)):
         g = (lambda x: f(x, w)) if argnum == 0 else (lambda x: f(inertia, x))
-        fwd = np.asarray(jax.jacfwd(g)(jnp.asarray(x)))
-        rev = np.asarray(jax.jacrev(g)(jnp.asarray(x)))
+        # Each derivative one compiled program (eagerly, each of its operations compiles on its own).
+        fwd = np.asarray(jax.jit(jax.jacfwd(g))(jnp.asarray(x)))
+        rev = np.asarray(jax.jit(jax.jacrev(g))(jnp.asarray(x)))
         fd = central_difference(g, x)
         assert fwd.shape == (3,) + x.shape
         np.testing.assert_allclose(fwd, rev, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(fwd, fd, rtol=1e-7, atol=1e-8)
     # Derivative w.r.t. the torque is the inverse inertia.
     if tau is not None:
-        J = np.asarray(jax.jacfwd(lambda t: rj.euler_equations(inertia, w, t))(jnp.asarray(tau)))
+        J = np.asarray(jax.jit(jax.jacfwd(lambda t: rj.euler_equations(inertia, w, t)))(jnp.asarray(tau)))
         Iinv = np.linalg.inv(inertia) if inertia.ndim == 2 else np.diag(1 / inertia)
         np.testing.assert_allclose(J, Iinv, rtol=1e-13, atol=1e-13)
 

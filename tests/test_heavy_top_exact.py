@@ -292,8 +292,12 @@ def _random_tops(n, seed=0):
     return inertia, mass, com, omega, random_quaternions(rng, n)
 
 
+# In one program: evaluated op by op, the parts compiled ~150 small programs (~10 s).
+_lagrange_top_parts = jax.jit(lagrange_top_parts)
+
+
 def _elliptic_parameter(inertia, mass, com, omega, q0):
-    return np.asarray(lagrange_top_parts(*(jnp.asarray(x) for x in (inertia, mass, com, G, omega, q0)))["m"])
+    return np.asarray(_lagrange_top_parts(*(jnp.asarray(x) for x in (inertia, mass, com, G, omega, q0)))["m"])
 
 
 def _tops_of_sides(sides):
@@ -369,9 +373,10 @@ def test_derivative_through_blocks_in_both_modes():
 def test_batch_matches_single_tops():
     """1000 random tops (standing and hanging, any spin) in one call == each top alone."""
     inertia, mass, com, omega, q0 = _random_tops(1000)
-    ts = np.linspace(0.0, 5.0, 11)
+    # 7 samples, as the gradient tests' loss: each top alone runs the program of their central differences.
+    ts = np.linspace(0.0, 5.0, 7)
     w, q = exact(inertia, mass, com, omega, q0, ts)
-    assert w.shape == (1000, 11, 3) and q.shape == (1000, 11, 4)
+    assert w.shape == (1000, 7, 3) and q.shape == (1000, 7, 4)
     assert np.all(np.isfinite(w)) and np.all(np.isfinite(q))
     for i in range(0, 1000, 125):
         w_i, q_i = exact(inertia[i], mass[i], com[i], omega[i], q0[i], ts)
@@ -569,8 +574,9 @@ def test_errors_under_eager_grad_are_value_errors():
 @pytest.mark.slow
 def test_jit_traced_model():
     """Under jit the model's values are traced: the same conditions are checked at run time."""
-    # 11 samples, as the single tops above: the eager call below runs their compiled program.
-    ts = jnp.linspace(0.0, 1.0, 11)
+    # 7 samples, as the single tops of test_batch_matches_single_tops and the gradient tests' loss: the
+    # eager call below runs their compiled program.
+    ts = jnp.linspace(0.0, 1.0, 7)
 
     @eqx.filter_jit
     def run(inertia, com):
@@ -598,10 +604,11 @@ def test_float32(name):
 
 
 def test_float32_gradient_follows_float64():
-    """jax.grad of q_x(1 s) in omega0 through "exact" in float32 against float64 (which the gradient
-    tests check against central differences of DOP853): 1.2e-6 of the largest entry. A guard on
-    the resolvent root's last Newton step, set at 1e-8 relative, dropped that step's derivative in
-    float32, whose rounding moves it further (17 % off)."""
+    """jax.grad of q_x(1 s) in omega0 through "exact" in float32 against the float64 derivative, by
+    central differences of the float64 values (relative step 1e-6: ~1e-9 off; a float64 jax.grad,
+    which the gradient tests check against central differences of DOP853, compiled 40 s here):
+    1.2e-6 of the largest entry. A guard on the resolvent root's last Newton step, set at 1e-8
+    relative, dropped that step's derivative in float32, whose rounding moves it further (17 % off)."""
 
     def final(omega0, dtype):
         top = rj.HeavyTop(jnp.asarray([1e-2, 1e-2, 5e-3], dtype), jnp.asarray(0.5, dtype),
@@ -611,7 +618,14 @@ def test_float32_gradient_follows_float64():
         return trajectory.orientation[-1, 1]
 
     omega0 = np.array([0.3, -0.2, 40.0])
-    g64 = np.asarray(jax.grad(final)(jnp.asarray(omega0), jnp.float64))
+    # q_x(1 s) in float64 by exact()'s program of the value tests above (SAMPLES samples, the last at 1 s).
+    ts = np.linspace(0.0, 1.0, SAMPLES)
+    inertia, mass, com, q0 = [1e-2, 1e-2, 5e-3], 0.5, [0.0, 0.0, 0.05], euler_zxz([0.0, 0.4, 0.0])
+    g64 = central_difference(
+        lambda w: exact(inertia, mass, com, w, q0, ts)[1][-1, 1],
+        omega0,
+        h=1e-6 * np.maximum(np.abs(omega0), 1.0),
+    )
     g32 = np.asarray(jax.grad(final)(jnp.asarray(omega0, jnp.float32), jnp.float32), float)
     assert np.max(np.abs(g32 - g64)) <= 1e-4 * np.max(np.abs(g64))
 

@@ -1,5 +1,7 @@
 """Closed-form torque-free motion against high-precision integration, closed forms and invariants."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import mpmath as mp
@@ -615,19 +617,38 @@ def directional_derivative(inertia, omega0, d_inertia, d_omega0):
     return jax.jvp(_final_state, (inertia, omega0), (d_inertia, d_omega0))[1]
 
 
+SEPARATRIX_OFFSETS = (0.0, 1e-12, -1e-12, 1e-10)
+
+
+def _separatrix_start(offset):
+    """inertia, omega0 and q0 of the body a relative ``offset`` from the separatrix."""
+    omega0 = np.array([np.sqrt(3.0) * 1e-2 * (1 + offset), 1.0, 1e-2])  # L^2 = 2 E I_2 at offset 0
+    return np.array([1.0, 2.0, 3.0]), omega0, unit([0.9, 0.1, -0.3, 0.2])
+
+
+@functools.cache
+def _separatrix_jacobians():
+    """d q(T = 3) / d omega0 in reverse mode for every offset of SEPARATRIX_OFFSETS: one call of the
+    derivative tests' shared program (_jacrev, _N_BODIES bodies; the rows past the offsets repeat
+    the first), ``(4, 3)`` each."""
+    starts = [_separatrix_start(offset) for offset in SEPARATRIX_OFFSETS]
+    starts += starts[:1] * (_N_BODIES - len(starts))
+    inertia, omega0, q0 = (jnp.asarray(np.stack(x)) for x in zip(*starts, strict=True))
+    d_omega0 = np.asarray(_jacrev(inertia, omega0, q0, jnp.full(_N_BODIES, 3.0))[1])  # (7, 7, 7, 3)
+    return {offset: d_omega0[k, 3:, k] for k, offset in enumerate(SEPARATRIX_OFFSETS)}
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("offset", [0.0, 1e-12, -1e-12, 1e-10])
+@pytest.mark.parametrize("offset", SEPARATRIX_OFFSETS)
 def test_orientation_derivatives_near_the_separatrix(offset):
-    """d q(T) / d omega0 of a body a relative ``offset`` from the separatrix (omega0_1 scaled by
-    1 + offset; both sides, and on it to the last bit), against the variational equations
+    """d q(T) / d omega0 (reverse mode) of a body a relative ``offset`` from the separatrix (omega0_1
+    scaled by 1 + offset; both sides, and on it to the last bit), against the variational equations
     integrated by scipy's DOP853 (rtol 1e-13; "precise" agrees with them to 2e-11). The initial
     phase measured back from K cancelled terms of size 1/p in its derivative: 6e-7 off at 1e-12,
     1.5e-8 at 1e-10, 1e-3 on the separatrix."""
-    inertia, T = np.array([1.0, 2.0, 3.0]), 3.0
-    omega0 = np.array([np.sqrt(3.0) * 1e-2 * (1 + offset), 1.0, 1e-2])  # L^2 = 2 E I_2 at offset 0
-    q0 = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
-    jacobian = jax.jacrev(lambda w: torque_free_motion(jnp.asarray(inertia), w, jnp.asarray(q0), T)[1])
-    got = np.asarray(jacobian(jnp.asarray(omega0)))  # (4, 3)
+    inertia, omega0, q0 = _separatrix_start(offset)
+    T = 3.0
+    got = _separatrix_jacobians()[offset]  # (4, 3)
     w, q = sp.symbols("w1:4"), sp.symbols("q0:4")
     I1, I2, I3 = inertia
     rhs = [(I2 - I3) * w[1] * w[2] / I1, (I3 - I1) * w[2] * w[0] / I2, (I1 - I2) * w[0] * w[1] / I3]
@@ -756,14 +777,20 @@ def test_simulate_exact_in_blocks_of_bodies_and_at_two_times(n_times):
     )
     omega_only = rj.simulate(model, rj.State(state.omega), ts, accuracy="exact", chunk_size=4)
     np.testing.assert_allclose(np.asarray(omega_only.omega), np.asarray(whole.omega), rtol=0, atol=1e-14)
-    # The closed form called directly at the seven times in both cases (one compiled program): the two
-    # times are its first and last.
+    # The closed form called directly at the seven times in both cases, by the value tests' program
+    # (run_cases: the 15 bodies and the first again in two calls of 8, the seven times then the last
+    # repeated): the two times are its first and last.
     seven = jnp.linspace(0.5, 9.5, 7)
     columns = np.arange(7) if n_times == 7 else np.array([0, 6])
     np.testing.assert_array_equal(np.asarray(seven - seven[0])[columns], np.asarray(ts - ts[0]))
-    omega, q = torque_free_motion(model.inertia[..., None, :], state.omega[..., None, :],
-                                  state.orientation[..., None, :], seven - seven[0])  # fmt: skip
-    omega, q = omega[..., columns, :], q[..., columns, :]
+    times = np.tile(np.pad(np.asarray(seven - seven[0]), (0, N_TIMES - 7), mode="edge"), (N_CASES, 1))
+    bodies = [
+        np.asarray(x).reshape(15, -1)[np.r_[0:15, 0]] for x in (inertia, state.omega, state.orientation)
+    ]
+    parts = [run_cases(*(x[k : k + 8] for x in bodies), times) for k in (0, 8)]
+    omega, q = (
+        np.concatenate(x)[:15][:, columns].reshape(3, 5, len(columns), -1) for x in zip(*parts, strict=True)
+    )
     np.testing.assert_allclose(np.asarray(whole.omega), np.asarray(omega), rtol=0, atol=1e-14)
     np.testing.assert_allclose(np.asarray(whole.orientation), np.asarray(q), rtol=0, atol=1e-14)
     if n_times == 2:
@@ -1001,10 +1028,12 @@ def test_thin_rods_keep_their_orientation():
     ts = np.linspace(0.0, 40.0, 41)
     omega0 = np.array([2.0, 0.3, 0.2])
     rods = np.array([[1e-12, 1.0, 1.0], [1e-9, 1.0, 1.0], [1e-6, 1.0, 1.0], [1e-3, 1.0, 1.0]])
+    # The four rods twice: N_CASES bodies at N_TIMES samples, the shapes (and in float64 the compiled
+    # program) of test_simulate_exact_returns_the_closed_form_orientation.
     for dtype, tolerance in ((np.float64, 1e-12), (np.float32, 5e-5)):
         traj = rj.simulate(
-            rj.FreeBody(rods.astype(dtype)),
-            rj.State(np.tile(omega0, (4, 1)).astype(dtype), np.tile(q0, (4, 1)).astype(dtype)),
+            rj.FreeBody(np.tile(rods, (2, 1)).astype(dtype)),
+            rj.State(np.tile(omega0, (N_CASES, 1)).astype(dtype), np.tile(q0, (N_CASES, 1)).astype(dtype)),
             ts.astype(dtype),
             accuracy="exact",
         )
