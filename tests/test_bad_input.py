@@ -405,10 +405,11 @@ def test_valid_degenerate_inputs_stay_finite(extreme):
     ]
     for out in outs:
         assert np.all(np.isfinite(np.asarray(out)))
-    # Gradients too, at zero omega and the identity rotation.
-    g = jax.grad(lambda w: rj.kinetic_energy(I3, w) + jnp.sum(rj.euler_equations(I3, w)))(zero)
+    # Gradients too, at zero omega and the identity rotation (each one compiled program: eagerly,
+    # a program per operation).
+    g = jax.jit(jax.grad(lambda w: rj.kinetic_energy(I3, w) + jnp.sum(rj.euler_equations(I3, w))))(zero)
     assert np.all(np.isfinite(g))
-    g = jax.jacrev(rj.quat_from_matrix)(np.eye(3))
+    g = jax.jit(jax.jacrev(rj.quat_from_matrix))(np.eye(3))
     assert np.all(np.isfinite(g))
     extreme(
         "bad input",
@@ -805,10 +806,10 @@ def test_a_solver_without_an_error_estimate_asks_for_a_fixed_step():
             ValueError, match=rf"solver={type(solver).__name__}\(\) has no error estimate.*ConstantStepSize"
         ):
             rj.simulate(rj.FreeBody(I3), state, ts, solver=solver, dt0=0.01)
-    exact = rj.simulate(rj.FreeBody(I3), state, ts, accuracy="exact").omega
+    exact = np.asarray(rj.torque_free_omega(I3, W, ts))  # (simulate's "exact" program took 4 s more)
     errors = [
-        float(jnp.max(jnp.abs(rj.simulate(rj.FreeBody(I3), state, ts, solver=diffrax.Euler(), dt0=dt,
-                                          stepsize_controller=diffrax.ConstantStepSize()).omega - exact)))
+        np.max(np.abs(np.asarray(rj.simulate(rj.FreeBody(I3), state, ts, solver=diffrax.Euler(), dt0=dt,
+                                             stepsize_controller=diffrax.ConstantStepSize()).omega) - exact))
         for dt in (0.01, 0.005)
     ]  # fmt: skip
     assert 1.8 < errors[0] / errors[1] < 2.2
@@ -1520,13 +1521,15 @@ def test_a_closed_form_beyond_the_float_range_is_a_failure_not_a_success(scene):
     np.testing.assert_array_equal(np.asarray(traj.success), finite.all(-1))
     np.testing.assert_array_equal(np.asarray(traj.stats["first_failed_sample"]), [4, np.argmin(finite[1]), 4])
     assert np.isnan(np.asarray(traj.omega)[1, np.argmin(finite[1]) :]).all()
-    alone = rj.simulate(model, rj.State(omega[[0, 2]], q0[[0, 2]]), ts, accuracy="exact")
-    np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega))
+    # Without the failed body: body 0 in its place keeps the batch's shape (the eager call's program
+    # serves it; two bodies compiled another, 15 s).
+    alone = rj.simulate(model, rj.State(omega[[0, 0, 2]], q0[[0, 0, 2]]), ts, accuracy="exact")
+    np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega)[[0, 2]])
     jitted = jax.jit(lambda w: rj.simulate(model, rj.State(w, jnp.asarray(q0)), ts, accuracy="exact").omega)
     with pytest.raises(Exception, match="closed form of a body is NaN or inf"):
         jitted(jnp.asarray(omega)).block_until_ready()
     np.testing.assert_array_equal(
-        np.asarray(jitted(jnp.asarray(omega[[0, 0, 2]])))[2], np.asarray(alone.omega)[1]
+        np.asarray(jitted(jnp.asarray(omega[[0, 0, 2]])))[2], np.asarray(alone.omega)[2]
     )
 
 
@@ -1646,8 +1649,9 @@ def test_simulate_exact_fails_a_body_whose_phase_is_beyond_what_the_dtype_resolv
     if scene == "free body":  # and under the user's jit
         run = jax.jit(lambda w: rj.simulate(model, rj.State(w, q0), ts, accuracy="exact", throw=False).omega)
         np.testing.assert_array_equal(np.asarray(run(jnp.asarray(omega))), np.asarray(traj.omega))
-    alone = rj.simulate(model, rj.State(omega[[0, 2]], q0[[0, 2]]), ts, accuracy="exact")
-    np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega))
+    # Without the failed body: body 0 in its place keeps the batch's shape (one program less).
+    alone = rj.simulate(model, rj.State(omega[[0, 0, 2]], q0[[0, 0, 2]]), ts, accuracy="exact")
+    np.testing.assert_array_equal(np.asarray(traj.omega)[[0, 2]], np.asarray(alone.omega)[[0, 2]])
     jitted = jax.jit(lambda w: rj.simulate(model, rj.State(w, jnp.asarray(q0)), ts, accuracy="exact").omega)
     with pytest.raises(Exception, match="NaN or inf, or its phase is beyond what float64 resolves"):
         jitted(jnp.asarray(omega)).block_until_ready()
