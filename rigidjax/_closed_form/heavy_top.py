@@ -120,9 +120,9 @@ def _largest_root(c2, c1, c0):
         g_new = newton(lone, (s2, s1, s0))
         lone = jnp.where(jnp.isfinite(g_new), g_new, lone)
     # (G - lone)(G^2 + B G + C): C = -s0 / lone (or s1 + lone B when lone = 0), and B = s2 + lone or
-    # B = (C - s1) / lone, whichever cancels less (the first where lone^2 < |C|): a pair far closer to
-    # each other's negative than to lone (a top released at rest 1e-8 rad from upright, its roots
-    # 0, ~1e-16 and -4) keeps its sum only in the second.
+    # B = (C - s1) / lone, whichever cancels less (the first where lone^2 < |C|): a pair far closer to each
+    # other's negative than to lone (a top released at rest 1e-8 rad from upright, its roots 0, ~1e-16
+    # and -4) keeps its sum only in the second.
     vieta_sum = s2 + lone
     C = jnp.where(lone != 0, -_safe_div(s0, lone), s1 + lone * vieta_sum)
     B = jnp.where(lone * lone >= jnp.abs(C), _safe_div(C - s1, lone), vieta_sum)
@@ -163,8 +163,7 @@ def _body(A, C, weight_l, omega0, q0):
     h = w1 * e1 + w2 * e2  # b - a u0
     sin2 = 4 * up * down  # 1 - u0^2
     udot = e1 * w2 - e2 * w1
-    # f(u0 + x) = f0 + f1 x + f2 x^2 + beta x^3.
-    f0 = udot * udot
+    f0 = udot * udot  # f(u0 + x) = f0 + f1 x + f2 x^2 + beta x^3
     f1 = 2 * a * h - 2 * u0 * perp2 - beta * sin2
     f2 = 2 * u0 * beta - perp2 - a * a
     # f(u0 + x) = -(x^2 + k1 x + k0) (G0 - beta x), G0 = g(u0) > 0 the largest root of the resolvent.
