@@ -6,6 +6,7 @@ so that the file compiles little."""
 
 import re
 import threading
+import time
 
 import equinox as eqx
 import jax
@@ -359,7 +360,9 @@ def test_the_diffrax_check_switch_is_shared_by_threads():
 def test_ctrl_c_between_blocks_starts_no_further_block(threads, monkeypatch):
     """Ctrl-C (here a KeyboardInterrupt from the progress callback at the first finished block) while
     two threads run six blocks of one body each: the blocks not yet started do not run (all six ran
-    before the interrupt was raised), and the running ones end before it is."""
+    before the interrupt was raised), and the running ones end before it is. Each block is held for
+    a second, so that the count does not depend on how soon a loaded host runs the main thread
+    (with blocks of a few milliseconds, a fifth one started once on a busy CI machine)."""
     from rigidjax._integrate import progress
 
     model, state0 = _scene()
@@ -369,9 +372,12 @@ def test_ctrl_c_between_blocks_starts_no_further_block(threads, monkeypatch):
     block_until_ready = jax.block_until_ready
 
     def counted(x):
-        if threading.current_thread() is not threading.main_thread():
-            started.append(1)
-        return block_until_ready(x)
+        if threading.current_thread() is threading.main_thread():
+            return block_until_ready(x)
+        started.append(1)
+        out = block_until_ready(x)
+        time.sleep(1.0)
+        return out
 
     monkeypatch.setattr(progress.jax, "block_until_ready", counted)
 
