@@ -30,7 +30,14 @@ from .._dynamics.torques import _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
-from .problem import LOSSES, WINDOW_MAX_STEPS, _inertia_params, _moments_from_z, _on_flat_body_edge
+from .problem import (
+    LOSSES,
+    NOISE_RATIO_LIMIT,
+    WINDOW_MAX_STEPS,
+    _inertia_params,
+    _moments_from_z,
+    _on_flat_body_edge,
+)
 from .result import InertiaFit
 
 
@@ -222,7 +229,7 @@ def _doubtful(out, data) -> bool:
     if not (np.all(np.isfinite(p)) and np.isfinite(float(final_loss))):
         return True
     moments = np.asarray(_moments_from_z(jnp.asarray(p[:2])))
-    return bool(_residual_ratio(robust_rms, data) > 2.0 or _on_flat_body_edge(moments))
+    return bool(_residual_ratio(robust_rms, data) > NOISE_RATIO_LIMIT or _on_flat_body_edge(moments))
 
 
 def _residual_ratio(robust_rms, data) -> float:
@@ -302,7 +309,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
             "(shorter windows) for a long record."
         )
     ratio = _residual_ratio(robust_rms, data)
-    if ratio > 2.0:
+    if ratio > NOISE_RATIO_LIMIT:
         warnings.warn(
             f"the fit's residuals are {ratio:.1f} times the record's noise estimate (their median "
             "absolute value, which outliers do not move): the fitted motion does not follow the record, "

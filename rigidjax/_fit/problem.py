@@ -47,6 +47,10 @@ def _moments_from_z(z):
 # thinner bodies count as on it.
 FLAT_BODY_EDGE = 1e-6
 
+# Residuals above this many times the record's noise estimate mean the fitted motion does not follow
+# the record (a wrong basin): the fit's restarts, its RuntimeWarning and `InertiaFit.warnings` use it.
+NOISE_RATIO_LIMIT = 2.0
+
 
 def _on_flat_body_edge(moments) -> bool:
     """Whether principal moments (numpy, any scale) lie on the flat-body edge of the physical moments:

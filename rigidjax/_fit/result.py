@@ -15,7 +15,7 @@ from .._dynamics.state import State
 from .._integrate.simulate import simulate
 from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
 from .._repr import summarize
-from .problem import _on_flat_body_edge
+from .problem import NOISE_RATIO_LIMIT, _on_flat_body_edge
 
 
 class InertiaFit(eqx.Module):
@@ -253,7 +253,7 @@ def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
             "those moments are arbitrary."
         )
     ratio = np.max(rms / np.maximum(noise, np.finfo(float).tiny))
-    if np.all(np.isfinite(noise)) and np.all(noise > 0) and ratio > 2:
+    if np.all(np.isfinite(noise)) and np.all(noise > 0) and ratio > NOISE_RATIO_LIMIT:
         out.append(
             f"the residuals are {ratio:.1f} times the record's noise estimate: the fit explains the record "
             "worse than its noise, most often a wrong wobble frequency. Check the time unit (seconds), "
