@@ -9,6 +9,7 @@ from helpers import cli_in_fresh_cache, removed_after
 
 import rigidjax as rj
 from rigidjax._cli import main
+from rigidjax._cli.fit import in_command_words
 
 
 def run_fit(argv):
@@ -373,5 +374,8 @@ def test_a_fit_the_record_does_not_support_is_flagged():
     assert "flat body" in flat and "wobble" not in flat
     [misfit] = _fit_warnings(np.array([1e-7, 1e-7, 1e-7]), np.array([1.0, 1.0, 3.1]) * noise, noise, moments)
     assert "3.1 times the record's noise estimate" in misfit and "time unit" in misfit
+    # The command prints the advice in its own options.
+    assert "segments='auto'" in misfit and "robust loss" in misfit
+    assert "(--segments auto) or with a robust --loss" in in_command_words(misfit)
     text = json.dumps(finite_or_none({"stderr": [0.1, float("inf")], "loss": float("nan")}), allow_nan=False)
     assert json.loads(text) == {"stderr": [0.1, None], "loss": None}

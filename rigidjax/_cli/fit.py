@@ -264,6 +264,14 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def in_command_words(warning: str) -> str:
+    """An :attr:`InertiaFit.warnings` text with its advice in this command's options rather than
+    ``fit_inertia``'s keyword arguments."""
+    return warning.replace("(segments='auto')", "(--segments auto)").replace(
+        "a robust loss", "a robust --loss"
+    )
+
+
 def _options(args) -> tuple[int | str, tuple[int, float] | None]:
     """``--segments`` and ``--known-moment`` as fit_inertia takes them, with ``--trace`` checked; a
     :class:`UsageError` naming the option otherwise."""
@@ -387,7 +395,7 @@ def run(args) -> int:
         f"({fit.method}, {seconds:.1f} s including compile)"
     )
     print("\n".join(lines))
-    cautions = fit.warnings
+    cautions = [in_command_words(warning) for warning in fit.warnings]
     for warning in cautions:
         print(f"warning: {warning}", file=sys.stderr)
 
