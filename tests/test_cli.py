@@ -891,10 +891,11 @@ def test_a_drift_below_the_dtype_resolution_says_so(tmp_path):
 
 def test_ctrl_c_keeps_the_bodies_of_the_finished_blocks(tmp_path, monkeypatch):
     """Ctrl-C after two of three blocks discarded what they had computed; now their bodies are kept
-    beside --out (rows equal to the uninterrupted run's), and the one-line exit follows."""
+    beside --out (rows equal to the uninterrupted run's), and the one-line exit follows. Blocks of 4
+    bodies and 10 samples: the program of _three_free_bodies (no compile of its own)."""
     from rigidjax._cli import batch as cli_batch
 
-    argv = ["simulate", "--scene", "free", "-n", "30", "--blocks", "3", "--duration", "1", "--samples", "5"]
+    argv = ["simulate", "--scene", "free", "-n", "12", "--blocks", "3", "--duration", "1", "--samples", "10"]
     argv += ["--no-plot", "--no-error-estimate"]
     code, out, err = _run([*argv, "--out", str(tmp_path / "whole.npz")])
     assert code == 0, err
@@ -911,13 +912,13 @@ def test_ctrl_c_keeps_the_bodies_of_the_finished_blocks(tmp_path, monkeypatch):
     assert code == 130 and calls == [0, 1, 2]
     lines = err.strip().splitlines()
     assert (
-        "the 20 bodies of the 2 finished blocks (of 3) are in" in lines[-2] and "cut.partial.npz" in lines[-2]
+        "the 8 bodies of the 2 finished blocks (of 3) are in" in lines[-2] and "cut.partial.npz" in lines[-2]
     )
     assert lines[-1] == "rigidjax simulate: interrupted (Ctrl-C); no output file is left half-written."
     assert not (tmp_path / "cut.npz").exists()
     with np.load(tmp_path / "cut.partial.npz") as cut, np.load(tmp_path / "whole.npz") as whole:
         bodies = cut["body"]
-        assert bodies.shape == (20,) and int(cut["blocks_done"]) == 2 and int(cut["blocks"]) == 3
+        assert bodies.shape == (8,) and int(cut["blocks_done"]) == 2 and int(cut["blocks"]) == 3
         for key in ("omega", "orientation", "success", "inertia", "omega0", "drift_energy"):
             np.testing.assert_array_equal(cut[key], whole[key][bodies], err_msg=key)
 

@@ -38,9 +38,11 @@ def symmetric_top_exact(I1, I3, omega0, ts):
     return np.stack([transverse.real, transverse.imag, np.full_like(ts, omega0[2])], axis=-1)
 
 
-# One compiled configuration (FreeBody principal, omega-only, 3 bodies, 41 samples) serves the
-# symmetric-top tests: the Earth, a 1e5 rad/s rotor and a laboratory top in one batch.
-SYM_TS = np.linspace(0.0, 1.0, 41)
+# One compiled configuration per preset (FreeBody principal, omega-only, one body, 801 samples) serves
+# the symmetric-top tests: the Earth, a 1e5 rad/s rotor and a laboratory top, each on its own span.
+# 801 samples (every 20th one of 41 evenly spaced) so that the test of the
+# presets between the solver's steps checks the same programs rather than compiling three more.
+SYM_TS = np.linspace(0.0, 1.0, 801)
 SYM_INERTIA = np.array(
     [
         [8.0101e37, 8.0101e37, 8.0365e37],  # the Earth (kg m^2), dynamical ellipticity ~3.3e-3
@@ -84,14 +86,10 @@ def test_preset_accuracy_holds_at_every_one_of_800_sample_times(accuracy, bound)
     """The presets' promises hold between the solver's steps too, where the samples come from its
     dense output ("precise" puts a step on every sample time): each symmetric body above over its
     span, 801 samples instead of 41, every sample against the closed form."""
+    assert SYM_TS.shape == (801,)  # the closed-form test's programs, compiled once for both
     for body in range(3):
-        ts = np.linspace(0.0, 1.0, 801) * SYM_SPANS[body]
-        traj = rj.simulate(
-            rj.FreeBody(jnp.asarray(SYM_INERTIA[body])),
-            rj.State(jnp.asarray(SYM_OMEGA[body])),
-            jnp.asarray(ts),
-            accuracy=accuracy,
-        )
+        ts = SYM_TS * SYM_SPANS[body]
+        traj = _simulate_symmetric(body, accuracy)
         exact = symmetric_top_exact(SYM_INERTIA[body, 0], SYM_INERTIA[body, 2], SYM_OMEGA[body], ts)
         amplitude = np.hypot(*SYM_OMEGA[body, :2])
         wobble_error = np.max(np.abs(np.asarray(traj.omega)[:, :2] - exact[:, :2])) / amplitude
@@ -348,10 +346,11 @@ def test_float32_earth_in_si_units():
     computation must work with ratios. The wobble comes out to float32's limit, which is set by the
     moment ratio itself ((C - A)/A = 3.3e-3 known to ~1e-7 / 3.3e-3 = 3e-5 relative)."""
     inertia = SYM_INERTIA[0].astype(np.float32)
-    ts = (SYM_TS * SYM_SPANS[0]).astype(np.float32)
+    normalised = np.linspace(0.0, 1.0, 41)  # a float32 program of its own
+    ts = (normalised * SYM_SPANS[0]).astype(np.float32)
     traj = rj.simulate(rj.FreeBody(inertia), rj.State(SYM_OMEGA[0].astype(np.float32)), ts)
     omega = np.asarray(traj.omega, np.float64)
-    exact = symmetric_top_exact(SYM_INERTIA[0, 0], SYM_INERTIA[0, 2], SYM_OMEGA[0], SYM_TS * SYM_SPANS[0])
+    exact = symmetric_top_exact(SYM_INERTIA[0, 0], SYM_INERTIA[0, 2], SYM_OMEGA[0], normalised * SYM_SPANS[0])
     assert traj.omega.dtype == jnp.float32 and bool(traj.success)
     assert np.max(np.abs(omega[:, :2] - exact[:, :2])) / 1e-11 < 3e-4
     assert all(np.isfinite(float(v)) for v in traj.invariants().values())
