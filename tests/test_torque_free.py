@@ -108,10 +108,14 @@ def test_near_separatrix_against_30_digit_integration():
         ]
 
     solution = mp.odefun(f, 0, [mp.mpf("0.05"), mp.mpf(4), mp.mpf("0.05")])
-    for t in [7.0, 20.0]:
+    # Both times in one call at 81 samples (the rest repeat the last), as test_matches_dop853: its
+    # compiled program (omega is evaluated sample by sample).
+    times = [7.0, 20.0]
+    ts = np.pad(times, (0, 81 - len(times)), mode="edge")
+    exact = np.asarray(omega_at(jnp.array([1.0, 2.0, 2.5]), jnp.array([0.05, 4.0, 0.05]), jnp.asarray(ts)))
+    for k, t in enumerate(times):
         reference = np.array([float(v) for v in solution(t)])
-        exact = np.asarray(omega_at(jnp.array([1.0, 2.0, 2.5]), jnp.array([0.05, 4.0, 0.05]), jnp.asarray(t)))
-        np.testing.assert_allclose(exact, reference, atol=4 * 1e-14)
+        np.testing.assert_allclose(exact[k], reference, atol=4 * 1e-14)
 
 
 def test_symmetric_top_and_period():
@@ -200,8 +204,11 @@ def test_flip_timing_against_dop853_events():
 def test_conserves_energy_and_momentum_to_roundoff_over_long_times():
     inertia = jnp.array([1.0, 2.0, 2.5])
     omega0 = jnp.array([0.05, 4.0, 0.05])
-    ts = jnp.linspace(0.0, 1e4, 1001)
-    omega = omega_at(inertia, omega0, ts)
+    ts = np.linspace(0.0, 1e4, 1001)
+    # The 1001 samples in 13 calls of 81 (the last padded with the final time), as
+    # test_matches_dop853: its compiled program (omega is evaluated sample by sample).
+    rows = np.pad(ts, (0, 13 * 81 - len(ts)), mode="edge").reshape(13, 81)
+    omega = jnp.concatenate([omega_at(inertia, omega0, jnp.asarray(row)) for row in rows])[: len(ts)]
     energy = rj.kinetic_energy(inertia, omega)
     L2 = jnp.sum(rj.angular_momentum(inertia, omega) ** 2, axis=-1)
     assert float(jnp.max(jnp.abs(energy / energy[0] - 1))) < 1e-12
@@ -356,9 +363,10 @@ def test_simulate_exact_switches_to_the_closed_form():
             ts,
             accuracy="exact",
         )
+    # One body beyond the flat plate in the same batch: the exact program above (16 bodies) checks it.
     with pytest.raises(Exception, match="triangle"):
         rj.simulate(
-            rj.FreeBody(jnp.array([1.0, 2.0, 4.0])), rj.State(omega0[0]), ts, accuracy="exact"
+            rj.FreeBody(inertia.at[5].set(jnp.array([1.0, 2.0, 4.0]))), rj.State(omega0), ts, accuracy="exact"
         ).omega.block_until_ready()
 
 
@@ -634,7 +642,11 @@ def _separatrix_jacobians():
     starts = [_separatrix_start(offset) for offset in SEPARATRIX_OFFSETS]
     starts += starts[:1] * (_N_BODIES - len(starts))
     inertia, omega0, q0 = (jnp.asarray(np.stack(x)) for x in zip(*starts, strict=True))
-    d_omega0 = np.asarray(_jacrev(inertia, omega0, q0, jnp.full(_N_BODIES, 3.0))[1])  # (7, 7, 7, 3)
+    # np.full, not jnp.full: jnp.full(n, 3.0) is weakly typed, and a weak-typed argument is a new
+    # signature for jit: _jacrev compiled a second time (its longest compile in this file).
+    d_omega0 = np.asarray(
+        _jacrev(inertia, omega0, q0, jnp.asarray(np.full(_N_BODIES, 3.0)))[1]
+    )  # (7, 7, 7, 3)
     return {offset: d_omega0[k, 3:, k] for k, offset in enumerate(SEPARATRIX_OFFSETS)}
 
 
