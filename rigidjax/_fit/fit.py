@@ -31,6 +31,7 @@ from .data import _check_data, _check_quaternions
 from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
 from .problem import (
+    FLAT_BODY_EDGE,
     LOSSES,
     NOISE_RATIO_LIMIT,
     WINDOW_MAX_STEPS,
@@ -412,7 +413,21 @@ def _user_values(problem, p, covariance, omega_scale, inertia_trace, known_momen
         q0 = q0_stderr = None
     else:
         q0, q0_stderr = problem.initial_orientations(dq), stderr(jac_dq)
-    return inertia, w0_fit, stderr(jac_inertia), stderr(jac_w0), q0, q0_stderr, evals, evecs
+    # On the flat-body edge the record bounds the largest moment from one side only: its distance
+    # from the edge is not measured. The projector above sees that only while the saturated softmax
+    # that keeps the moments physical still has a gradient; in float32 it underflows to zero there,
+    # and the standard error came out 0.
+    on_edge = evals[2] >= (1 - FLAT_BODY_EDGE) * (evals[0] + evals[1])
+    if full_tensor:
+        edge_axis = evecs[:, 2]
+        on_largest = jnp.abs(edge_axis[:, None] * edge_axis[None, :]) > 1e-3
+    else:
+        on_largest = jnp.arange(3) == jnp.argmax(inertia)
+    if known_moment is not None:  # a known moment carries no error, on the edge or not
+        known = jnp.arange(3) == known_moment[0]
+        on_largest = on_largest & ~(known[:, None] & known[None, :] if full_tensor else known)
+    inertia_stderr = jnp.where(on_edge & on_largest, jnp.inf, stderr(jac_inertia))
+    return inertia, w0_fit, inertia_stderr, stderr(jac_w0), q0, q0_stderr, evals, evecs
 
 
 _COMMON_ARGS_DOC = """\
