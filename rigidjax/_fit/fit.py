@@ -12,7 +12,6 @@ fitted, and the forward model is Dopri8 (rtol 1e-10, scaled units) instead of th
 """
 
 import dataclasses
-import itertools
 import math
 import sys
 import warnings
@@ -31,13 +30,13 @@ from .data import _check_data, _check_quaternions
 from .optimisers import _run
 from .prepare import _Data, _prepare_omega, _prepare_orientation
 from .problem import (
-    FLAT_BODY_EDGE,
     LOSSES,
     NOISE_RATIO_LIMIT,
     WINDOW_MAX_STEPS,
-    _inertia_params,
     _moments_from_z,
     _on_flat_body_edge,
+    _reordered_starts,
+    _unmeasured_edge_distance,
 )
 from .result import InertiaFit
 
@@ -242,21 +241,6 @@ def _residual_ratio(robust_rms, data) -> float:
     )
 
 
-def _reordered_starts(data, p0, full_tensor):
-    """``p0`` with the moments of a generic body, ``(2, 3, 4) / 9`` (well inside the physical moments
-    and well apart, where a start from very noisy data can lie by the flat-body edge or have two
-    moments nearly equal), in each of the six orders, about the estimate's axes."""
-    start = np.asarray(data.inertia_start, float)
-    axes = np.linalg.eigh(start)[1] if full_tensor else None
-    n = len(_inertia_params(start, full_tensor))
-    for order in itertools.permutations(range(3)):
-        reordered = np.array([2.0, 3.0, 4.0])[list(order)] / 9.0
-        inertia = reordered if axes is None else (axes * reordered) @ axes.T
-        start_p = np.array(p0, float)
-        start_p[:n] = _inertia_params(inertia, full_tensor)
-        yield start_p
-
-
 def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, callback, scale):
     """Runs the optimiser on a prepared problem and returns the fit in the user's units, with
     standard errors from the covariance of the scaled parameters."""
@@ -413,20 +397,9 @@ def _user_values(problem, p, covariance, omega_scale, inertia_trace, known_momen
         q0 = q0_stderr = None
     else:
         q0, q0_stderr = problem.initial_orientations(dq), stderr(jac_dq)
-    # On the flat-body edge the record bounds the largest moment from one side only: its distance
-    # from the edge is not measured. The projector above sees that only while the saturated softmax
-    # that keeps the moments physical still has a gradient; in float32 it underflows to zero there,
-    # and the standard error came out 0.
-    on_edge = evals[2] >= (1 - FLAT_BODY_EDGE) * (evals[0] + evals[1])
-    if full_tensor:
-        edge_axis = evecs[:, 2]
-        on_largest = jnp.abs(edge_axis[:, None] * edge_axis[None, :]) > 1e-3
-    else:
-        on_largest = jnp.arange(3) == jnp.argmax(inertia)
-    if known_moment is not None:  # a known moment carries no error, on the edge or not
-        known = jnp.arange(3) == known_moment[0]
-        on_largest = on_largest & ~(known[:, None] & known[None, :] if full_tensor else known)
-    inertia_stderr = jnp.where(on_edge & on_largest, jnp.inf, stderr(jac_inertia))
+    inertia_stderr = _unmeasured_edge_distance(
+        stderr(jac_inertia), inertia, evals, evecs, full_tensor, known_moment
+    )
     return inertia, w0_fit, inertia_stderr, stderr(jac_w0), q0, q0_stderr, evals, evecs
 
 

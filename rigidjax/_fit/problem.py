@@ -17,6 +17,7 @@ so no integration error enters the fit), or under a known torque Dopri8 at rtol 
 :func:`rigidjax._integrate.driver.solve`.
 """
 
+import itertools
 import math
 from typing import Any
 
@@ -58,6 +59,38 @@ def _on_flat_body_edge(moments) -> bool:
     flat body and from a start whose moments are wrongly ordered."""
     low, middle, high = np.sort(np.asarray(moments, dtype=float))
     return bool(high >= (1 - FLAT_BODY_EDGE) * (low + middle))
+
+
+def _unmeasured_edge_distance(inertia_stderr, inertia, moments, axes, full_tensor, known_moment):
+    """``inertia_stderr`` infinite for the largest moment (its entries of the tensor) of a fit on the
+    flat-body edge, where the record bounds that moment from one side only: its distance from the
+    edge is not measured. The covariance's projector sees that only while the saturated softmax
+    that keeps the moments physical still has a gradient there; in float32 it underflows to zero,
+    and the standard error came out 0. A known moment keeps its zero error."""
+    on_edge = moments[2] >= (1 - FLAT_BODY_EDGE) * (moments[0] + moments[1])
+    if full_tensor:
+        on_largest = jnp.abs(axes[:, 2, None] * axes[None, :, 2]) > 1e-3
+    else:
+        on_largest = jnp.arange(3) == jnp.argmax(inertia)
+    if known_moment is not None:
+        known = jnp.arange(3) == known_moment[0]
+        on_largest = on_largest & ~(known[:, None] & known[None, :] if full_tensor else known)
+    return jnp.where(on_edge & on_largest, jnp.inf, inertia_stderr)
+
+
+def _reordered_starts(data, p0, full_tensor):
+    """``p0`` with the moments of a generic body, ``(2, 3, 4) / 9`` (well inside the physical moments
+    and well apart, where a start from very noisy data can lie by the flat-body edge or have two
+    moments nearly equal), in each of the six orders, about the estimate's axes."""
+    start = np.asarray(data.inertia_start, float)
+    axes = np.linalg.eigh(start)[1] if full_tensor else None
+    n = len(_inertia_params(start, full_tensor))
+    for order in itertools.permutations(range(3)):
+        reordered = np.array([2.0, 3.0, 4.0])[list(order)] / 9.0
+        inertia = reordered if axes is None else (axes * reordered) @ axes.T
+        start_p = np.array(p0, float)
+        start_p[:n] = _inertia_params(inertia, full_tensor)
+        yield start_p
 
 
 def _z_from_moments(moments):
