@@ -196,6 +196,45 @@ def test_threads_give_the_one_program_trajectories(threads):
     _assert_same(one_program, rj.simulate(model, state0, TS, chunk_size=2))
 
 
+def test_threads_report_each_block_when_it_finishes(threads, monkeypatch):
+    """The first block holds the fastest bodies (the most steps); reports in block order left the
+    bar at 0 while the other threads finished the rest. Here the first block waits (up to 20 s)
+    until some report counts bodies: it must come from the blocks behind it. The trajectories are
+    the one-program run's, to the bit."""
+    from rigidjax._integrate import progress
+
+    model, state0 = _scene()
+    threads(1)
+    one_program = rj.simulate(model, state0, TS, chunk_size=2)
+    fastest = state0.omega[int(np.argmax(np.linalg.norm(np.asarray(state0.omega), axis=-1)))]
+    reported = threading.Event()
+    waited = []
+    run_in_blocks = progress.run_in_blocks
+
+    def first_block_waits(run, *rest):
+        def run_block(model, omega0, q0, chunk_size, sort):
+            out = run(model, omega0, q0, chunk_size, sort)
+            if bool(jnp.any(jnp.all(omega0 == fastest, axis=-1))):
+                waited.append(reported.wait(timeout=20.0))
+            return out
+
+        return run_in_blocks(run_block, *rest)
+
+    monkeypatch.setattr(progress, "run_in_blocks", first_block_waits)
+    threads(2)
+    calls = []
+
+    def report(done, total):
+        calls.append(done)
+        if done > 0:
+            reported.set()
+
+    traj = rj.simulate(model, state0, TS, chunk_size=2, progress=report)
+    assert waited == [True]  # a report arrived while the first block was still running
+    assert calls == [0, 2, 4, 6]
+    _assert_same(one_program, traj)
+
+
 @pytest.mark.parametrize("count", [1, 2])
 def test_progress_with_faults_throw_false(threads, count):
     """Reference: one compiled call without progress. A NaN torque stops its chunk, which is run

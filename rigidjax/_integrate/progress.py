@@ -253,13 +253,20 @@ def run_in_blocks(run, report, model, omega0, q0, ts, args, formulation, chunk_s
             # JAX's context managers (enable_x64, default_device, ...) hold per thread: where a
             # worker thread would trace in another context than this one, the blocks run here.
             if _same_jax_context(pool):
-                futures = [
-                    pool.submit(lambda b: jax.block_until_ready(solve_block(b)), b) for b in range(n_blocks)
-                ]
+                futures = {
+                    pool.submit(lambda b: jax.block_until_ready(solve_block(b)), b): b
+                    for b in range(n_blocks)
+                }
+                parts = [None] * n_blocks
+                done = 0
                 try:
-                    for b, future in enumerate(futures, start=1):
-                        parts.append(future.result())
-                        report(min(n, b * size), n)
+                    # Reported as blocks finish, not in order: the first block holds the fastest
+                    # bodies (the most steps), and the others finished behind it unreported.
+                    for future in concurrent.futures.as_completed(futures):
+                        b = futures[future]
+                        parts[b] = future.result()
+                        done += min(n, (b + 1) * size) - min(n, b * size)
+                        report(done, n)
                 except BaseException:
                     # Ctrl-C: the blocks not yet started never start, and the running ones end first
                     # (a compiled computation still running when Python exits can crash it).
