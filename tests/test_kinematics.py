@@ -176,10 +176,13 @@ def test_matrix_and_quat_from_euler_match_scipy(seq):
     # Include angles outside the canonical ranges: the forward map does not care.
     angles = np.concatenate([ANGLES[seq], np.random.default_rng(7).uniform(-7, 7, (8, 3))])
     rot = scipy_rot(angles, seq)
-    R = rj.matrix_from_euler(angles, seq)
-    q = rj.quat_from_euler(angles, seq)
-    assert R.shape == (len(angles), 3, 3) and R.dtype == jnp.float64
-    assert q.shape == (len(angles), 4) and q.dtype == jnp.float64
+    # In two batches of N: the batch shape of this sequence's other calls (one program per function).
+    Rs = [rj.matrix_from_euler(a, seq) for a in (angles[:N], angles[N:])]
+    qs = [rj.quat_from_euler(a, seq) for a in (angles[:N], angles[N:])]
+    assert all(R.shape == (N, 3, 3) and R.dtype == jnp.float64 for R in Rs)
+    assert all(q.shape == (N, 4) and q.dtype == jnp.float64 for q in qs)
+    R, q = np.concatenate(Rs), np.concatenate(qs)
+    assert len(R) == len(q) == len(angles)
     np.testing.assert_allclose(R, rot.as_matrix(), rtol=0, atol=1e-14)
     assert_quat_close(q, scipy_quat(rot), atol=1e-14)
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-15)
@@ -232,7 +235,7 @@ def test_euler_from_matrix_and_quat_round_trip(seq):
 
 @pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_euler_from_unnormalised_quat(seq):
-    rot = scipy_rot(ANGLES[seq][:4], seq)
+    rot = scipy_rot(ANGLES[seq], seq)  # all N: the batch shape of the round trip's program
     out = rj.euler_from_quat(2.5 * scipy_quat(rot), seq)
     assert_angles_close(out, rot.as_euler(seq.upper()), atol=1e-12)
 
@@ -345,7 +348,8 @@ def _path(t):
 
 @pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_space_angular_velocity_matches_finite_differences(seq):
-    ts = np.linspace(-1.0, 1.0, 7)
+    # Seven times on [-1, 1] and one more: N samples, body_angular_velocity's batch shape elsewhere.
+    ts = np.append(np.linspace(-1.0, 1.0, 7), 0.5)
     h = 1e-5
     angles, rates = _path(ts[:, None])
     R = scipy_rot(angles, seq).as_matrix()
@@ -463,7 +467,9 @@ def _rates_lock_inputs(seq):
 
 @pytest.mark.parametrize("seq", EVERY_SEQUENCE)
 def test_euler_rates_at_gimbal_lock(seq):
-    angles, omega_ok, omega_bad = _rates_lock_inputs(seq)
+    # The two locks repeated to N rows: the batch shape of the other euler_rates and
+    # body_angular_velocity calls of this sequence (their programs, not new ones).
+    angles, omega_ok, omega_bad = (np.tile(x, (N // 2, 1)) for x in _rates_lock_inputs(seq))
     # omega in the followable plane: the documented split psi' = 0, which reproduces omega.
     rates = np.asarray(rj.euler_rates(angles, omega_ok, seq))
     assert np.all(np.isfinite(rates))
@@ -480,7 +486,8 @@ def test_euler_rates_at_gimbal_lock(seq):
         mixed[i] = omega_bad[i]
         out = np.asarray(rj.euler_rates(angles, mixed, seq, throw=False))
         assert np.all(np.isnan(out[i]))
-        np.testing.assert_allclose(out[1 - i], rates[1 - i], atol=1e-15)
+        others = np.arange(N) != i  # the other lock (row 1 - i) and the repeats
+        np.testing.assert_allclose(out[others], rates[others], atol=1e-15)
 
 
 @pytest.mark.parametrize("seq", ["zxz", "yxz"])
