@@ -546,7 +546,8 @@ def test_scene_structural_errors(without_runtime_typecheck, extreme):
     for fn, match in [
         (lambda: rj.State(np.ones(4)), r"State\.omega must have shape"),
         (lambda: rj.State(W, np.ones(3)), r"State\.orientation must have shape"),
-        (lambda: rj.State(W.astype(complex)), "omega must be real"),
+        (lambda: rj.State(W.astype(complex)), r"State\.omega must be real"),
+        (lambda: rj.State(W, Q.astype(complex)), r"State\.orientation must be real"),
         (lambda: rj.FreeBody(np.ones(4)), "inertia must be principal moments"),
         (lambda: rj.HeavyTop(I3, 1.0, np.ones(2)), r"HeavyTop\.com must have shape"),
         (lambda: rj.ConstantTorque(np.ones(2)), r"ConstantTorque\.torque must have shape"),

@@ -23,11 +23,11 @@ class State(eqx.Module):
     orientation: Float[Array, "*batch 4"] | None = None
 
     def __init__(self, omega, orientation=None):
-        omega = as_float_array(omega, "omega")
+        omega = as_float_array(omega, "State.omega")
         check_last_axis(omega, 3, "State.omega")
         self.omega = omega
         if orientation is not None:
-            orientation = as_float_array(orientation, "orientation")
+            orientation = as_float_array(orientation, "State.orientation")
             check_last_axis(orientation, 4, "State.orientation")
             if omega.dtype != orientation.dtype:
                 dtype = jnp.result_type(omega.dtype, orientation.dtype)
