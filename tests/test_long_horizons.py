@@ -19,9 +19,11 @@ from helpers import (
     IDENTITY_Q,
     RACKET_INERTIA,
     RACKET_OMEGA,
+    euler_rhs,
     log_log_slope,
     perturbed_inertia,
     perturbed_omega,
+    quat_rotate,
 )
 
 import rigidjax as rj
@@ -119,14 +121,14 @@ def test_long_horizon_drift_per_preset(long_runs, accuracy, extreme):
     inertia, omega, q, ts, runs = long_runs
     traj = runs[accuracy]
     omega_ref, q_ref = (np.asarray(x)[:1] for x in _reference(inertia, omega, q, ts))  # the shared shape
-    w = np.asarray(traj.omega[:1])
+    w = np.asarray(traj.omega)[:1]  # NumPy slices: no eager programs
     energy, momentum = _energy_and_momentum(inertia[:1], w)
     e_first, e_second = _relative_drift(energy)
     l_first, l_second = _relative_drift(momentum)
     # Before normalisation for the integrators; the closed form's samples, which nothing normalises.
     qnorm = np.max(np.abs(np.linalg.norm(np.asarray(traj.invariants()["quaternion_norm"]))))
     omega_err = np.max(np.abs(w - np.asarray(omega_ref))) / np.max(np.abs(np.asarray(omega_ref)))
-    angle_err = np.max(_rotation_angle_error(traj.orientation[:1], q_ref))
+    angle_err = np.max(_rotation_angle_error(np.asarray(traj.orientation)[:1], q_ref))
     bound = LONG_BOUNDS[accuracy]
     assert max(e_first, e_second) <= bound, (e_first, e_second)
     assert max(l_first, l_second) <= bound, (l_first, l_second)
@@ -152,11 +154,12 @@ def test_closed_form_after_ten_thousand_periods(extreme):
     periodicity (omega(t + P) = omega(t)) and the conserved space-frame L."""
     inertia, omega, q = (jnp.asarray(x) for x in (FREE_I, FREE_W0, IDENTITY))
     ts = jnp.asarray([0.0, 0.3, 1e4 * FREE_PERIOD, 1e4 * FREE_PERIOD + 0.3])
-    w, qs = rj.torque_free_motion(inertia, omega, q, ts)
-    err = float(jnp.max(jnp.abs(w[2:] - w[:2])))
-    L_space = rj.quat_rotate(qs, inertia * w)
-    l_err = float(jnp.max(jnp.abs(L_space - L_space[0])) / jnp.linalg.norm(L_space[0]))
-    q_err = float(jnp.max(jnp.abs(jnp.linalg.norm(qs, axis=-1) - 1)))
+    w, qs = (np.asarray(x) for x in rj.torque_free_motion(inertia, omega, q, ts))
+    # The errors in NumPy (float64 throughout): eagerly each jnp operation compiled a program.
+    err = float(np.max(np.abs(w[2:] - w[:2])))
+    L_space = quat_rotate(qs, FREE_I * w)
+    l_err = float(np.max(np.abs(L_space - L_space[0])) / np.linalg.norm(L_space[0]))
+    q_err = float(np.max(np.abs(np.linalg.norm(qs, axis=-1) - 1)))
     assert err < 1e-10 and l_err < 1e-13 and q_err < 1e-15, (err, l_err, q_err)
     extreme(
         "long horizon",
@@ -345,8 +348,9 @@ def test_gradient_growth_near_the_separatrix_matches_the_period_sensitivity(extr
     # Linear growth: the difference between successive samples is the secular term per period.
     j_k = [np.asarray(jac_exact(omega0, jnp.asarray(k * period + t_phase))) for k in (8, 9)]
     secular = j_k[1] - j_k[0]
-    omega_dot = np.asarray(
-        rj.euler_equations(inertia, rj.torque_free_omega(inertia, omega0, jnp.asarray(t_phase)))
+    # Euler's equations in NumPy (tests/helpers.py): one eager program fewer.
+    omega_dot = euler_rhs(
+        RACKET_INERTIA, np.asarray(rj.torque_free_omega(inertia, omega0, jnp.asarray(t_phase)))
     )
     predicted = -np.outer(omega_dot, dperiod)
     np.testing.assert_allclose(secular, predicted, rtol=1e-6, atol=1e-6 * np.max(np.abs(predicted)))
@@ -388,7 +392,8 @@ def test_gradient_growth_through_chaos_and_multiple_shooting(extreme):
     t0 = jnp.asarray(0.0)
     norms = []
     for t1 in CHAOS_T:
-        jac = np.asarray(_top_jac(CHAOS_W0, jnp.asarray(t1), t0))
+        # q0 passed, as in the windows below: the same arguments, one compiled program for both.
+        jac = np.asarray(_top_jac(CHAOS_W0, jnp.asarray(t1), t0, CHAOS_Q0))
         norms.append(np.linalg.norm(jac, 2))
         if t1 <= 4.0:
             h = 1e-6
@@ -417,10 +422,11 @@ def test_gradient_growth_through_chaos_and_multiple_shooting(extreme):
         jnp.asarray([0.0, 4.0, 8.0, 12.0]),
         accuracy="precise",
     )
+    starts_omega, starts_q = np.asarray(traj.omega), np.asarray(traj.orientation)  # NumPy rows: no programs
     window_norms = [
         np.linalg.norm(
             np.asarray(
-                _top_jac(traj.omega[k], jnp.asarray(4.0 * k + 4.0), jnp.asarray(4.0 * k), traj.orientation[k])
+                _top_jac(starts_omega[k], jnp.asarray(4.0 * k + 4.0), jnp.asarray(4.0 * k), starts_q[k])
             ),
             2,
         )
@@ -481,7 +487,7 @@ def test_zero_angular_velocity_value_and_gradient(extreme):
 def test_zero_torque_zero_duration_single_time(extreme):
     inertia = jnp.asarray(FREE_I)
     omega = jnp.asarray([0.3, -0.2, 1.0])
-    ts = jnp.linspace(0.0, 3.0, 31)
+    ts = np.linspace(0.0, 3.0, 31)  # NumPy: its slice below compiles nothing
     free = rj.simulate(rj.FreeBody(inertia), rj.State(omega), ts)
     # A zero constant torque goes through the torqued code path: same motion as the free body.
     zero_torque = rj.simulate(
@@ -494,8 +500,8 @@ def test_zero_torque_zero_duration_single_time(extreme):
     # tests/test_simulate.py::test_single_output_time_returns_initial_state).
     one = rj.simulate(rj.FreeBody(inertia), rj.State(omega, jnp.asarray(IDENTITY)), ts[:1], accuracy="exact")
     assert one.omega.shape == (1, 3) and one.orientation.shape == (1, 4)
-    np.testing.assert_array_equal(np.asarray(one.omega[0]), np.asarray(omega))
-    np.testing.assert_allclose(np.asarray(one.orientation[0]), IDENTITY, rtol=0, atol=4e-16)
+    np.testing.assert_array_equal(np.asarray(one.omega)[0], np.asarray(omega))
+    np.testing.assert_allclose(np.asarray(one.orientation)[0], IDENTITY, rtol=0, atol=4e-16)
     # Two equal times are a zero-length interval with two samples: rejected, with the reason.
     with pytest.raises(Exception, match="increasing"):
         rj.simulate(rj.FreeBody(inertia), rj.State(omega), jnp.asarray([1.0, 1.0]))
@@ -520,14 +526,19 @@ def test_default_step_limit_grows_with_the_turns(extreme):
     ts = jnp.array([0.0, 16.0])
     trajectory = rj.simulate(body, state, ts, accuracy="precise")
     assert int(np.max(trajectory.stats["num_steps"])) > 100_000
-    reference = rj.torque_free_motion(body.inertia, state.omega, state.orientation, ts[-1])
-    assert np.max(np.abs(trajectory.omega[-1] - reference[0])) <= 1e-9 * 2000.0
-    assert np.max(np.abs(trajectory.orientation[-1] - reference[1])) <= 1e-8
+    # The comparison in NumPy: eagerly each jnp index and difference compiled a program.
+    reference = [
+        np.asarray(x)
+        for x in rj.torque_free_motion(body.inertia, state.omega, state.orientation, np.asarray(ts)[-1])
+    ]
+    omega_end, q_end = np.asarray(trajectory.omega)[-1], np.asarray(trajectory.orientation)[-1]
+    assert np.max(np.abs(omega_end - reference[0])) <= 1e-9 * 2000.0
+    assert np.max(np.abs(q_end - reference[1])) <= 1e-8
     extreme(
         "long horizon",
         "5093 turns at 2000 rad/s, accuracy='precise', default max_steps",
         "the default step limit grows with the turns: the run completes",
-        float(np.max(np.abs(trajectory.omega[-1] - reference[0])) / 2000.0),
+        float(np.max(np.abs(omega_end - reference[0])) / 2000.0),
         1e-9,
         "a longer run or a faster body raises the default limit; under jit pass max_steps",
     )

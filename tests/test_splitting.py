@@ -75,11 +75,15 @@ def test_invariants_long_run():
         lambda L, q, h: splitting_step(INERTIA, L, q, h, 2), n, jnp.asarray(dt)
     )
     E0, normL0, Ls0 = _energy(L0), jnp.linalg.norm(L0), quat_rotate(Q0, L0)
-    rel_L = float(jnp.max(jnp.abs(normL - normL0)) / normL0)
-    q_dev = float(jnp.max(jnp.abs(normq - 1.0)))
-    dE = jnp.abs(E - E0) / E0
-    first, second = float(jnp.max(dE[: n // 2])), float(jnp.max(dE[n // 2 :]))
-    space = float(jnp.max(jnp.linalg.norm(Lspace - Ls0, axis=-1)) / normL0)
+    # The reductions in NumPy (float64): eagerly each jnp operation on the records compiled a program.
+    E, normL, normq, Lspace, E0, normL0, Ls0 = (
+        np.asarray(x) for x in (E, normL, normq, Lspace, E0, normL0, Ls0)
+    )
+    rel_L = float(np.max(np.abs(normL - normL0)) / normL0)
+    q_dev = float(np.max(np.abs(normq - 1.0)))
+    dE = np.abs(E - E0) / E0
+    first, second = float(np.max(dE[: n // 2])), float(np.max(dE[n // 2 :]))
+    space = float(np.max(np.linalg.norm(Lspace - Ls0, axis=-1)) / normL0)
     print(
         f"1e5 Strang steps dt={dt}: max rel ||L| drift {rel_L:.2e}, max ||q|-1| {q_dev:.2e}, "
         f"max |dE/E| first half {first:.3e}, second half {second:.3e}, space-L drift {space:.2e}"
@@ -173,10 +177,13 @@ def test_dense_output_between_steps_keeps_the_structure_and_the_order(order):
     ts = jnp.array([0.0, 0.905, 1.805, 2.705])  # inside a step for both step sizes
     L_exact = INERTIA * torque_free_omega(INERTIA[None], OMEGA0[None], ts)
     errors = []
+    # One term (its vector field a closure, static in diffeqsolve's jit: a new one per step size
+    # compiled anew) and dt0 an array (a Python float is static too): one program for both steps.
+    term, solver = diffrax.ODETerm(free_body_vector_field(INERTIA)), LiePoissonSplitting(INERTIA, order=order)
     for dt in (0.02, 0.01):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(free_body_vector_field(INERTIA)), LiePoissonSplitting(INERTIA, order=order),
-            0.0, 3.0, dt, (L0, Q0), stepsize_controller=diffrax.ConstantStepSize(),
+            term, solver,
+            0.0, 3.0, jnp.asarray(dt), (L0, Q0), stepsize_controller=diffrax.ConstantStepSize(),
             saveat=diffrax.SaveAt(ts=ts),
         )  # fmt: skip
         L, q = sol.ys
@@ -193,25 +200,35 @@ def test_bad_order():
         split_free_body(INERTIA, L0, Q0, 0.1, 10, order=3)
 
 
-def test_batch_vmap_and_broadcast():
-    key = jax.random.PRNGKey(0)
+@jax.jit
+def _random_bodies(key):
+    """16 random bodies: moments, omega and a unit quaternion. One program (eagerly, each random
+    draw, the sort and the normalisation compiled one of their own)."""
     k1, k2, k3 = jax.random.split(key, 3)
     B = 16
     inertia = jnp.sort(jax.random.uniform(k1, (B, 3), minval=1.0, maxval=3.0), axis=-1)
     omega0 = jax.random.normal(k2, (B, 3))
     q0 = quat_normalize(jax.random.normal(k3, (B, 4)))
+    return inertia, omega0, q0, inertia * omega0
+
+
+def test_batch_vmap_and_broadcast():
+    inertia, omega0, q0, L0_batch = _random_bodies(jax.random.PRNGKey(0))
     n = 400
-    run = jax.vmap(lambda I, L, q: split_free_body(I, L, q, T / n, n, 4))
-    L_v, q_v = run(inertia, inertia * omega0, q0)
-    L_b, q_b = split_free_body(inertia, inertia * omega0, q0, T / n, n, 4)  # leading batch axis
+    # jit around the vmap: vmapped eagerly, split_free_body ran op by op (a program per operation).
+    run = jax.jit(jax.vmap(lambda I, L, q: split_free_body(I, L, q, T / n, n, 4)))
+    L_v, q_v = run(inertia, L0_batch, q0)
+    L_b, q_b = split_free_body(inertia, L0_batch, q0, T / n, n, 4)  # leading batch axis
     np.testing.assert_allclose(L_v, L_b, rtol=0, atol=1e-12)
     np.testing.assert_allclose(q_v, q_b, rtol=0, atol=1e-12)
-    L_exact = inertia * torque_free_omega(inertia, omega0, jnp.asarray(T))
-    err = jnp.max(jnp.abs(L_v - L_exact), axis=-1) / jnp.linalg.norm(L_exact, axis=-1)
-    assert jnp.all(err < 1e-5)
+    inertia_np, L_v_np = np.asarray(inertia), np.asarray(L_v)  # the error in NumPy: no eager programs
+    L_exact = inertia_np * np.asarray(torque_free_omega(inertia, omega0, jnp.asarray(T)))
+    err = np.max(np.abs(L_v_np - L_exact), axis=-1) / np.linalg.norm(L_exact, axis=-1)
+    assert np.all(err < 1e-5)
+    L0_np, q0_np = np.asarray(L0_batch), np.asarray(q0)  # NumPy rows: no eager indexing programs
     for b in (0, 7):
-        L1, q1 = split_free_body(inertia[b], inertia[b] * omega0[b], q0[b], T / n, n, 4)
-        np.testing.assert_allclose(L1, L_v[b], rtol=0, atol=1e-12)
+        L1, q1 = split_free_body(inertia_np[b], L0_np[b], q0_np[b], T / n, n, 4)
+        np.testing.assert_allclose(L1, L_v_np[b], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("order", [2, 4])
@@ -281,13 +298,16 @@ def _top_Lz(L, q):
     return quat_rotate(q, L)[..., 2]
 
 
+# The model's own angular acceleration for scipy's DOP853: one compiled program for every reference.
+_top_accel = jax.jit(lambda w, q: TOP.angular_acceleration(0.0, State(w, q), None))
+
+
 @functools.cache
 def _top_reference(T_end):
     """scipy DOP853 (tests/helpers.py) at rtol = atol = 1e-13 on HeavyTop.angular_acceleration (the
     model's own equations, not the splitting's) with dq/dt = q (0, omega) / 2."""
-    accel = jax.jit(lambda w, q: TOP.angular_acceleration(0.0, State(w, q), None))
     w, q = dop853(
-        lambda t, w, q: np.asarray(accel(jnp.asarray(w), jnp.asarray(q))),
+        lambda t, w, q: np.asarray(_top_accel(jnp.asarray(w), jnp.asarray(q))),
         TOP_OMEGA0,
         [T_end],
         TOP_Q0,
@@ -387,10 +407,12 @@ def test_heavy_top_invariants_long_run():
     E0, Lz0, normL0 = _top_energy(TOP_L0, TOP_Q0), _top_Lz(TOP_L0, TOP_Q0), jnp.linalg.norm(TOP_L0)
     # Energy relative to kinetic + |potential| at t = 0 (the potential may cross zero).
     E_scale = 0.5 * jnp.sum(TOP_L0**2 / TOP.inertia) + jnp.abs(TOP.potential_energy(TOP_Q0))
-    dE = jnp.abs(E - E0) / E_scale
-    first, second = float(jnp.max(dE[: n // 2])), float(jnp.max(dE[n // 2 :]))
-    lz = float(jnp.max(jnp.abs(Lz - Lz0)) / normL0)
-    q_dev = float(jnp.max(jnp.abs(normq - 1.0)))
+    # The reductions in NumPy (float64): eagerly each jnp operation on the records compiled a program.
+    E, Lz, normq, E0, Lz0, normL0, E_scale = (np.asarray(x) for x in (E, Lz, normq, E0, Lz0, normL0, E_scale))
+    dE = np.abs(E - E0) / E_scale
+    first, second = float(np.max(dE[: n // 2])), float(np.max(dE[n // 2 :]))
+    lz = float(np.max(np.abs(Lz - Lz0)) / normL0)
+    q_dev = float(np.max(np.abs(normq - 1.0)))
     print(
         f"heavy top 1e5 Strang steps dt={float(dt)}: max |dE|/E first half {first:.3e}, second half "
         f"{second:.3e}; max |dL_Z|/|L| {lz:.2e}; max ||q|-1| {q_dev:.2e}"
@@ -519,9 +541,12 @@ def test_backward_in_time_is_the_motion_backward():
 
     ts = np.array([-0.37, -1.0])
     free_w, free_q = dop853_free_body(np.asarray(INERTIA), np.asarray(OMEGA0), ts, np.asarray(Q0), tol=1e-13)
-    accel = jax.jit(lambda w, q: TOP.angular_acceleration(0.0, State(w, q), None))
     top_w, top_q = dop853(
-        lambda t, w, q: np.asarray(accel(jnp.asarray(w), jnp.asarray(q))), TOP_OMEGA0, ts, TOP_Q0, tol=1e-13
+        lambda t, w, q: np.asarray(_top_accel(jnp.asarray(w), jnp.asarray(q))),
+        TOP_OMEGA0,
+        ts,
+        TOP_Q0,
+        tol=1e-13,
     )
     L, q = _backward(LiePoissonSplitting(INERTIA, order=4), free_body_vector_field(INERTIA), (L0, Q0), 0.01)
     np.testing.assert_allclose(L / INERTIA, free_w, atol=1e-8)
@@ -544,15 +569,17 @@ def test_simulate_with_a_splitting_on_three_bodies(scene):
     import rigidjax as rj
 
     inertia = jnp.array([1.0, 2.0, 3.0])
-    omega0 = jnp.array([[1.0, 0.1, 0.5], [0.2, 1.0, -0.3], [0.4, -0.2, 2.0]])
-    q0 = jnp.tile(Q0, (3, 1))
+    # NumPy states: their rows below compile nothing (eagerly each jnp index was a program).
+    omega0 = np.array([[1.0, 0.1, 0.5], [0.2, 1.0, -0.3], [0.4, -0.2, 2.0]])
+    q0 = np.tile(np.asarray(Q0), (3, 1))
     if scene == "free":
         model, solver = rj.FreeBody(inertia), LiePoissonSplitting(order=4)
     else:
         model, solver = rj.HeavyTop(inertia, 1.0, jnp.array([0.0, 0.0, 0.1])), HeavyTopSplitting(order=4)
     ts = jnp.linspace(0.0, 1.0, 5)
     traj = rj.simulate(model, rj.State(omega0, q0), ts, solver=solver, dt0=0.01)
+    omega, orientation = np.asarray(traj.omega), np.asarray(traj.orientation)
     for i in range(3):
         alone = rj.simulate(model, rj.State(omega0[i], q0[i]), ts, solver=solver, dt0=0.01)
-        np.testing.assert_allclose(traj.omega[i], alone.omega, rtol=0, atol=1e-13)
-        np.testing.assert_allclose(traj.orientation[i], alone.orientation, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(omega[i], alone.omega, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(orientation[i], alone.orientation, rtol=0, atol=1e-13)
