@@ -583,3 +583,38 @@ def test_simulate_with_a_splitting_on_three_bodies(scene):
         alone = rj.simulate(model, rj.State(omega0[i], q0[i]), ts, solver=solver, dt0=0.01)
         np.testing.assert_allclose(omega[i], alone.omega, rtol=0, atol=1e-13)
         np.testing.assert_allclose(orientation[i], alone.orientation, rtol=0, atol=1e-13)
+
+
+def test_vector_fields_of_other_parameters_share_one_compiled_solve():
+    """The vector fields are modules, not closures: a term of another inertia (or of the same
+    acceleration function) has the same structure, so a jitted solve traces once. A new closure per
+    call compiled diffeqsolve again for every inertia. Reference: each solve against DOP853."""
+    import equinox as eqx
+
+    from rigidjax.solvers import heavy_top_vector_field
+
+    y0 = (jnp.array([0.3, 2.0, 0.1]), jnp.array([1.0, 0.0, 0.0, 0.0]))
+
+    def solve(vf):
+        term, controller = diffrax.ODETerm(vf), diffrax.PIDController(rtol=1e-10, atol=1e-12)
+        return diffrax.diffeqsolve(
+            term, diffrax.Tsit5(), 0.0, 1.0, 0.01, y0, stepsize_controller=controller
+        ).ys
+
+    free = eqx.filter_jit(eqx.debug.assert_max_traces(solve, max_traces=1))
+    for inertia in ([1.0, 2.0, 3.0], [1.0, 2.0, 2.5]):
+        L, q = free(free_body_vector_field(jnp.array(inertia)))
+        omega_ref, q_ref = dop853_free_body(np.array(inertia), np.asarray(y0[0]) / inertia, [0.0, 1.0], y0[1])
+        np.testing.assert_allclose(np.asarray(L[-1]) / inertia, omega_ref[-1], atol=1e-8)
+        np.testing.assert_allclose(np.asarray(q[-1]), q_ref[-1], atol=1e-8)
+    top = eqx.filter_jit(eqx.debug.assert_max_traces(solve, max_traces=1))
+    for mass in (0.5, 0.7):
+        top(heavy_top_vector_field(jnp.array([1.0, 1.0, 0.5]), jnp.asarray(mass), jnp.array([0.0, 0.0, 0.1])))
+    damped = eqx.filter_jit(eqx.debug.assert_max_traces(solve, max_traces=1))
+
+    def damping(t, omega, q, args):
+        return -0.1 * omega
+
+    for _ in range(2):
+        omega, _ = damped(rigid_body_vector_field(damping))
+        np.testing.assert_allclose(np.asarray(omega[-1]), np.asarray(y0[0]) * np.exp(-0.1), rtol=1e-9)

@@ -217,11 +217,18 @@ def rigid_body_vector_field(angular_acceleration: Callable) -> Callable:
             f"f(t, omega, q, args), got {type(angular_acceleration).__name__}."
         )
 
-    def vf(t, y, args):
-        omega, q = y
-        return angular_acceleration(t, omega, q, args), _quat_kinematics(q, omega)
+    return _RigidBodyVectorField(angular_acceleration)
 
-    return vf
+
+class _RigidBodyVectorField(eqx.Module):
+    """A module rather than a closure: terms of the same ``angular_acceleration`` have the same
+    structure, so a jitted ``diffeqsolve`` compiles once for them."""
+
+    angular_acceleration: Callable
+
+    def __call__(self, t, y, args):
+        omega, q = y
+        return self.angular_acceleration(t, omega, q, args), _quat_kinematics(q, omega)
 
 
 class _GeodesicHermiteInterpolation(diffrax.AbstractLocalInterpolation):

@@ -370,13 +370,19 @@ def free_body_vector_field(inertia):
     return _free_body_vector_field(_checked_moments(inertia, "free_body_vector_field"))
 
 
-def _free_body_vector_field(inertia):
-    def vf(t, y, args):
+class _FreeBodyVectorField(eqx.Module):
+    """A module rather than a closure: a term of another inertia has the same structure, so a
+    jitted ``diffeqsolve`` compiles once for every inertia (a closure is a new function each time)."""
+
+    inertia: Any
+
+    def __call__(self, t, y, args):
         L, q = y
-        omega = L / inertia.astype(L.dtype)
+        omega = L / self.inertia.astype(L.dtype)
         return jnp.cross(L, omega), _quat_kinematics(q, omega)
 
-    return vf
+
+_free_body_vector_field = _FreeBodyVectorField
 
 
 # ---------------------------------------------------------------------------------------------
@@ -582,13 +588,19 @@ def heavy_top_vector_field(inertia, mass, com, gravity=9.81):
     return _heavy_top_vector_field(inertia, mass, com, gravity)
 
 
-def _heavy_top_vector_field(inertia, mass, com, gravity):
-    free = _free_body_vector_field(jnp.asarray(inertia))
+class _HeavyTopVectorField(eqx.Module):
+    """A module, as :class:`_FreeBodyVectorField`: one compile for every top of one shape."""
 
-    def vf(t, y, args):
+    inertia: Any
+    mass: Any
+    com: Any
+    gravity: Any
+
+    def __call__(self, t, y, args):
         L, q = y
-        dL, dq = free(t, y, args)
-        weight_com = heavy_top_weight_com(mass, com, gravity, L.dtype)
+        dL, dq = _FreeBodyVectorField(jnp.asarray(self.inertia))(t, y, args)
+        weight_com = heavy_top_weight_com(self.mass, self.com, self.gravity, L.dtype)
         return dL + gravity_torque(q, weight_com), dq
 
-    return vf
+
+_heavy_top_vector_field = _HeavyTopVectorField
