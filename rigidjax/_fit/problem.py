@@ -57,8 +57,12 @@ def _on_flat_body_edge(moments) -> bool:
     """Whether principal moments (numpy, any scale) lie on the flat-body edge of the physical moments:
     the largest the sum of the other two within ``FLAT_BODY_EDGE``, relative. A fit ends there for a
     flat body and from a start whose moments are wrongly ordered."""
-    low, middle, high = np.sort(np.asarray(moments, dtype=float))
-    return bool(high >= (1 - FLAT_BODY_EDGE) * (low + middle))
+    return bool(_beyond_edge(*np.sort(np.asarray(moments, dtype=float))))
+
+
+def _beyond_edge(low, middle, high):
+    """The flat-body edge's condition on sorted moments (NumPy or traced)."""
+    return high >= (1 - FLAT_BODY_EDGE) * (low + middle)
 
 
 def _unmeasured_edge_distance(inertia_stderr, inertia, moments, axes, full_tensor, known_moment):
@@ -67,7 +71,7 @@ def _unmeasured_edge_distance(inertia_stderr, inertia, moments, axes, full_tenso
     edge is not measured. The covariance's projector sees that only while the saturated softmax
     that keeps the moments physical still has a gradient there; in float32 it underflows to zero,
     and the standard error came out 0. A known moment keeps its zero error."""
-    on_edge = moments[2] >= (1 - FLAT_BODY_EDGE) * (moments[0] + moments[1])
+    on_edge = _beyond_edge(moments[0], moments[1], moments[2])
     if full_tensor:
         on_largest = jnp.abs(axes[:, 2, None] * axes[None, :, 2]) > 1e-3
     else:

@@ -32,8 +32,8 @@ from .solvers.rkmk import rigid_body_vector_field
 from .solvers.splitting import (
     HeavyTopSplitting,
     LiePoissonSplitting,
-    _free_body_vector_field,
-    _heavy_top_vector_field,
+    _FreeBodyVectorField,
+    _HeavyTopVectorField,
     with_model_parameters,
 )
 
@@ -303,8 +303,8 @@ class SplittingODE(eqx.Module):
     def vector_field(self, shell, leaves, values, sigma):
         moments, top = self._parameters(values, leaves)
         if top is None:
-            return _free_body_vector_field(moments)
-        return _heavy_top_vector_field(moments, *top)
+            return _FreeBodyVectorField(moments)
+        return _HeavyTopVectorField(moments, *top)
 
     def chunk_solver(self, solver, values, leaves):
         moments, top = self._parameters(values, leaves)

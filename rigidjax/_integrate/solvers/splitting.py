@@ -367,7 +367,7 @@ def free_body_vector_field(inertia):
 
     ``inertia``: principal moments ``(..., 3)`` (kg m^2), checked here (shape while tracing, a
     physical inertia at run time); ``L`` and ``q`` are the solver's state."""
-    return _free_body_vector_field(_checked_moments(inertia, "free_body_vector_field"))
+    return _FreeBodyVectorField(_checked_moments(inertia, "free_body_vector_field"))
 
 
 class _FreeBodyVectorField(eqx.Module):
@@ -380,9 +380,6 @@ class _FreeBodyVectorField(eqx.Module):
         L, q = y
         omega = L / self.inertia.astype(L.dtype)
         return jnp.cross(L, omega), _quat_kinematics(q, omega)
-
-
-_free_body_vector_field = _FreeBodyVectorField
 
 
 # ---------------------------------------------------------------------------------------------
@@ -585,7 +582,7 @@ def heavy_top_vector_field(inertia, mass, com, gravity=9.81):
     check_batch_shapes(
         where, ("inertia", inertia, 1), ("mass", mass, 0), ("com", com, 1), ("gravity", gravity, 0)
     )
-    return _heavy_top_vector_field(inertia, mass, com, gravity)
+    return _HeavyTopVectorField(inertia, mass, com, gravity)
 
 
 class _HeavyTopVectorField(eqx.Module):
@@ -601,6 +598,3 @@ class _HeavyTopVectorField(eqx.Module):
         dL, dq = _FreeBodyVectorField(jnp.asarray(self.inertia))(t, y, args)
         weight_com = heavy_top_weight_com(self.mass, self.com, self.gravity, L.dtype)
         return dL + gravity_torque(q, weight_com), dq
-
-
-_heavy_top_vector_field = _HeavyTopVectorField
