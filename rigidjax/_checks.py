@@ -9,6 +9,7 @@ Two kinds of error, as everywhere in rigidjax: shape and dtype problems raise ``
 import contextlib
 import functools
 import inspect
+from collections.abc import Collection, Mapping
 from typing import Any
 
 import equinox as eqx
@@ -323,7 +324,12 @@ def _has_value(x) -> bool:
     return x is None or isinstance(x, jax.Array | int | float)
 
 
-def compiled_when_eager(function=None, *, static_argnames: tuple[str, ...] = ()):
+def compiled_when_eager(
+    function=None,
+    *,
+    static_argnames: tuple[str, ...] = (),
+    case_insensitive: Mapping[str, Collection[str]] | None = None,
+):
     """``function`` (a public, checked function) as one compiled program when called eagerly.
 
     Called op by op, each of its operations (the checks' reductions, each component of a formula)
@@ -337,9 +343,15 @@ def compiled_when_eager(function=None, *, static_argnames: tuple[str, ...] = ())
 
     ``static_argnames``: arguments that are Python values (names in messages, options), part of the
     program rather than its inputs; another type there (an array) also runs ``function`` as it is,
-    which names the problem."""
+    which names the problem. ``case_insensitive``: static string arguments that mean the same in any
+    case (Euler sequences), with their lower-case values: a valid value in any case, or the default,
+    is passed lower-cased, so that ``"ZXZ"``, ``"zxz"`` and no argument share one program (an invalid
+    one as it is, for the message)."""
+    case_insensitive = dict(case_insensitive or {})
     if function is None:
-        return functools.partial(compiled_when_eager, static_argnames=static_argnames)
+        return functools.partial(
+            compiled_when_eager, static_argnames=static_argnames, case_insensitive=case_insensitive
+        )
 
     signature = inspect.signature(function)
 
@@ -365,6 +377,10 @@ def compiled_when_eager(function=None, *, static_argnames: tuple[str, ...] = ())
             or not all(isinstance(v, str | int | float | None) for v in static)
         ):
             return function(*args, **kwargs)
+        for name, choices in case_insensitive.items():
+            value = arguments.get(name, signature.parameters[name].default)
+            if isinstance(value, str) and value.lower() in choices:
+                arguments[name] = value.lower()
         arrays, codes, out_static = program(**arguments)
         if is_traced(arrays, codes):
             # Constants of the user's jit: the program above leaves it unused, and the checks go

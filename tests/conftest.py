@@ -110,6 +110,48 @@ def _count_jax_seconds(event: str, duration: float, **_) -> None:
             _JAX_SECONDS["compiles"] = _JAX_SECONDS.get("compiles", 0) + 1
 
 
+# RIGIDJAX_TEST_PROGRAM_REPORT=path appends one JSON line per program that XLA compiled or loaded
+# from the persistent cache: the test, the program's name, the compile seconds, whether it holds host
+# callbacks (such a program is never written to the persistent cache, so every process and every run
+# compiles it again) and the end of its cache key (the same key twice: the same program twice). It
+# wraps two private functions of jax._src.compiler, so it is a diagnostic for this jax version only.
+_CURRENT_TEST = {"nodeid": None}
+
+
+def _report_programs(path: str) -> None:
+    import json
+
+    from jax._src import compiler
+
+    write, read = compiler._cache_write, compiler._cache_read
+
+    def record(**fields):
+        with open(path, "a") as f:
+            f.write(json.dumps({"test": _CURRENT_TEST["nodeid"], "pid": os.getpid(), **fields}) + "\n")
+
+    def cache_write(cache_key, compile_time_secs, module_name, backend, executable, host_callbacks):
+        record(event="compiled", program=module_name, seconds=compile_time_secs,
+               host_callbacks=len(host_callbacks), key=cache_key[-16:])  # fmt: skip
+        return write(cache_key, compile_time_secs, module_name, backend, executable, host_callbacks)
+
+    def cache_read(module_name, cache_key, *args, **kwargs):
+        executable, seconds = read(module_name, cache_key, *args, **kwargs)
+        if executable is not None:
+            record(event="loaded", program=module_name, key=cache_key[-16:])
+        return executable, seconds
+
+    compiler._cache_write, compiler._cache_read = cache_write, cache_read
+
+
+if os.environ.get("RIGIDJAX_TEST_PROGRAM_REPORT"):
+    _report_programs(os.environ["RIGIDJAX_TEST_PROGRAM_REPORT"])
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_setup(item):
+        _CURRENT_TEST["nodeid"] = item.nodeid  # the setup's fixtures compile for the test too
+        yield
+
+
 if os.environ.get("RIGIDJAX_TEST_COMPILE_REPORT"):
     jax.monitoring.register_event_duration_secs_listener(_count_jax_seconds)
 

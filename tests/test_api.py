@@ -233,6 +233,44 @@ def test_eager_calls_compile_one_program_not_one_per_operation():
     assert _programs_compiled(lambda: rj.euler_rates(angles, traj.omega[:, 0], "yxz")) == 1
 
 
+def _programs_traced(call) -> int:
+    """How many functions ``call()`` traces (JAX's trace events): none when every program it runs is
+    one JAX already holds, whether or not the persistent cache would have supplied its compilation."""
+    traces = []
+
+    def listen(event, duration, **kwargs):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            traces.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        jax.block_until_ready(call())
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return len(traces)
+
+
+def test_a_sequence_in_another_case_runs_the_same_program():
+    """Euler sequences are case-insensitive: "ZXZ", "ZxZ" and the default after "zxz" (and "YXZ" after
+    "yxz" for the rates) run the program of the first call, with the same values. Each spelling
+    traced and compiled a program of its own before. Reference: JAX's trace events."""
+    angles = jnp.asarray([[0.3, 0.7, -1.1], [2.0, 0.2, 0.4]])
+    rates = jnp.asarray([[0.1, -0.2, 0.3], [0.0, 0.5, 1.0]])
+    calls = {
+        "matrix_from_euler": lambda seq: rj.matrix_from_euler(angles, *seq),
+        "quat_from_euler": lambda seq: rj.quat_from_euler(angles, *seq),
+        "body_angular_velocity": lambda seq: rj.body_angular_velocity(angles, rates, *seq),
+        "euler_rates": lambda seq: rj.euler_rates(angles, rates, *seq),
+    }
+    for name, call in calls.items():
+        first = np.asarray(call(("zxz",)))
+        for seq in [("ZXZ",), ("ZxZ",), ()]:
+            assert _programs_traced(lambda call=call, seq=seq: call(seq)) == 0, (name, seq)
+            np.testing.assert_array_equal(np.asarray(call(seq)), first)
+    rj.euler_rates(angles, rates, "yxz")
+    assert _programs_traced(lambda: rj.euler_rates(angles, rates, "YXZ")) == 0
+
+
 @pytest.mark.parametrize("kind", ["Python float", "array"])
 def test_a_second_eager_call_with_new_values_compiles_nothing(kind):
     """The elliptic functions ran their loops operation by operation, compiling them again at every

@@ -277,7 +277,7 @@ def _checked_angles(angles, where):
     return check_finite(angles, "angles", where)
 
 
-@compiled_when_eager(static_argnames=("seq",))
+@compiled_when_eager(static_argnames=("seq",), case_insensitive={"seq": SEQUENCES})
 def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
     """Rotation matrix ``R = R_a(phi) R_b(theta) R_c(psi)`` of Euler angles, for ``seq = "abc"``.
 
@@ -296,7 +296,7 @@ def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
     return _compiled_matrix_from_euler(_checked_angles(angles, "matrix_from_euler"), seq=seq)
 
 
-@compiled_when_eager(static_argnames=("seq",))
+@compiled_when_eager(static_argnames=("seq",), case_insensitive={"seq": SEQUENCES})
 def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
     """Unit quaternion of Euler angles: the same rotation as :func:`matrix_from_euler`.
 
@@ -313,7 +313,7 @@ def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
     return _compiled_quat_from_euler(_checked_angles(angles, "quat_from_euler"), seq=seq)
 
 
-@compiled_when_eager(static_argnames=("seq",))
+@compiled_when_eager(static_argnames=("seq",), case_insensitive={"seq": SEQUENCES})
 def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     """Euler angles of a quaternion (Bernardes & Viollet 2022, as in scipy).
 
@@ -338,7 +338,7 @@ def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
     return _compiled_euler_from_quat(check_rotation_quaternion(q, "q", "euler_from_quat"), seq=seq)
 
 
-@compiled_when_eager(static_argnames=("seq",))
+@compiled_when_eager(static_argnames=("seq",), case_insensitive={"seq": SEQUENCES})
 def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
     """Euler angles of a rotation matrix.
 
@@ -359,7 +359,7 @@ def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
     return _compiled_euler_from_matrix(check_rotation_matrix(R, "R", "euler_from_matrix"), seq=seq)
 
 
-@compiled_when_eager(static_argnames=("seq",))
+@compiled_when_eager(static_argnames=("seq",), case_insensitive={"seq": SEQUENCES})
 def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
     """Body-frame angular velocity from Euler angles and their time derivatives.
 
@@ -389,7 +389,7 @@ def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> Ve
     )
 
 
-@compiled_when_eager(static_argnames=("seq",))
+@compiled_when_eager(static_argnames=("seq",), case_insensitive={"seq": SEQUENCES})
 def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> VectorOut:
     """Space-frame angular velocity from Euler angles and their time derivatives.
 
@@ -418,7 +418,7 @@ def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> V
     )
 
 
-@compiled_when_eager(static_argnames=("seq", "throw"))
+@compiled_when_eager(static_argnames=("seq", "throw"), case_insensitive={"seq": SEQUENCES})
 def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool = True) -> VectorOut:
     """Euler-angle rates ``(phi', theta', psi')`` from the body-frame angular velocity.
 
