@@ -99,8 +99,9 @@ def test_zero_rotor_momentum_is_the_free_body():
     rotors = rj.Gyrostat(INERTIA, np.zeros(3))
     free = rj.FreeBody(INERTIA)
     state = rj.State(OMEGA0, Q0)
-    a = rj.simulate(rotors, state, TS, solver=rj.solvers.RKMK(), dt0=0.05)
-    b = rj.simulate(free, state, TS, solver=rj.solvers.RKMK(), dt0=0.05)
+    # dt0 = 0.01: the rotors' run is the torque-free test's RKMK program.
+    a = rj.simulate(rotors, state, TS, solver=rj.solvers.RKMK(), dt0=0.01)
+    b = rj.simulate(free, state, TS, solver=rj.solvers.RKMK(), dt0=0.01)
     np.testing.assert_array_equal(np.asarray(a.stats["num_steps"]), np.asarray(b.stats["num_steps"]))
     np.testing.assert_allclose(np.asarray(a.omega), np.asarray(b.omega), rtol=0, atol=1e-14)
     np.testing.assert_allclose(np.asarray(a.orientation), np.asarray(b.orientation), rtol=0, atol=1e-14)
@@ -213,8 +214,10 @@ def test_momentum_wheel_stabilises_the_intermediate_axis():
 
 
 def _final_omega(h, inertia, **kwargs):
+    # The scene of test_against_dop853_with_a_torque (orientation included): the central differences
+    # below run its compiled solves again.
     model = rj.Gyrostat(inertia, h, torque=rj.ConstantTorque(TORQUE))
-    return rj.simulate(model, rj.State(OMEGA0), TS, **kwargs).omega[-1]
+    return rj.simulate(model, rj.State(OMEGA0, Q0), TS, **kwargs).omega[-1]
 
 
 @pytest.mark.slow
@@ -224,13 +227,14 @@ def test_grad_wrt_rotor_momentum_and_inertia_vs_central_differences(method, step
     respect to the rotor momentum and the moments. Steps: RKMK's fixed steps make the result a
     smooth function of the parameters (measured: the difference falls as step^2, 5e-9 relative at
     1e-5); the adaptive preset's step choices add noise of ~rtol / step."""
-    kwargs = {"accuracy": "precise"} if method == "precise" else {"solver": rj.solvers.RKMK(), "dt0": 0.02}
-    # Compiled programs: eagerly each operation around the solve compiles one of its own.
+    kwargs = {"accuracy": "precise"} if method == "precise" else {"solver": rj.solvers.RKMK(), "dt0": 0.01}
+    # One compiled program for the derivative: eagerly each operation around the solve compiles one
+    # of its own. The differences call simulate as the comparison with DOP853 does (same scene and
+    # options), which loads its solve instead of compiling a program of their own.
     final = functools.partial(_final_omega, **kwargs)
     jac_h, jac_inertia = jax.jit(jax.jacrev(final, argnums=(0, 1)))(jnp.asarray(H), jnp.asarray(INERTIA))
-    final = jax.jit(final)
-    fd_h = central_difference(lambda x: final(jnp.asarray(x), jnp.asarray(INERTIA)), H, step)
-    fd_inertia = central_difference(lambda x: final(jnp.asarray(H), jnp.asarray(x)), INERTIA, step * INERTIA)
+    fd_h = central_difference(lambda x: final(x, INERTIA), H, step)
+    fd_inertia = central_difference(lambda x: final(H, x), INERTIA, step * INERTIA)
     np.testing.assert_allclose(np.asarray(jac_h), fd_h, rtol=0, atol=tol * np.max(np.abs(fd_h)))
     np.testing.assert_allclose(
         np.asarray(jac_inertia), fd_inertia, rtol=0, atol=tol * np.max(np.abs(fd_inertia))
@@ -245,21 +249,22 @@ def test_grad_wrt_rotor_momentum_and_inertia_vs_central_differences(method, step
 @pytest.mark.slow
 def test_batch_matches_per_body():
     """Reference: the same bodies one at a time. Leading axes on the inertia and the rotor momentum,
-    broadcast against each other and against the state. (The default preset: bodies of a chunk
-    share a step size, so the batch and the single runs agree to the tolerance, not bit for bit.)"""
+    broadcast against each other and against the state. (Bodies of a chunk share a step size, so the
+    batch and the single runs agree to the tolerance, not bit for bit. The precise preset, as the
+    torque-free test: the single runs are its compiled solve.)"""
     rng = np.random.default_rng(7)
     inertia = INERTIA * (1 + 0.05 * rng.uniform(-1, 1, (4, 3)))  # physical: I1 + I2 > I3
     h = H + 0.5 * rng.normal(size=(4, 3))
     omega0 = OMEGA0 + 0.3 * rng.normal(size=(4, 3))
-    batch = rj.simulate(rj.Gyrostat(inertia, h), rj.State(omega0, Q0), TS)
-    shared = rj.simulate(rj.Gyrostat(inertia, H), rj.State(omega0, Q0), TS)
+    batch = rj.simulate(rj.Gyrostat(inertia, h), rj.State(omega0, Q0), TS, accuracy="precise")
+    shared = rj.simulate(rj.Gyrostat(inertia, H), rj.State(omega0, Q0), TS, accuracy="precise")
     assert batch.omega.shape == (4, TS.size, 3) and batch.orientation.shape == (4, TS.size, 4)
     # NumPy rows and differences: eagerly each jnp index and difference compiled a program.
     batch_omega, batch_q, shared_omega = (
         np.asarray(x) for x in (batch.omega, batch.orientation, shared.omega)
     )
     for i in range(4):
-        one = rj.simulate(rj.Gyrostat(inertia[i], h[i]), rj.State(omega0[i], Q0), TS)
+        one = rj.simulate(rj.Gyrostat(inertia[i], h[i]), rj.State(omega0[i], Q0), TS, accuracy="precise")
         assert rel_err(batch_omega[i], np.asarray(one.omega)) < 1e-6
         assert float(np.max(np.abs(batch_q[i] - np.asarray(one.orientation)))) < 1e-6
         omega_ref, _ = dop853(gyrostat_accel(inertia[i], H), omega0[i], TS)
