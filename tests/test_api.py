@@ -194,20 +194,25 @@ def test_simulate_structure_preserving_is_simulate_with_a_solver():
     assert str(old(model, state0)) == str(new(model, state0))
 
 
-def _programs_compiled(call) -> int:
-    """How many XLA programs ``call()`` compiles (JAX's compile events)."""
-    durations = []
+def _events_during(call, event_name: str) -> int:
+    """How many of JAX's duration events named ``event_name`` ``call()`` records."""
+    seen = []
 
     def listen(event, duration, **kwargs):
-        if "backend_compile" in event:
-            durations.append(duration)
+        if event == event_name:
+            seen.append(duration)
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         jax.block_until_ready(call())
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
-    return len(durations)
+    return len(seen)
+
+
+def _programs_compiled(call) -> int:
+    """How many XLA programs ``call()`` compiles (JAX's compile events)."""
+    return _events_during(call, "/jax/core/compile/backend_compile_duration")
 
 
 def test_eager_calls_compile_one_program_not_one_per_operation():
@@ -236,18 +241,7 @@ def test_eager_calls_compile_one_program_not_one_per_operation():
 def _programs_traced(call) -> int:
     """How many functions ``call()`` traces (JAX's trace events): none when every program it runs is
     one JAX already holds, whether or not the persistent cache would have supplied its compilation."""
-    traces = []
-
-    def listen(event, duration, **kwargs):
-        if event == "/jax/core/compile/jaxpr_trace_duration":
-            traces.append(duration)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
-        jax.block_until_ready(call())
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
-    return len(traces)
+    return _events_during(call, "/jax/core/compile/jaxpr_trace_duration")
 
 
 def test_a_sequence_in_another_case_runs_the_same_program():
