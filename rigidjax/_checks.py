@@ -315,6 +315,12 @@ class StaticValue(eqx.Module):
     value: Any = eqx.field(static=True)
 
 
+def _carries_value(x) -> bool:
+    """A tracer of an eager ``grad``, ``vjp`` or ``jvp``, which carries its primal value (not one of
+    ``jit`` or ``vmap``)."""
+    return isinstance(x, jax.core.Tracer) and known_values(x) is not None
+
+
 def _has_value(x) -> bool:
     """An argument that an eager call passes as it is and a compiled program takes as an array."""
     if isinstance(x, jax.core.Tracer) or isinstance(x, bool | np.bool_):
@@ -337,9 +343,10 @@ def compiled_when_eager(
     of them (2.7 s; ``benchmarks/eager_calls.py``). Called with arrays or numbers that have values,
     it runs as one ``jax.jit`` traced inside :func:`collected_failures`: the checks' conditions come
     back with the result and a failed one raises ``ValueError`` here, with the message it raises
-    otherwise. Traced arguments (the user's ``jit``, ``vmap`` or ``grad``), values that are constants
-    of the user's ``jit``, other argument types (lists, ...), and calls inside another compiled check
-    run ``function`` as it is.
+    otherwise. The tracers of an eager ``grad`` or ``jvp`` carry values: the program is
+    differentiated as a whole, its conditions checked the same way. Traced arguments without values
+    (the user's ``jit`` or ``vmap``), values that are constants of the user's ``jit``, other argument
+    types (lists, ...), and calls inside another compiled check run ``function`` as it is.
 
     ``static_argnames``: arguments that are Python values (names in messages, options), part of the
     program rather than its inputs; another type there (an array) also runs ``function`` as it is,
@@ -373,7 +380,7 @@ def compiled_when_eager(
         static = [v for k, v in arguments.items() if k in static_argnames]
         if (
             _collected is not None
-            or not all(_has_value(x) for x in dynamic)
+            or not all(_has_value(x) or _carries_value(x) for x in dynamic)
             or not all(isinstance(v, str | int | float | None) for v in static)
         ):
             return function(*args, **kwargs)
@@ -382,9 +389,17 @@ def compiled_when_eager(
             if isinstance(value, str) and value.lower() in choices:
                 arguments[name] = value.lower()
         arrays, codes, out_static = program(**arguments)
-        if is_traced(arrays, codes):
-            # Constants of the user's jit: the program above leaves it unused, and the checks go
-            # into the user's program as they would without this wrapper.
+        # The tracers of an eager grad or jvp: the program is differentiated as a whole (op by op,
+        # each operation was a program of its own: 34 for euler_from_quat's gradient), and its
+        # conditions come back with values.
+        carried = any(_carries_value(x) for x in dynamic)
+        if is_traced(codes):
+            codes = known_values(codes)
+            if codes is None:
+                # Constants of the user's jit: the program above leaves it unused, and the checks go
+                # into the user's program as they would without this wrapper.
+                return function(*args, **kwargs)
+        elif is_traced(arrays) and not carried:
             return function(*args, **kwargs)
         out_static, messages = out_static.value
         raise_collected((codes, messages))

@@ -267,6 +267,26 @@ def test_eager_derivatives_of_simulate_compile_its_checks_once():
     assert _programs_compiled_afresh(lambda: jax.jvp(motion, (inertia,), (jnp.ones_like(inertia),))[1]) <= 4
 
 
+def test_eager_derivatives_of_checked_functions_compile_their_program():
+    """Under an eager ``jax.grad`` or ``jax.jvp`` a checked public function (``euler_from_quat``
+    here) ran operation by operation, its checks included: 24 programs for the gradient of a loss
+    of it on a new shape, 9 for its jvp. Its program is now differentiated as a whole, with the
+    values of the jitted gradient, and a bad value still raises the ``ValueError`` naming the
+    argument. Reference: JAX's compile events, persistent cache off; the jitted gradient."""
+    q = jnp.asarray(np.random.default_rng(2).normal(size=(6, 4)))
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+    def loss(q):
+        return jnp.sum(rj.euler_from_quat(q, "zyx") ** 2)
+
+    # The function's program (primal and transposed) and the loss's own operations.
+    assert _programs_compiled_afresh(lambda: jax.grad(loss)(q)) <= 12
+    assert _programs_compiled_afresh(lambda: jax.jvp(loss, (q,), (q,))) <= 4
+    np.testing.assert_allclose(jax.grad(loss)(q), jax.jit(jax.grad(loss))(q), rtol=0, atol=1e-13)
+    with pytest.raises(ValueError, match="euler_from_quat: q contains NaN or inf"):
+        jax.grad(loss)(q.at[0, 0].set(jnp.nan))
+
+
 def _programs_traced(call) -> int:
     """How many functions ``call()`` traces (JAX's trace events): none when every program it runs is
     one JAX already holds, whether or not the persistent cache would have supplied its compilation."""
