@@ -287,6 +287,36 @@ def test_eager_derivatives_of_checked_functions_compile_their_program():
         jax.grad(loss)(q.at[0, 0].set(jnp.nan))
 
 
+def test_shapes_and_composites_compile_one_program_when_eager():
+    """The shape helpers and ``composite_inertia`` ran operation by operation when called eagerly:
+    ``solid_box(1.0, sizes)`` compiled 19 programs on a new shape, ``composite_inertia`` of four
+    parts 76. Each is one program now, and a new mass compiles nothing. Reference: JAX's compile
+    events, persistent cache off, on shapes no other test uses; the values against the formulas."""
+    sizes = jnp.asarray(np.random.default_rng(3).uniform(0.1, 1.0, size=(7, 3)))
+    assert _programs_compiled_afresh(lambda: rj.solid_box(1.0, sizes)) == 1
+    assert _programs_compiled_afresh(lambda: rj.solid_box(2.5, sizes)) == 0
+    a, b, c = np.asarray(sizes).T
+    np.testing.assert_allclose(
+        rj.solid_box(2.5, sizes), 2.5 / 12 * np.stack([b**2 + c**2, a**2 + c**2, a**2 + b**2], -1)
+    )
+    masses, coms = (
+        jnp.asarray([1.0, 2.0, 0.5, 1.5]),
+        jnp.asarray(np.random.default_rng(4).normal(size=(4, 3))),
+    )
+    moments = rj.solid_box(1.0, jnp.asarray(np.random.default_rng(5).uniform(0.1, 1.0, size=(4, 3))))
+    assert _programs_compiled_afresh(lambda: rj.composite_inertia(masses, coms, moments)) == 1
+    total, com, tensor = rj.composite_inertia(masses, coms, moments)
+    m, d = np.asarray(masses), np.asarray(coms)
+    com_ref = (m[:, None] * d).sum(0) / m.sum()
+    r = d - com_ref
+    tensor_ref = sum(
+        np.diag(moments[p]) + m[p] * (r[p] @ r[p] * np.eye(3) - np.outer(r[p], r[p])) for p in range(4)
+    )
+    np.testing.assert_allclose(total, m.sum())
+    np.testing.assert_allclose(com, com_ref, rtol=1e-14)
+    np.testing.assert_allclose(tensor, tensor_ref, rtol=1e-13)
+
+
 def _programs_traced(call) -> int:
     """How many functions ``call()`` traces (JAX's trace events): none when every program it runs is
     one JAX already holds, whether or not the persistent cache would have supplied its compilation."""

@@ -152,6 +152,7 @@ def _moments(mass, *factors):
     return mass[..., None] * jnp.stack(jnp.broadcast_arrays(*factors), axis=-1)
 
 
+@compiled_when_eager
 def solid_box(mass: Scalar, size: Vector) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a uniform solid box (cuboid) about its centre.
 
@@ -166,6 +167,7 @@ def solid_box(mass: Scalar, size: Vector) -> VectorOut:
     return _moments(mass, (b2 + c2) / 12.0, (c2 + a2) / 12.0, (a2 + b2) / 12.0)
 
 
+@compiled_when_eager
 def solid_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a uniform solid cylinder about its centre.
 
@@ -178,6 +180,7 @@ def solid_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     return _moments(mass, transverse, transverse, r2 / 2.0)
 
 
+@compiled_when_eager
 def hollow_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a thin-walled open tube about its centre.
 
@@ -190,6 +193,7 @@ def hollow_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     return _moments(mass, transverse, transverse, r2)
 
 
+@compiled_when_eager
 def solid_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a uniform solid ball: ``2 m r^2 / 5`` each."""
     mass, radius = _nonnegative("solid_sphere", mass=mass, radius=radius)
@@ -197,6 +201,7 @@ def solid_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     return _moments(mass, i, i, i)
 
 
+@compiled_when_eager
 def hollow_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a thin spherical shell: ``2 m r^2 / 3`` each."""
     mass, radius = _nonnegative("hollow_sphere", mass=mass, radius=radius)
@@ -204,6 +209,7 @@ def hollow_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     return _moments(mass, i, i, i)
 
 
+@compiled_when_eager
 def solid_ellipsoid(mass: Scalar, semi_axes: Vector) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a uniform solid ellipsoid about its centre.
 
@@ -218,6 +224,7 @@ def solid_ellipsoid(mass: Scalar, semi_axes: Vector) -> VectorOut:
     return _moments(mass, (b2 + c2) / 5.0, (c2 + a2) / 5.0, (a2 + b2) / 5.0)
 
 
+@compiled_when_eager
 def thin_rod(mass: Scalar, length: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a thin uniform rod along z, about its centre.
 
@@ -230,6 +237,7 @@ def thin_rod(mass: Scalar, length: Scalar) -> VectorOut:
     return _moments(mass, transverse, transverse, jnp.zeros_like(transverse))
 
 
+@compiled_when_eager
 def thin_disc(mass: Scalar, radius: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a thin uniform disc in the xy-plane (axis z).
 
@@ -244,6 +252,7 @@ def thin_disc(mass: Scalar, radius: Scalar) -> VectorOut:
 # --- composite bodies ----------------------------------------------------------------------------
 
 
+@compiled_when_eager
 def composite_inertia(
     masses: Float[ArrayLike, "parts ..."],
     coms: Float[ArrayLike, "parts ... 3"],
