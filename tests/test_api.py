@@ -317,6 +317,34 @@ def test_shapes_and_composites_compile_one_program_when_eager():
     np.testing.assert_allclose(tensor, tensor_ref, rtol=1e-13)
 
 
+@pytest.mark.parametrize("name", ["quat_exp", "dexpinv", "quat_from_scalar_last", "from_mujoco_free_joint"])
+def test_conversions_compile_one_program_when_eager(name):
+    """These ran operation by operation when called eagerly (``quat_exp`` compiled 23 programs on a
+    new shape, ``quat_from_scalar_last`` 12, ``from_mujoco_free_joint`` 7, ``dexpinv`` 3); one
+    program each now, with the values of the same call under ``jax.jit`` (their values are checked
+    against scipy and MuJoCo in test_kinematics and test_convert). Reference: JAX's compile events,
+    persistent cache off, on a shape no other test uses."""
+    from rigidjax import convert, kinematics, solvers
+
+    rng = np.random.default_rng(6)
+    theta, omega = jnp.asarray(rng.normal(size=(9, 3))), jnp.asarray(rng.normal(size=(9, 3)))
+    q = jnp.asarray(rng.normal(size=(9, 4)))
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    qpos = jnp.concatenate([jnp.asarray(rng.normal(size=(9, 3))), q], axis=-1)
+    qvel = jnp.asarray(rng.normal(size=(9, 6)))
+    function, args = {
+        "quat_exp": (kinematics.quat_exp, (theta,)),
+        "dexpinv": (solvers.dexpinv, (0.1 * theta, omega)),
+        "quat_from_scalar_last": (convert.quat_from_scalar_last, (q,)),
+        "from_mujoco_free_joint": (convert.from_mujoco_free_joint, (qpos, qvel)),
+    }[name]
+    assert _programs_compiled_afresh(lambda: function(*args)) == 1
+    for eager, jitted in zip(
+        jax.tree.leaves(function(*args)), jax.tree.leaves(jax.jit(function)(*args)), strict=True
+    ):
+        np.testing.assert_allclose(eager, jitted, rtol=0, atol=1e-15)
+
+
 def _programs_traced(call) -> int:
     """How many functions ``call()`` traces (JAX's trace events): none when every program it runs is
     one JAX already holds, whether or not the persistent cache would have supplied its compilation."""

@@ -16,6 +16,7 @@ from .._checks import (
     check_finite,
     check_last_axis,
     common_float,
+    compiled_when_eager,
     error_if,
     unit_tolerance,
 )
@@ -57,6 +58,7 @@ def _unit(q, name: str, where: str):
     return _check_unit(q, name, where)
 
 
+@compiled_when_eager
 def quat_to_scalar_last(q):
     """Reorder a rigidjax quaternion ``(w, x, y, z)`` to the scalar-last ``(x, y, z, w)`` order of
     scipy, Eigen's coefficients, ROS and most game engines.
@@ -76,6 +78,7 @@ def quat_to_scalar_last(q):
     return _unit(q, "q", "quat_to_scalar_last")[..., _TO_LAST]
 
 
+@compiled_when_eager
 def quat_from_scalar_last(q):
     """Reorder a scalar-last quaternion ``(x, y, z, w)`` (scipy, Eigen's coefficients, ROS) to
     rigidjax's scalar-first ``(w, x, y, z)``.
@@ -249,6 +252,7 @@ def to_mujoco_free_joint(state: State, position=None, velocity=None):
     return qpos, qvel
 
 
+@compiled_when_eager
 def from_mujoco_free_joint(qpos, qvel):
     """A rigidjax state, position and linear velocity of MuJoCo free-joint coordinates.
 

@@ -266,6 +266,7 @@ def quat_from_matrix(R: Matrix) -> QuaternionOut:
     return _compiled_quat_from_matrix(check_rotation_matrix(R, "R", "quat_from_matrix"))
 
 
+@compiled_when_eager
 def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
     """Unit quaternion of a rotation vector: ``(cos(n/2), sin(n/2) theta / n)`` with ``n = |theta|``.
 

@@ -35,6 +35,7 @@ from ..._checks import (
     check_last_axis,
     check_rotation_quaternion,
     common_float,
+    compiled_when_eager,
     error_if,
 )
 from ..._dynamics.torques import broadcasts_to
@@ -45,6 +46,7 @@ from .direction import time_direction
 # Lie-group pieces
 
 
+@compiled_when_eager
 def dexpinv(theta: Float[ArrayLike, "... 3"], omega: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """``d(theta)/dt`` for ``q = q0 ⊗ Exp(theta)`` rotating at body rate ``omega``, truncated after
     the second commutator: ``omega + theta x omega / 2 + theta x (theta x omega) / 12``. NaN/inf
