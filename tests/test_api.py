@@ -345,6 +345,25 @@ def test_conversions_compile_one_program_when_eager(name):
         np.testing.assert_allclose(eager, jitted, rtol=0, atol=1e-15)
 
 
+def test_lagrange_checks_of_exact_are_one_program():
+    """``accuracy="exact"`` checks that a heavy top is Lagrange's (``I1 = I2``, centre of mass on
+    the axis) before its closed form: operation by operation the call compiled 14 programs for each
+    new batch shape, now at most two. Here the check fails (one top of six is asymmetric), so nothing else compiles.
+    Reference: JAX's compile events, persistent cache off, on a shape no other test uses."""
+    inertia = jnp.tile(jnp.array([1.0, 1.0, 0.5]), (6, 1)).at[4, 1].set(1.2)
+    top = rj.HeavyTop(inertia, 1.0, jnp.array([0.0, 0.0, 0.1]))
+    q0 = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (6, 1))
+    state = rj.State(jnp.tile(jnp.array([0.1, 0.2, 9.0]), (6, 1)), q0)
+
+    def call():
+        with pytest.raises(
+            ValueError, match="needs equal transverse moments I1 = I2.*got I1 = 1.0, I2 = 1.2"
+        ):
+            rj.simulate(top, state, jnp.linspace(0.0, 1.0, 5), accuracy="exact")
+
+    assert _programs_compiled_afresh(call) <= 2
+
+
 def _programs_traced(call) -> int:
     """How many functions ``call()`` traces (JAX's trace events): none when every program it runs is
     one JAX already holds, whether or not the persistent cache would have supplied its compilation."""
