@@ -327,6 +327,9 @@ def _has_value(x) -> bool:
         return False
     if isinstance(x, np.ndarray | np.generic):
         return x.dtype.kind in "biufc"  # others (strings, objects) get the function's own message
+    if isinstance(x, eqx.Module):  # a State: a pytree of arrays only (no functions, no options)
+        leaves = jax.tree_util.tree_leaves(x)
+        return all(isinstance(leaf, jax.Array | np.ndarray) and _has_value(leaf) for leaf in leaves)
     return x is None or isinstance(x, jax.Array | int | float)
 
 

@@ -317,10 +317,13 @@ def test_shapes_and_composites_compile_one_program_when_eager():
     np.testing.assert_allclose(tensor, tensor_ref, rtol=1e-13)
 
 
-@pytest.mark.parametrize("name", ["quat_exp", "dexpinv", "quat_from_scalar_last", "from_mujoco_free_joint"])
+@pytest.mark.parametrize(
+    "name", ["quat_exp", "dexpinv", "quat_from_scalar_last", "from_mujoco_free_joint", "to_mujoco_free_joint"]
+)
 def test_conversions_compile_one_program_when_eager(name):
     """These ran operation by operation when called eagerly (``quat_exp`` compiled 23 programs on a
-    new shape, ``quat_from_scalar_last`` 12, ``from_mujoco_free_joint`` 7, ``dexpinv`` 3); one
+    new shape, ``quat_from_scalar_last`` 12, ``from_mujoco_free_joint`` 7, ``to_mujoco_free_joint`` of
+    a ``State`` and a position 14, ``dexpinv`` 3); one
     program each now, with the values of the same call under ``jax.jit`` (their values are checked
     against scipy and MuJoCo in test_kinematics and test_convert). Reference: JAX's compile events,
     persistent cache off, on a shape no other test uses."""
@@ -337,6 +340,7 @@ def test_conversions_compile_one_program_when_eager(name):
         "dexpinv": (solvers.dexpinv, (0.1 * theta, omega)),
         "quat_from_scalar_last": (convert.quat_from_scalar_last, (q,)),
         "from_mujoco_free_joint": (convert.from_mujoco_free_joint, (qpos, qvel)),
+        "to_mujoco_free_joint": (convert.to_mujoco_free_joint, (rj.State(omega, q), qpos[:, :3])),
     }[name]
     assert _programs_compiled_afresh(lambda: function(*args)) == 1
     for eager, jitted in zip(
@@ -348,8 +352,9 @@ def test_conversions_compile_one_program_when_eager(name):
 def test_lagrange_checks_of_exact_are_one_program():
     """``accuracy="exact"`` checks that a heavy top is Lagrange's (``I1 = I2``, centre of mass on
     the axis) before its closed form: operation by operation the call compiled 14 programs for each
-    new batch shape, now at most two. Here the check fails (one top of six is asymmetric), so nothing else compiles.
-    Reference: JAX's compile events, persistent cache off, on a shape no other test uses."""
+    new batch shape, now at most two. Here the check fails (one top of six is asymmetric), so
+    nothing else compiles. Reference: JAX's compile events, persistent cache off, on a shape no
+    other test uses."""
     inertia = jnp.tile(jnp.array([1.0, 1.0, 0.5]), (6, 1)).at[4, 1].set(1.2)
     top = rj.HeavyTop(inertia, 1.0, jnp.array([0.0, 0.0, 0.1]))
     q0 = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (6, 1))

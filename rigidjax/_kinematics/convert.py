@@ -181,6 +181,7 @@ def _vector(x, size: int, name: str):
     return x
 
 
+@compiled_when_eager
 def to_mujoco_free_joint(state: State, position=None, velocity=None):
     """MuJoCo free-joint coordinates ``(qpos, qvel)`` of a rigidjax state.
 
