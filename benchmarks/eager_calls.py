@@ -23,6 +23,7 @@ from pathlib import Path
 
 
 def _cases():
+    import jax
     import jax.numpy as jnp
     import numpy as np
 
@@ -43,6 +44,9 @@ def _cases():
     tensor = jnp.asarray(np.diag([1.0, 2.0, 3.0]))
     top = rj.HeavyTop(jnp.array([1.0, 1.0, 0.5]), 1.0, jnp.array([0.0, 0.0, 0.3]))
     state = rj.State(jnp.array([[0.3, -0.2, 8.0]] * 4), jnp.array([[1.0, 0.0, 0.0, 0.0]] * 4))
+    state5 = rj.State(omega, q)
+    masses, parts = jnp.asarray(np.ones(4)), jnp.asarray(np.array([[1.0, 2.0, 2.5]] * 4))
+    coms = jnp.asarray(np.array([[0.1, 0.2, 0.3], [0.0, -0.1, 0.2], [0.3, 0.0, 0.0], [-0.2, 0.1, 0.1]]))
     return {
         "quat_from_euler": lambda: rj.quat_from_euler(angles),
         "matrix_from_euler": lambda: rj.matrix_from_euler(angles),
@@ -63,6 +67,11 @@ def _cases():
         "quat_rotate": lambda: rj.quat_rotate(q, omega),
         "quat_normalize": lambda: rj.quat_normalize(q),
         "matrix_from_quat": lambda: rj.matrix_from_quat(q),
+        "solid_box": lambda: rj.solid_box(2.0, omega),
+        "composite_inertia (4 parts)": lambda: rj.composite_inertia(masses, coms, parts),
+        "kinematics.quat_exp": lambda: rj.kinematics.quat_exp(omega),
+        "convert.to_mujoco_free_joint": lambda: rj.convert.to_mujoco_free_joint(state5),
+        "jax.grad of a sum of euler_from_quat": lambda: jax.grad(lambda q: rj.euler_from_quat(q).sum())(q),
         "Trajectory.invariants (heavy top)": (
             lambda: rj.simulate(top, state, jnp.linspace(0.0, 1.0, 5), accuracy="exact"),
             lambda traj: traj.invariants(),
