@@ -211,12 +211,16 @@ def _check_options(
     return method, int(steps), inertia_trace, known_moment, dtype
 
 
+@jax.jit  # called eagerly once per fit: one program rather than one per operation
 def _covariance_out(covariance):
     """The covariance of the scaled parameters, infinite on the diagonal of a parameter with a
     component (more than 1e-3) along a direction the record does not determine."""
     matrix, undetermined = covariance
     hidden = jnp.diagonal(undetermined) > 1e-6
     return jnp.where(jnp.diag(hidden), jnp.inf, matrix)
+
+
+_compiled_moments_from_z = jax.jit(_moments_from_z)  # eagerly: one program, not twelve
 
 
 def _doubtful(out, data) -> bool:
@@ -228,7 +232,7 @@ def _doubtful(out, data) -> bool:
     p = np.asarray(p, float)
     if not (np.all(np.isfinite(p)) and np.isfinite(float(final_loss))):
         return True
-    moments = np.asarray(_moments_from_z(jnp.asarray(p[:2])))
+    moments = np.asarray(_compiled_moments_from_z(jnp.asarray(p[:2])))
     return bool(_residual_ratio(robust_rms, data) > NOISE_RATIO_LIMIT or _on_flat_body_edge(moments))
 
 
@@ -270,7 +274,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
                     )
                 for start in _reordered_starts(data, p0, full_tensor):
                     other = run(jnp.asarray(start, dtype))
-                    if bool(jnp.isfinite(other[5])) and not float(other[5]) >= float(out[5]):
+                    if np.isfinite(np.asarray(other[5])) and not float(other[5]) >= float(out[5]):
                         out = other
         if callback is not None:
             jax.block_until_ready(out)
@@ -279,7 +283,7 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
         if callback is not None:
             _ACTIVE.pop()
     p, history, n_steps, converged, covariance, final_loss, rms, robust_rms = out
-    if not (bool(jnp.all(jnp.isfinite(p))) and bool(jnp.isfinite(final_loss))):
+    if not (np.all(np.isfinite(np.asarray(p))) and np.isfinite(np.asarray(final_loss))):
         if problem.torque is not None:
             raise FloatingPointError(
                 "the fit's loss is NaN or inf: with a known torque the motion could not be integrated "
