@@ -241,11 +241,12 @@ def test_eager_calls_compile_one_program_not_one_per_operation():
 def _programs_compiled_afresh(call) -> int:
     """:func:`_programs_compiled` with JAX's persistent compilation cache off during ``call()``: a
     program another run left on disk is compiled (and counted) rather than loaded."""
+    enabled = jax.config.jax_enable_compilation_cache
     jax.config.update("jax_enable_compilation_cache", False)
     try:
         return _programs_compiled(call)
     finally:
-        jax.config.update("jax_enable_compilation_cache", True)
+        jax.config.update("jax_enable_compilation_cache", enabled)
 
 
 def test_eager_derivatives_of_simulate_compile_its_checks_once():
@@ -323,10 +324,10 @@ def test_shapes_and_composites_compile_one_program_when_eager():
 def test_conversions_compile_one_program_when_eager(name):
     """These ran operation by operation when called eagerly (``quat_exp`` compiled 23 programs on a
     new shape, ``quat_from_scalar_last`` 12, ``from_mujoco_free_joint`` 7, ``to_mujoco_free_joint`` of
-    a ``State`` and a position 14, ``dexpinv`` 3); one
-    program each now, with the values of the same call under ``jax.jit`` (their values are checked
-    against scipy and MuJoCo in test_kinematics and test_convert). Reference: JAX's compile events,
-    persistent cache off, on a shape no other test uses."""
+    a ``State`` and a position 14, ``dexpinv`` 3); one program each now, with the values of the
+    same call under ``jax.jit`` (their values are checked against scipy and MuJoCo in test_kinematics
+    and test_convert). Reference: JAX's compile events, persistent cache off, on a shape no other
+    test uses."""
     from rigidjax import convert, kinematics, solvers
 
     rng = np.random.default_rng(6)

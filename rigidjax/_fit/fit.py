@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._checks import is_positive_int
+from .._checks import compiled_once, is_positive_int
 from .._dynamics.torques import _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
@@ -220,9 +220,6 @@ def _covariance_out(covariance):
     return jnp.where(jnp.diag(hidden), jnp.inf, matrix)
 
 
-_compiled_moments_from_z = jax.jit(_moments_from_z)  # eagerly: one program, not twelve
-
-
 def _doubtful(out, data) -> bool:
     """Whether a fit from the estimated start may have ended in the wrong basin: not finite, the
     residuals over twice the noise estimate, or on the flat-body edge (where a wrongly ordered start
@@ -232,7 +229,7 @@ def _doubtful(out, data) -> bool:
     p = np.asarray(p, float)
     if not (np.all(np.isfinite(p)) and np.isfinite(float(final_loss))):
         return True
-    moments = np.asarray(_compiled_moments_from_z(jnp.asarray(p[:2])))
+    moments = np.asarray(compiled_once(_moments_from_z)(jnp.asarray(p[:2])))  # one program, not 12
     return bool(_residual_ratio(robust_rms, data) > NOISE_RATIO_LIMIT or _on_flat_body_edge(moments))
 
 

@@ -17,6 +17,7 @@ from .._checks import (
     check_times_shape,
     checks_done,
     collected_failures,
+    compiled_once,
     error_if,
     evaluated_now,
     float_dtype,
@@ -253,8 +254,6 @@ def _lagrange_failures(inertia, com):
     return asymmetric, off_axis
 
 
-_compiled_lagrange_failures = jax.jit(_lagrange_failures)
-
 _ASYMMETRIC = (
     "accuracy='exact' for a HeavyTop is Lagrange's top: it needs equal transverse moments I1 = I2 "
     "(inertia about the pivot, (I1, I1, I3) with body z the symmetry axis){}. Use "
@@ -301,7 +300,7 @@ def _check_lagrange_top(model, state0):
     dtype = float_dtype(model.inertia, model.com)
     # One program (operation by operation: nine for each new batch shape).
     failures = evaluated_now(
-        lambda: _compiled_lagrange_failures(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
+        lambda: compiled_once(_lagrange_failures)(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
     )
     asymmetric, off_axis = (np.asarray(x) for x in failures)
     # The tolerance and the relative deviation are printed too: I1 and I2 that differ by 1e-13 read
