@@ -284,7 +284,7 @@ def compiled_once(function):
     return jax.jit(function)
 
 
-def call_checked(program, failures, *args):
+def call_checked(program, failures, *args, names: tuple[str, ...]):
     """``program(*args, checked=...)`` with its inputs' value checks done where they cost least.
 
     Inputs with values (concrete, or the primal values of an eager ``grad`` or ``jvp``) are checked by
@@ -294,9 +294,17 @@ def call_checked(program, failures, *args):
     cache keeps both and a new process compiles nothing. Inputs without values (the user's ``jit``
     or ``vmap``) run ``program`` with ``checked=True``: ``eqx.error_if`` checks in the program.
     """
-    # A Python number would be a static argument of the programs (equinox's filter_jit): each new
-    # value (t = 0.1 k in a loop) compiled both again, 1-3 s a call. As an array it is traced.
-    args = tuple(floats_as_arrays(a, ints=True) if _is_scalar(a) else a for a in args)
+    # A Python number, or a list of them, would be static arguments of the programs (equinox's
+    # filter_jit): each new value (t = 0.1 k in a loop) compiled both again, 1-3 s a call, and a list
+    # of times reached the programs' array code as a list. As arrays they are traced.
+    args = tuple(
+        floats_as_arrays(a, ints=True)
+        if _is_scalar(a)
+        else as_float_array(a, name)
+        if isinstance(a, list | tuple)
+        else a
+        for a, name in zip(args, names, strict=True)
+    )
     values = known_values(args)
     if values is None:
         return program(*args, checked=True)

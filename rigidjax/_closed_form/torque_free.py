@@ -215,7 +215,9 @@ def torque_free_omega(inertia: Vector, omega0: Vector, t: Scalar) -> VectorOut:
     the broadcast of the bodies' batch axes with ``t``'s shape. NaN or inf in any input raises at run
     time.
     """
-    omega, phase = call_checked(_omega_program, _omega_failures, inertia, omega0, t)
+    omega, phase = call_checked(
+        _omega_program, _omega_failures, inertia, omega0, t, names=("inertia", "omega0", "t")
+    )
     return _raise_if_unresolved(omega, phase, "torque_free_omega")
 
 
@@ -308,7 +310,7 @@ def torque_free_period(inertia: Vector, omega0: Vector) -> ScalarOut:
     **Returns:** the period (s), shape ``(...)``: infinite on the separatrix and for steady rotation
     (``lambda = 0``). NaN or inf in any input raises at run time.
     """
-    return call_checked(_period_program, _period_failures, inertia, omega0)
+    return call_checked(_period_program, _period_failures, inertia, omega0, names=("inertia", "omega0"))
 
 
 def _period_inputs(inertia, omega0, checked):
@@ -459,7 +461,9 @@ def torque_free_motion(
     precession angle, a steady rotation's angle) is rounded by more than 1e-3 rad, as in
     :func:`torque_free_omega`.
     """
-    motion, phase = call_checked(_motion_program, _motion_failures, inertia, omega0, q0, t)
+    motion, phase = call_checked(
+        _motion_program, _motion_failures, inertia, omega0, q0, t, names=("inertia", "omega0", "q0", "t")
+    )
     return _raise_if_unresolved(motion, phase, "torque_free_motion")
 
 
