@@ -33,7 +33,10 @@ from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.gyrostat import Gyrostat
 from .._dynamics.models import FreeBody, HeavyTop, keep_inertia_ndim
+from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
+from .._numerics import _eigh3, _swap
 from . import batching
+from .driver import is_differentiated
 from .inputs import check_model, check_state, checked_inputs
 from .trajectory import Trajectory, first_failed_sample
 
@@ -106,14 +109,15 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
     batch = batching.batch_shape(model, omega0, q0)
     n_bodies, n_times = math.prod(batch), ts.shape[0]
     heavy = isinstance(model, HeavyTop)
-    per_body = {"inertia": (model.inertia, 3), "omega0": (omega0, 3)}
+    tensor = model.inertia_core_ndim == 2
+    per_body = {"inertia": (model.inertia, (3, 3) if tensor else (3,)), "omega0": (omega0, (3,))}
     if q0 is not None:
-        per_body["q0"] = (q0, 4)
+        per_body["q0"] = (q0, (4,))
     if heavy:
-        per_body.update(com=(model.com, 3), mass=(model.mass, 0), gravity=(model.gravity, 0))
+        per_body.update(com=(model.com, (3,)), mass=(model.mass, ()), gravity=(model.gravity, ()))
     flat = {
-        name: jnp.broadcast_to(x, batch + (k,) * bool(k)).reshape((n_bodies,) + (k,) * bool(k))
-        for name, (x, k) in per_body.items()
+        name: jnp.broadcast_to(x, batch + core).reshape((n_bodies,) + core)
+        for name, (x, core) in per_body.items()
     }
     # With two sample times (the state at one time) the first is the initial state itself and the
     # closed form is evaluated at the second only: a samples axis of one element, over which XLA
@@ -132,16 +136,11 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
                 None if q0 is None else first_q[:, None],
                 jnp.zeros_like(first_omega[:, :1]),
             )
-        inertia, omega0 = bodies["inertia"][:, None], bodies["omega0"][:, None]
         if heavy:
             top = (bodies[name][:, None] for name in _TOP_INPUTS)
             omega, q, phase = lagrange_top_motion(*top, t, phases=True)
-        elif q0 is None:
-            (omega, phase), q = _torque_free_omega(inertia, omega0, t, checked=False, phases=True), None
         else:
-            omega, q, phase = _torque_free_motion(
-                inertia, omega0, bodies["q0"][:, None], t, checked=False, phases=True
-            )
+            omega, q, phase = _torque_free(bodies, t)
         if n_times == 2:
             # Computed in full before the stacking (see _closed_form.barrier): 10^4 bodies' omega
             # and q 5.5 -> 4.0 ms.
@@ -208,6 +207,34 @@ def nan_from_first_failure(traj: Trajectory) -> Trajectory:
 
 _TOP_INPUTS = ("inertia", "mass", "com", "gravity", "omega0", "q0")
 """Lagrange's top's per-body inputs, in the order of :func:`.lagrange_top_motion`'s arguments."""
+
+
+def _torque_free(bodies, t):
+    """omega, the orientation (or None) and the phases of torque-free bodies (per body ``inertia``,
+    ``omega0`` and ``q0``, principal moments ``(n, 3)`` or tensors ``(n, 3, 3)``) at ``t``. A tensor's
+    body turns as the body of its principal moments does, seen in the principal axes: omega0 and q0
+    are expressed in those axes, the closed form evaluated, and its omega and q turned back. (The
+    moments and axes of a tensor come from its eigendecomposition; ``simulate`` refuses a derivative
+    with respect to the tensor here, which the axes do not carry where moments coincide.)"""
+    inertia, omega0, q0 = bodies["inertia"], bodies["omega0"], bodies.get("q0")
+    if inertia.ndim == 3:
+        inertia, axes = _eigh3(0.5 * (inertia + _swap(inertia)))  # axes: principal -> body frame
+        omega0 = jnp.einsum("nji,nj->ni", axes, omega0)
+        axes_q = _quat_from_matrix(axes)
+        q0 = None if q0 is None else _quat_multiply(q0, axes_q)
+    if q0 is None:
+        (omega, phase), q = (
+            _torque_free_omega(inertia[:, None], omega0[:, None], t, checked=False, phases=True),
+            None,
+        )
+    else:
+        omega, q, phase = _torque_free_motion(
+            inertia[:, None], omega0[:, None], q0[:, None], t, checked=False, phases=True
+        )
+    if bodies["inertia"].ndim == 3:
+        omega = jnp.einsum("nij,nsj->nsi", axes, omega)
+        q = None if q is None else _quat_multiply(q, _quat_conjugate(axes_q)[:, None])
+    return omega, q, phase
 
 
 def _plain_blocks(motion, flat, t, block, n_times):
@@ -357,10 +384,12 @@ def simulate_exact(model, state0, ts, chunk_size: int | None = None):
             "without torques) and for Lagrange's top (a HeavyTop with I1 = I2 and the centre of mass on "
             f"the body z axis); got {type(model).__name__} with torques or a field."
         )
-    if model.inertia_core_ndim == 2:
+    if model.inertia_core_ndim == 2 and is_differentiated(model.inertia):
         raise ValueError(
-            "accuracy='exact' needs principal moments (..., 3); diagonalise the tensor with "
-            "rigidjax.principal_axes and rotate omega into those axes first."
+            "accuracy='exact' with an inertia tensor evaluates the closed form in the tensor's "
+            "principal axes, which have no derivative where two moments coincide: differentiate with "
+            "respect to the tensor with accuracy='precise' (or 'balanced'), or pass principal moments "
+            "(..., 3) and differentiate those."
         )
     ts = check_times_shape(ts)
     dtype = float_dtype(state0.omega, state0.orientation, model.inertia)

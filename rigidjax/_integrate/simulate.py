@@ -136,16 +136,18 @@ def simulate(
     - `accuracy`: ``"fast"`` (Tsit5, rtol 1e-5), ``"balanced"`` (Dopri8, 1e-8) or ``"precise"``
       (Dopri8, 1e-11, a step on every sample time); on 1024 bodies or more, when not differentiated,
       Dopri8 runs with its stages written out (:class:`rigidjax.solvers.UnrolledDopri8`: the same
-      values, cheaper steps, a longer compile). Or ``"exact"``: a closed form, no
-      integration. For a torque-free body with principal moments, omega by Jacobi elliptic
-      functions and, when ``state0`` has an orientation, the orientation by Jacobi's theta form of the
-      third-kind integral (see
-      :func:`rigidjax.torque_free_motion`). For Lagrange's top, a :class:`HeavyTop` with principal
-      moments ``I1 = I2`` about the pivot, the centre of mass on the body z axis (above or below
-      the pivot) and no extra torques, the nutation by Jacobi functions and the precession and
-      spin by third-kind integrals, including tops that pass through the vertical; any other
-      HeavyTop is a ``ValueError`` naming the condition it fails. Accurate to roundoff at any
-      time (up to the conditioning of the motion); the cost does not grow with the duration.
+      values, cheaper steps, a longer compile). Or ``"exact"``: a closed form, no integration. For a
+      torque-free body, omega by Jacobi elliptic functions and, when ``state0`` has an orientation,
+      the orientation by Jacobi's theta form of the third-kind integral (see
+      :func:`rigidjax.torque_free_motion`); an inertia tensor is diagonalised first and the motion
+      turned back into the body axes (a derivative with respect to the tensor itself is a
+      ``ValueError``: its principal axes have none where moments coincide). For Lagrange's top, a
+      :class:`HeavyTop` with principal moments ``I1 = I2`` about the pivot, the centre of mass on
+      the body z axis (above or below the pivot) and no extra torques, the nutation by Jacobi
+      functions and the precession and spin by third-kind integrals, including tops that pass
+      through the vertical; any other HeavyTop is a ``ValueError`` naming the condition it fails.
+      Accurate to roundoff at any time (up to the conditioning of the motion); the cost does not
+      grow with the duration.
       Differentiable in both modes: with an orientation the derivative is every sample's Jacobian
       (forward mode, contracted with the tangents), so that a reverse-mode gradient costs about
       one JVP and keeps 7 numbers per body, sample time and differentiated input component (42
