@@ -215,6 +215,26 @@ def _programs_compiled(call) -> int:
     return _events_during(call, "/jax/core/compile/backend_compile_duration")
 
 
+def test_the_public_vector_fields_called_eagerly_compile_one_program():
+    """``solvers.free_body_vector_field(I)(t, y, args)`` and the heavy top's, called eagerly (a user
+    checking a state's rates before a solve), ran operation by operation: 13 programs each on a new
+    shape. Now one each, with the values of the call traced inside ``jax.jit`` (as ``diffeqsolve``
+    traces it)."""
+    rng = np.random.default_rng(11)
+    L = jnp.asarray(rng.normal(size=(7, 3)))
+    q = jnp.asarray(rng.normal(size=(7, 4)))
+    y = (L, q / jnp.linalg.norm(q, axis=-1, keepdims=True))
+    fields = [
+        rj.solvers.free_body_vector_field(jnp.array([1.0, 2.0, 2.5])),
+        rj.solvers.heavy_top_vector_field(jnp.array([1.0, 1.0, 0.5]), 1.5, jnp.array([0.0, 0.0, 0.2])),
+    ]
+    for field in fields:
+        assert _programs_compiled(lambda field=field: jax.block_until_ready(field(0.0, y, None))) == 1
+        traced = jax.jit(lambda y, field=field: field(0.0, y, None))(y)
+        for eager, inside in zip(field(0.0, y, None), traced, strict=True):
+            np.testing.assert_allclose(np.asarray(eager), np.asarray(inside), rtol=1e-15, atol=1e-15)
+
+
 def test_eager_calls_compile_one_program_not_one_per_operation():
     """Called eagerly, Trajectory's quantities are one compiled program each (their ~40 operations
     one by one were as many programs, each compiled in every new process), on a shape no other test
