@@ -1548,9 +1548,10 @@ def test_a_closed_form_beyond_the_float_range_is_a_failure_not_a_success(scene):
 
 @pytest.mark.parametrize("function", ["torque_free_omega", "torque_free_motion", "torque_free_period"])
 def test_the_closed_forms_name_an_angular_momentum_beyond_the_float_range(function):
-    """Finite inputs whose |I omega|^2 overflows float64 (|I omega| = 1.04e154 here) gave NaN without
-    an error; one power of ten less (|L|^2 = 1.1e306, finite) is evaluated, ~1e3 rad of motion at
-    t = 1e-150 s: finite, with |I omega|^2 conserved to rounding."""
+    """Finite inputs whose |I omega|^2 overflows float64 gave NaN without an error. The closed forms
+    compute with the moments scaled so that the largest is below 1 (0.625 here), whose |I omega| is
+    6.5e154 at omega = 1e155 (beyond); two powers of ten less (|L|^2 = 1.1e306 unscaled, finite) is
+    evaluated, ~1e3 rad of motion at t = 1e-150 s: finite, with |I omega|^2 conserved to rounding."""
     inertia, direction = np.array([1.0, 2.0, 2.5]), np.array([0.1, 1.0, 0.2])
     q0, t = np.array([1.0, 0.0, 0.0, 0.0]), np.array([1e-150])
     calls = {
@@ -1559,7 +1560,7 @@ def test_the_closed_forms_name_an_angular_momentum_beyond_the_float_range(functi
         "torque_free_period": lambda w: rj.torque_free_period(inertia, w),
     }
     with pytest.raises(ValueError, match=rf"{function}: the angular momentum .* beyond the range of float64"):
-        calls[function](direction * 1e154)
+        calls[function](direction * 1e155)
     within = [np.asarray(x) for x in jax.tree.leaves(calls[function](direction * 1e153))]
     assert all(np.isfinite(x).all() for x in within)
     if function != "torque_free_period":
@@ -1567,7 +1568,7 @@ def test_the_closed_forms_name_an_angular_momentum_beyond_the_float_range(functi
         np.testing.assert_allclose(momentum2, np.sum((inertia * direction * 1e153) ** 2), rtol=1e-12)
     jitted = jax.jit(calls[function])
     with pytest.raises(Exception, match="the angular momentum of inertia and omega0 is beyond the range"):
-        jax.block_until_ready(jitted(jnp.asarray(direction * 1e154)))
+        jax.block_until_ready(jitted(jnp.asarray(direction * 1e155)))
 
 
 def _elliptic_rate(inertia, omega):

@@ -858,6 +858,39 @@ def test_simulate_exact_takes_an_inertia_tensor():
         jax.grad(lambda tensor: loss(jnp.asarray(omega0[0]), tensor))(first)
 
 
+@pytest.mark.parametrize(
+    "dtype, scales, tol",
+    [(np.float32, [1e-12, 1e-15, 4.6e-28, 1e20], 2e-5), (np.float64, [1e-120, 1e-300, 1e150], 1e-11)],
+)
+def test_the_scale_of_the_moments_does_not_change_the_motion(dtype, scales, tol):
+    """Euler's equations depend on the moments' ratios only. Small bodies in SI units (a mm-sized
+    part, 1e-12 kg m^2; a levitated microsphere, 4.6e-28) made the closed forms' products of moments
+    underflow: in float32 a tumbling body came out steady (omega frozen at omega0, period inf) or
+    wrong by 0.05 rad/s, with success True; float64 likewise below about 1e-110. Reference: scipy's
+    DOP853 of the moments (1, 2, 3); the period and the gradient scale as the unscaled body's."""
+    moments, omega0, q0 = np.array([1.0, 2.0, 3.0]), np.array([0.1, 1.0, 0.05]), np.array([1.0, 0, 0, 0])
+    ts = np.linspace(0.0, 5.0, 11)
+    w_ref, q_ref = dop853_free_body(moments, omega0, ts, q0=q0)
+    period = float(torque_free_period(moments, omega0))
+    w0, start, times = (jnp.asarray(x, dtype) for x in (omega0, q0, ts))
+    for scale in scales:
+        inertia = jnp.asarray(moments * scale, dtype)
+        traj = rj.simulate(rj.FreeBody(inertia), rj.State(w0, start), times, accuracy="exact")
+        assert bool(traj.success) and traj.omega.dtype == dtype
+        np.testing.assert_allclose(np.asarray(traj.omega, float), w_ref, rtol=0, atol=tol, err_msg=str(scale))
+        np.testing.assert_allclose(
+            np.asarray(traj.orientation, float), q_ref, rtol=0, atol=tol, err_msg=str(scale)
+        )
+        np.testing.assert_allclose(float(torque_free_period(inertia, w0)), period, rtol=10 * tol)
+    if dtype == np.float64:
+        gradient = jax.grad(lambda inertia: torque_free_motion(inertia, w0, start, times[-1])[1][1])
+        np.testing.assert_allclose(
+            scales[0] * np.asarray(gradient(jnp.asarray(moments * scales[0]))),
+            np.asarray(gradient(jnp.asarray(moments))),
+            rtol=1e-12,
+        )
+
+
 def test_blocks_of_bodies_write_their_samples_in_place():
     """In blocks, each block's samples are written into the arrays of all the bodies: beside the
     output, the program needs memory for about one block's work, not a second copy of every sample

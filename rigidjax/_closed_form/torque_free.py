@@ -50,6 +50,7 @@ from .frame import (
     largest_phase,
     phase_advice,
     phase_unresolved,
+    unit_scaled,
 )
 from .precession import _general_orientation
 from .steady import _steady_omega, _steady_turn, select_motion
@@ -67,16 +68,18 @@ def _checked(inertia, omega0, t, where):
         )
     inertia = check_inertia(inertia[..., None, :], name=name)[..., 0, :]
     omega0 = check_finite(omega0, "omega0", where)
-    # The closed form is finite exactly where |L|^2 and 2E are (float64: NaN from |I omega| ~ 1.3e154
-    # on, where |L|^2 overflows): beyond, finite inputs gave NaN without an error.
-    momentum2 = jnp.sum((inertia * omega0) ** 2, axis=-1)
-    energy2 = jnp.sum(inertia * omega0 * omega0, axis=-1)
+    # The closed form is finite exactly where |L|^2 and 2E of the moments it computes with (scaled so
+    # that the largest is below 1, unit_scaled) are (float64: NaN from |I omega| ~ 1.3e154 on, where
+    # |L|^2 overflows): beyond, finite inputs gave NaN without an error.
+    scaled = unit_scaled(inertia)
+    momentum2 = jnp.sum((scaled * omega0) ** 2, axis=-1)
+    energy2 = jnp.sum(scaled * omega0 * omega0, axis=-1)
     omega0 = error_if(
         omega0,
         jnp.isfinite(inertia).all(-1) & jnp.isfinite(omega0).all(-1) & ~jnp.isfinite(momentum2 + energy2),
         f"{where}: the angular momentum of inertia and omega0 is beyond the range of {omega0.dtype} "
-        "(|I omega|^2 overflows), where the closed form cannot be evaluated: express them in units "
-        "that make |I omega| smaller.",
+        "(|I omega|^2 overflows, with the moments scaled so that the largest is below 1), where the "
+        "closed form cannot be evaluated: express omega0 in units that make it smaller.",
     )
     t = t if t is None else check_finite(t, "t", where)
     return inertia, omega0, t
@@ -284,6 +287,7 @@ def _torque_free_omega(inertia, omega0, t, *, checked, phases=False):
     return the size of the elliptic argument at each sample (:func:`.largest_phase`; 0 for steady
     rotations, whose omega is omega0)."""
     inertia, omega0, t, batch = _broadcast_inputs(inertia, omega0, t, checked)
+    inertia = unit_scaled(inertia)
     frame = _frame(inertia, omega0)
     steady = frame["steady"]
     omega_g, parts = _motion_parts(frame, t, held=True)
@@ -348,7 +352,7 @@ def motion_timing(inertia, omega0):
     every torque-free program to order its bodies. For ordering bodies: not differentiable."""
     # Evaluated once per body: no sample times read the frame, and each array held in memory is a
     # kernel of its own in every torque-free program simulate compiles (16 of 44 here).
-    frame = _frame(inertia, omega0, held=False)
+    frame = _frame(unit_scaled(inertia), omega0, held=False)
     first = _start(frame)
     moving = ~frame["steady"] & (first["p"] > 0)
     p = jnp.where(moving, first["p"], 0.5)
@@ -373,7 +377,7 @@ def _period_and_quarter(inertia, omega0):
     """:func:`torque_free_period` of principal moments and omega of the same shape ``(..., 3)``,
     without checks, and the quarter period ``K(m)`` of the elliptic argument (that of a generic
     body where the motion is steady)."""
-    _, _, moments, omega, _ = _sorted_frame(inertia, omega0)
+    _, _, moments, omega, _ = _sorted_frame(unit_scaled(inertia), omega0)
     rate = _solution_parameters(moments, omega)[2]
     # rate = 0 (a sphere, a symmetric body in steady rotation): the period is infinite; a generic
     # body stands in so that the square roots of zero do not make the gradient NaN.
@@ -493,6 +497,7 @@ def _motion_at(inertia, omega0, t):
     """``omega(t)``, the rotation ``q0* q(t)`` and the size of their phases (:func:`.largest_phase`,
     ``batch + (1,)``) of bodies whose arrays are broadcast (:func:`_body_arrays`), ``t`` of the batch's
     shape."""
+    inertia = unit_scaled(inertia)
     frame = _frame(inertia, omega0)
     steady = frame["steady"]
     omega_g, parts = _motion_parts(frame, t)
