@@ -180,6 +180,38 @@ def test_euler_angles_follow_a_spin_of_more_than_pi_per_sample():
         np.testing.assert_allclose(line.get_ydata(), rate * np.asarray(ts), rtol=0, atol=1e-9)
 
 
+def test_a_single_sample_and_a_vmap_of_simulate(free, tmp_path):
+    """A trajectory of one sample had Euler angles of shape (0, 3) (and its figure raised matplotlib's
+    "x and y must have same first dimension"); a trajectory from a user's jax.vmap of simulate holds
+    its times per body, ts (B, T), and its Euler angles raised a broadcasting TypeError, its figures
+    an IndexError. Reference: the angles of the orientations (euler_from_quat) and the batch's own
+    trajectory, in closed form."""
+    import jax
+
+    start = rj.State(free.omega[0, 0], free.orientation[0, 0])
+    single = rj.simulate(rj.FreeBody(jnp.asarray(INERTIA)), start, jnp.zeros(1), accuracy="exact")
+    np.testing.assert_allclose(single.euler_angles(), rj.euler_from_quat(free.orientation[0, :1]), atol=1e-15)
+    [line] = rplot.euler_angles(single).axes[0].get_lines()
+    assert line.get_xdata().shape == (1,)
+
+    def one(omega0, q0, ts):
+        return rj.simulate(rj.FreeBody(jnp.asarray(INERTIA)), rj.State(omega0, q0), ts, accuracy="exact")
+
+    shared = jax.vmap(one, in_axes=(0, 0, None))(free.omega[:, 0], free.orientation[:, 0], free.ts)
+    assert shared.ts.shape == (2, 40)
+    np.testing.assert_allclose(shared.euler_angles(), free.euler_angles(), rtol=0, atol=1e-12)
+    [line] = rplot.euler_angles(shared, body=1).axes[2].get_lines()
+    np.testing.assert_allclose(line.get_ydata(), np.asarray(free.euler_angles())[1, :, 2], atol=1e-12)
+    rplot.invariant_drift(shared)
+    rplot.animate(shared, tmp_path / "shared.gif", frames=2)
+    # Times of their own: a body's figure draws its times; a figure of several bodies says why not.
+    stretched = jax.vmap(one)(free.omega[:, 0], free.orientation[:, 0], jnp.stack([free.ts, 2 * free.ts]))
+    [line] = rplot.euler_angles(stretched, body=1).axes[0].get_lines()
+    np.testing.assert_array_equal(line.get_xdata(), 2 * np.asarray(free.ts))
+    with pytest.raises(ValueError, match="bodies have different sample times"):
+        rplot.invariant_drift(stretched)
+
+
 def test_invariant_drift_draws_the_scenes_conserved_quantities(free, top):
     fig = rplot.invariant_drift(free)
     [ax] = fig.axes

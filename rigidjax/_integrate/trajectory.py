@@ -268,11 +268,11 @@ def _unwrapped_by_rates(angles, rates, ts):
     that brings it closest to the trapezoid of ``rates`` over it, where that is finite and the rates
     change by less than ``pi`` over the step (else the closest to zero)."""
     step = jnp.diff(angles, axis=-2)
-    dt = jnp.diff(ts)[:, None]
+    dt = jnp.diff(ts, axis=-1)[..., None]  # ts (T,), or (..., T) from a user's vmap of simulate
     early, late = rates[..., :-1, :], rates[..., 1:, :]
     predicted = 0.5 * (early + late) * dt
     trusted = jnp.isfinite(predicted) & (jnp.abs(late - early) * dt < jnp.pi)
     predicted = jnp.where(trusted, predicted, 0.0)
     turns = jax.lax.stop_gradient(jnp.round((predicted - step) / (2 * jnp.pi)))  # a discrete choice
-    first = jnp.zeros_like(turns[..., :1, :])
+    first = jnp.zeros_like(angles[..., :1, :])  # (turns is empty for a single sample)
     return angles + 2 * jnp.pi * jnp.concatenate([first, jnp.cumsum(turns, axis=-2)], axis=-2)

@@ -64,8 +64,26 @@ def per_body(values, trajectory, core: int) -> np.ndarray:
     return np.broadcast_to(values, tuple(trajectory.batch_shape) + tail).reshape((n,) + tail)
 
 
-def ts(trajectory) -> np.ndarray:
-    return np.asarray(trajectory.ts)
+def ts(trajectory, i: int | None = None) -> np.ndarray:
+    """The sample times ``(T,)``: of body ``i``, or the ones every body shares (``i`` None). A
+    trajectory from a user's ``jax.vmap`` of ``simulate`` holds times per body, ``(..., T)``; a figure
+    of several bodies needs them to be the same for all (else a ``ValueError``)."""
+    times = np.asarray(trajectory.ts)
+    if times.ndim == 1:
+        return times
+    rows = np.broadcast_to(times, tuple(trajectory.batch_shape) + times.shape[-1:]).reshape(
+        -1, times.shape[-1]
+    )
+    if i is not None:
+        return rows[i]
+    if not np.all(rows == rows[:1]):
+        raise ValueError(
+            f"the trajectory's bodies have different sample times (ts of shape {times.shape}, as from a "
+            "jax.vmap of simulate over the times), and this figure draws them on one time axis: plot "
+            "one body at a time, jax.tree.map(lambda x: x[i], trajectory), or simulate the bodies "
+            "with one ts."
+        )
+    return rows[0]
 
 
 def omega(trajectory, i: int) -> np.ndarray:

@@ -223,7 +223,7 @@ def euler_angles(trajectory, body=0, sequence: str = "zxz", *, fig=None):
     data.need_orientation(trajectory, "euler_angles")
     i = data.body_index(trajectory, body)
     q = data.orientation(trajectory, i)
-    t = data.ts(trajectory)
+    t = data.ts(trajectory, i)
     good = np.all(np.isfinite(q), axis=-1)
     angles = np.asarray(_unwrapped_euler_angles(q[good], data.omega(trajectory, i)[good], t[good], sequence))
     fig = _new_figure(fig, (8, 7))
