@@ -471,6 +471,20 @@ def is_positive_int(value) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_) and value >= 1
 
 
+def takes_arguments(function, count: int) -> tuple[bool, str]:
+    """Whether ``function`` can be called with ``count`` positional arguments (True where its
+    signature cannot be read: builtins, some C callables), and its signature as text for a message."""
+    try:
+        signature = inspect.signature(function)
+    except (TypeError, ValueError):
+        return True, ""
+    try:
+        signature.bind(*([None] * count))
+    except TypeError:
+        return False, f"{getattr(function, '__qualname__', type(function).__name__)}{signature}"
+    return True, ""
+
+
 def check_positive_int(value, name: str, where: str):
     """``value`` as a Python ``int`` if it is a positive integer (:func:`is_positive_int`); a
     ``ValueError`` naming ``name`` otherwise. ``None`` passes through (the caller's default)."""

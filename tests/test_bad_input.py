@@ -984,6 +984,9 @@ FIT_OPTION_CASES = {
     ),
     "optimizer-not-optax": ({"optimizer": "adam"}, TypeError, r"optimizer must be an optax"),
     "callback-not-callable": ({"callback": 3}, TypeError, r"callback must be callable"),
+    # a callback of the wrong arity failed inside the compiled fit as "CpuCallback error", after compiling
+    "callback-no-arguments": ({"callback": lambda: None}, TypeError, r"callback\(iteration, loss\), got"),
+    "progress-one-argument": ({"progress": lambda i: None}, TypeError, r"progress\(iteration, loss\), got"),
     "dtype-int": ({"dtype": np.int32}, ValueError, r"dtype must be a floating dtype"),
     "dtype-garbage": ({"dtype": "float99"}, TypeError, r"dtype must be a floating dtype"),
     "full_tensor-not-bool": ({"full_tensor": "yes"}, TypeError, r"full_tensor must be True or False"),
@@ -1077,6 +1080,34 @@ def test_fit_rejects_bad_options_before_any_work(
     monkeypatch.setattr(fit_module, "_run", no_fit)
     with pytest.raises(error, match=match):
         _FIT_FNS[fn](**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        # fixed steps counted in int64 overflowed (IndexError) or allocated their grid (MemoryError)
+        ({"solver": rj.solvers.RKMK(), "dt0": 1e-300}, r"dt0 = 1e-300 takes 5e\+300 fixed steps"),
+        ({"solver": rj.solvers.RKMK(), "dt0": 1e-9}, r"dt0 = 1e-09 takes 5e\+09 fixed steps over ts \(5 s\)"),
+        ({"solver": rj.solvers.LiePoissonSplitting(), "dt0": 1e-320}, r"takes inf fixed steps"),
+        ({"max_steps": 10**20}, r"max_steps must be at most 2,147,483,647"),  # was JAX's OverflowError
+        ({"progress": lambda: None}, r"progress must be callable as progress\(done_bodies, total_bodies\)"),
+    ],
+    ids=["rkmk-1e-300", "rkmk-1e-9", "splitting-subnormal", "max-steps-1e20", "progress-arity"],
+)
+def test_options_beyond_what_can_run_are_named_before_any_work(options, match, monkeypatch):
+    """Options that cannot run are named before anything compiles (the integration is replaced by a
+    function that fails the test): dt0 so small that the fixed steps overflowed their count or filled
+    the memory, a max_steps beyond 32-bit integers, a progress callable of the wrong arity (a raw
+    TypeError at its first call, after the compile)."""
+    from rigidjax._integrate import simulate as simulate_module
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the integration ran instead of rejecting the option")
+
+    monkeypatch.setattr(simulate_module, "integrate", no_run)
+    error = TypeError if "progress" in options else ValueError
+    with pytest.raises(error, match=match):
+        rj.simulate(rj.FreeBody(I3), rj.State(W, Q), np.linspace(0.0, 5.0, 11), **options)
 
 
 class _FitReached(Exception):

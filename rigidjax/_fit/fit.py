@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._checks import compiled_once, is_positive_int
+from .._checks import compiled_once, is_positive_int, takes_arguments
 from .._dynamics.torques import _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
@@ -79,11 +79,15 @@ def _dispatch(iteration, loss, step_norm):
 
 def _hooks(callback, progress) -> _Hooks | None:
     """The iteration hooks of ``callback`` and ``progress``, or None when there are none."""
-    if callback is not None and not callable(callback):
-        raise TypeError(f"callback must be callable as callback(iteration, loss), got {callback!r}.")
+    if callback is not None and not (callable(callback) and takes_arguments(callback, 2)[0]):
+        shown = takes_arguments(callback, 2)[1] if callable(callback) else repr(callback)
+        raise TypeError(f"callback must be callable as callback(iteration, loss), got {shown}.")
     if isinstance(progress, bool | np.bool_) or progress is None:
         print_lines, progress = bool(progress), None
     elif callable(progress):
+        fits, signature = takes_arguments(progress, 2)
+        if not fits:
+            raise TypeError(f"progress must be callable as progress(iteration, loss), got {signature}.")
         print_lines = False
     else:
         raise TypeError(

@@ -36,6 +36,10 @@ EVENT_OCCURRED = int(diffrax.RESULTS.event_occurred._value)
 DT_MIN_REACHED = int(diffrax.RESULTS.dt_min_reached._value)
 
 
+MAX_FIXED_STEPS = 2**30
+"""The most steps a fixed-step run takes (its grid of step times: 8 GiB in float64)."""
+
+
 def fixed_step_grid(ts, dt: float):
     """Step times for a fixed-step solver that land on every sample time: each interval
     ``[ts[i], ts[i+1]]`` is cut into ``ceil((ts[i+1] - ts[i]) / dt)`` equal steps.
@@ -49,7 +53,16 @@ def fixed_step_grid(ts, dt: float):
     if ts.shape[0] < 2:
         return ts, 0
     gaps = np.diff(ts)
-    counts = np.maximum(1, np.ceil(gaps / dt * (1 - 1e-12))).astype(np.int64)
+    with np.errstate(over="ignore"):  # a subnormal dt: infinitely many steps, refused below
+        counts = np.maximum(1.0, np.ceil(gaps / dt * (1 - 1e-12)))
+    total = float(np.sum(counts))  # counted in floats first: a tiny dt overflowed int64
+    if not total <= MAX_FIXED_STEPS:
+        raise ValueError(
+            f"dt0 = {dt:g} takes {total:.3g} fixed steps over ts ({ts[-1] - ts[0]:g} s), more than "
+            f"{MAX_FIXED_STEPS:,}, whose step times alone would fill {8 * total / 2**30:.3g} GiB: take a "
+            "larger dt0, or an adaptive step-size controller, whose steps follow the motion."
+        )
+    counts = counts.astype(np.int64)
     pieces = [ts[:1]]
     for start, gap, count in zip(ts[:-1], gaps, counts, strict=True):
         inner = start + gap * np.arange(1, count, dtype=np.float64) / count

@@ -127,6 +127,9 @@ def default_chunk_size(n_samples: int = 2, itemsize: int = 8) -> int:
 MIN_MAX_STEPS = 100_000
 """The smallest default step limit per chunk, and the limit when the inputs' values are unknown."""
 
+MAX_STEPS_LIMIT = 2**31 - 1
+"""The largest ``max_steps``: the largest 32-bit integer (a run of that many steps takes hours)."""
+
 LARGEST_DEFAULT_MAX_STEPS = 2**30
 """The largest default step limit: a span that needs more raises rather than runs for hours."""
 

@@ -36,6 +36,7 @@ from .exact import nan_from_first_failure, simulate_exact
 from .formulations import LieGroupODE, ScaledODE, SplittingODE
 from .inputs import check_options, check_solver_steps, checked_inputs
 from .presets import (
+    MAX_STEPS_LIMIT,
     MIN_MAX_STEPS,
     PRESETS,
     FaultStopPIDController,
@@ -288,6 +289,11 @@ def simulate(
         )
     chunk_size = check_positive_int(chunk_size, "chunk_size", "simulate")
     max_steps = check_positive_int(max_steps, "max_steps", "simulate")
+    if max_steps is not None and max_steps > MAX_STEPS_LIMIT:
+        raise ValueError(
+            f"simulate: max_steps must be at most {MAX_STEPS_LIMIT:,} (2**31 - 1, the largest 32-bit "
+            f"integer; so many steps take hours), got {max_steps:,}."
+        )
     if accuracy == "exact":
         _check_no_integrator_options(
             solver=solver, rtol=rtol, atol=atol, stepsize_controller=stepsize_controller, dt0=dt0,
