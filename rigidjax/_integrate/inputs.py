@@ -29,9 +29,20 @@ __all__ = ["check_model", "check_options", "check_solver_steps", "check_state", 
 
 
 def check_solver_steps(solver, stepsize_controller):
-    """A diffrax ``solver`` without an error estimate needs a fixed-step controller: diffrax's own
-    error names neither argument."""
-    if solver is None or isinstance(solver, diffrax.AbstractAdaptiveSolver):
+    """A diffrax ``solver`` must integrate one ODE (diffrax's own error for a partitioned solver was
+    ``TermAndSolverIncompatible``), and without an error estimate it needs a fixed-step controller:
+    diffrax's own error names neither argument."""
+    if solver is None:
+        return
+    structure = getattr(solver, "term_structure", diffrax.AbstractTerm)
+    if not (isinstance(structure, type) and issubclass(structure, diffrax.AbstractTerm)):
+        raise ValueError(
+            f"simulate: solver={type(solver).__name__}() integrates a system split into parts (its terms: "
+            f"{structure}), such as positions and momenta or an implicit-explicit pair; simulate gives the "
+            "solver one ODE, d(state)/dt = f(t, state): use an ODE solver such as diffrax.Tsit5() or "
+            "diffrax.Dopri8(), or one of rigidjax.solvers (RKMK, LiePoissonSplitting, HeavyTopSplitting)."
+        )
+    if isinstance(solver, diffrax.AbstractAdaptiveSolver):
         return
     if not isinstance(stepsize_controller, diffrax.ConstantStepSize | diffrax.StepTo):
         raise ValueError(
