@@ -1733,6 +1733,22 @@ def test_a_span_too_long_for_the_step_floor_names_the_closed_form():
         rj.simulate(model, state, ts, accuracy="fast", max_steps=100_000)
 
 
+def test_times_far_from_zero_for_their_dtype_are_named_as_the_cause():
+    """float32 sample times at 3e5 s are 0.031 s apart at best: the solver's shorter steps did not
+    advance t, the run used up max_steps and the error asked for more of them "between t = 300000 s
+    and t = 300000 s". Now it names the times' resolution and the remedies; the same scene from
+    t = 0 succeeds."""
+    f32 = np.float32
+    model, state = rj.FreeBody(f32([1.0, 2.0, 3.0])), rj.State(f32([0.1, 1.0, 0.05]), f32([1, 0, 0, 0]))
+    ts = np.linspace(0.0, 5.0, 11, dtype=f32)
+    assert bool(rj.simulate(model, state, ts).success)
+    with pytest.raises(
+        RUNTIME,
+        match=r"between t = 300000 s and t = 300000\.5 s.*float32: .* resolves only 0\.031 s.*ts - ts\[0\]",
+    ):
+        rj.simulate(model, state, f32(3e5) + ts)
+
+
 def test_a_span_of_ten_million_turns_is_the_most_the_default_step_limit_takes():
     """The refusal sits at 2^30 / 100 turns of the fastest body (100 steps per turn, the default
     limit's budget): just below it, the limit is 2^30 (checked without running)."""

@@ -489,13 +489,32 @@ def _raise_if_failed(traj, max_steps, formulation):
     if sample == 0:  # not even the first step was taken
         when = f"at its first step from t = {ts[0]:.6g} s"
     elif sample < ts.shape[0]:
-        when = f"between t = {ts[sample - 1]:.6g} s and t = {ts[sample]:.6g} s"
+        digits = next((d for d in (6, 9, 12, 17) if f"{ts[sample - 1]:.{d}g}" != f"{ts[sample]:.{d}g}"), 17)
+        when = f"between t = {ts[sample - 1]:.{digits}g} s and t = {ts[sample]:.{digits}g} s"
     else:
         when = "before the last sample time"
+    reason = _failure_reason(code, max_steps, formulation)
+    if code == driver.MAX_STEPS_REACHED:
+        reason += _time_resolution_hint(ts)
     raise eqx.EquinoxRuntimeError(
-        f"simulate: {who} failed {when}: it {_failure_reason(code, max_steps, formulation)}.{others} "
+        f"simulate: {who} failed {when}: it {reason}.{others} "
         "With throw=False the other bodies keep their results, the failed ones are NaN from their "
         "failure on and Trajectory.success says which."
+    )
+
+
+def _time_resolution_hint(ts) -> str:
+    """For a run out of steps: whether ``ts`` lie so far from zero that their dtype resolves time only
+    coarsely there (float32 at |t| = 3e5 s: 0.03 s), so that the solver's steps, shorter than that,
+    did not advance t at all; '' otherwise."""
+    largest = float(np.max(np.abs(ts)))
+    resolution = float(np.spacing(ts.dtype.type(largest)))
+    if ts.shape[0] < 2 or resolution <= 1e-3 * float(np.mean(np.diff(ts))):
+        return ""
+    return (
+        f". But ts lie far from zero for {ts.dtype}: at |t| = {largest:.3g} s it resolves only "
+        f"{resolution:.2g} s, and steps shorter than that do not advance t, so more steps cannot help: "
+        "pass ts - ts[0] (a scene depends on t only through a torque that reads it) or simulate in float64"
     )
 
 
