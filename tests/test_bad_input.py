@@ -1594,7 +1594,7 @@ def test_a_closed_form_beyond_the_float_range_is_a_failure_not_a_success(scene):
 @pytest.mark.parametrize("function", ["torque_free_omega", "torque_free_motion", "torque_free_period"])
 def test_the_closed_forms_name_an_angular_momentum_beyond_the_float_range(function):
     """Finite inputs whose |I omega|^2 overflows float64 gave NaN without an error. The closed forms
-    compute with the moments scaled so that the largest is below 1 (0.625 here), whose |I omega| is
+    compute with the moments scaled so that the largest is in [1/2, 1) (0.625 here), whose |I omega| is
     6.5e154 at omega = 1e155 (beyond); two powers of ten less (|L|^2 = 1.1e306 unscaled, finite) is
     evaluated, ~1e3 rad of motion at t = 1e-150 s: finite, with |I omega|^2 conserved to rounding."""
     inertia, direction = np.array([1.0, 2.0, 2.5]), np.array([0.1, 1.0, 0.2])
