@@ -1733,6 +1733,26 @@ def test_a_span_too_long_for_the_step_floor_names_the_closed_form():
         rj.simulate(model, state, ts, accuracy="fast", max_steps=100_000)
 
 
+def test_flags_that_are_not_bools_and_unused_sequences_are_refused(without_runtime_typecheck):
+    """euler_rates read throw=None or 0 as False and throw="no" as True; check_inertia read
+    tensor="no" as True; Torque kept needs_orientation="no" (truthy); simulate accepted
+    euler_seq="zzz" unless the Euler-angle state read it. Each is now named; bools (NumPy's too)
+    and the sequences in any case still pass."""
+    angles, rates = jnp.array([0.3, 1.1, -0.7]), jnp.array([0.1, 0.2, 0.3])
+    for throw in (None, 0, "no"):
+        with pytest.raises(TypeError, match=rf"euler_rates: throw must be True or False, got {throw!r}"):
+            rj.euler_rates(angles, rates, throw=throw)
+    np.testing.assert_array_equal(
+        rj.euler_rates(angles, rates, throw=np.bool_(False)), rj.euler_rates(angles, rates, throw=True)
+    )
+    with pytest.raises(TypeError, match="check_inertia: tensor must be True, False or None, got 'no'"):
+        rj.check_inertia(jnp.eye(3), tensor="no")
+    with pytest.raises(TypeError, match="Torque: needs_orientation must be True or False, got 'no'"):
+        rj.Torque(lambda t, state, args: jnp.zeros(3), needs_orientation="no")
+    with pytest.raises(ValueError, match="simulate: euler_seq: seq must be one of the twelve"):
+        rj.simulate(rj.FreeBody(I3), rj.State(W), np.array([0.0, 1.0]), euler_seq="zzz")
+
+
 def test_times_far_from_zero_for_their_dtype_are_named_as_the_cause():
     """float32 sample times at 3e5 s are 0.031 s apart at best: the solver's shorter steps did not
     advance t, the run used up max_steps and the error asked for more of them "between t = 300000 s

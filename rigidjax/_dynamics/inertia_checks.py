@@ -3,6 +3,7 @@
 float range neither overflows nor passes what it should not."""
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool
 
 from .._checks import as_float_array, branched_error_if, compiled_when_eager, is_full_tensor
@@ -117,6 +118,8 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia", tensor: bool | Non
     than ``(..., 3)`` and ``(..., 3, 3)``. ``tensor``: whether the trailing axes are a tensor (None:
     a trailing ``(3, 3)`` is one; a scene knows the form of its own inertia).
     """
+    if tensor is not None and not isinstance(tensor, bool | np.bool_):
+        raise TypeError(f"check_inertia: tensor must be True, False or None, got {tensor!r}.")
     inertia = as_float_array(inertia, name)
     tensor, shape_says = _inertia_form(inertia, name, tensor)
     # Principal moments of shape (..., 3, 3): an axis before them keeps them from reading as tensors.

@@ -189,6 +189,10 @@ class Torque(AbstractTorque):
     needs_orientation: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
+        if not isinstance(self.needs_orientation, bool | np.bool_):
+            raise TypeError(
+                f"Torque: needs_orientation must be True or False, got {self.needs_orientation!r}."
+            )
         if not callable(self.fn):
             kind = type(self.fn).__name__
             raise TypeError(f"Torque: fn must be a function fn(t, state, args), got {kind}.")

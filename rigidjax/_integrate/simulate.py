@@ -332,7 +332,10 @@ def simulate(
             raise ValueError(f"representation='euler' needs a diffrax solver, not {type(solver).__name__}.")
         if state0.orientation is None:
             raise ValueError("representation='euler' needs an initial orientation in state0.")
-        is_proper_sequence(euler_seq)  # validates the sequence name
+    try:  # the name is checked also where only the Euler-angle state would read it
+        is_proper_sequence(euler_seq)
+    except ValueError as err:
+        raise ValueError(f"simulate: euler_seq: {err}") from None
     dtype = float_dtype(
         state0.omega, state0.orientation, *jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))
     )

@@ -22,6 +22,7 @@ Rigidjax's own integrators call unchecked private cores (``_euler_from_quat``...
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import (
     check_batch_shapes,
@@ -442,6 +443,8 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
     **Returns:** the rates ``(phi', theta', psi')`` (rad/s), shape ``(..., 3)``.
     """
     _parse_seq(seq)
+    if not isinstance(throw, bool | np.bool_):
+        raise TypeError(f"euler_rates: throw must be True or False, got {throw!r}.")
     angles, omega = common_float(angles, omega, names=["angles", "omega"])
     check_last_axis(angles, 3, "angles")
     check_last_axis(omega, 3, "omega")
