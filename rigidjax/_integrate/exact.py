@@ -32,9 +32,9 @@ from .._closed_form.frame import phase_unresolved
 from .._closed_form.heavy_top import lagrange_top_motion
 from .._closed_form.torque_free import _torque_free_motion, _torque_free_omega
 from .._dynamics.gyrostat import Gyrostat
+from .._dynamics.inertia import _symmetric_eigh
 from .._dynamics.models import FreeBody, HeavyTop, keep_inertia_ndim
 from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
-from .._numerics import _eigh3, _swap
 from . import batching
 from .driver import is_differentiated
 from .inputs import check_model, check_state, checked_inputs
@@ -218,7 +218,7 @@ def _torque_free(bodies, t):
     with respect to the tensor here, which the axes do not carry where moments coincide.)"""
     inertia, omega0, q0 = bodies["inertia"], bodies["omega0"], bodies.get("q0")
     if inertia.ndim == 3:
-        inertia, axes = _eigh3(0.5 * (inertia + _swap(inertia)))  # axes: principal -> body frame
+        inertia, axes = _symmetric_eigh(inertia)  # axes: principal -> body frame
         omega0 = jnp.einsum("nji,nj->ni", axes, omega0)
         axes_q = _quat_from_matrix(axes)
         q0 = None if q0 is None else _quat_multiply(q0, axes_q)
