@@ -471,18 +471,37 @@ def is_positive_int(value) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_) and value >= 1
 
 
-def takes_arguments(function, count: int) -> tuple[bool, str]:
-    """Whether ``function`` can be called with ``count`` positional arguments (True where its
-    signature cannot be read: builtins, some C callables), and its signature as text for a message."""
-    try:
-        signature = inspect.signature(function)
-    except (TypeError, ValueError):
-        return True, ""
-    try:
-        signature.bind(*([None] * count))
-    except TypeError:
-        return False, f"{getattr(function, '__qualname__', type(function).__name__)}{signature}"
-    return True, ""
+def check_callable(function, name: str, call: str, count: int) -> None:
+    """A ``TypeError`` naming ``name`` and showing ``call`` (how it is called) unless ``function`` is
+    callable with ``count`` positional arguments; one whose signature cannot be read (builtins, some
+    C callables) passes. A wrong signature would otherwise fail only when first called, after the
+    work before it (a fit's compile)."""
+    if callable(function):
+        try:
+            signature = inspect.signature(function)
+        except (TypeError, ValueError):
+            return
+        try:
+            signature.bind(*([None] * count))
+            return
+        except TypeError:
+            shown = f"{getattr(function, '__qualname__', type(function).__name__)}{signature}"
+    else:
+        shown = repr(function)
+    raise TypeError(f"{name} must be callable as {call}, got {shown}.")
+
+
+def check_flag(value, name: str, where: str | None, *, none: bool = False) -> bool | None:
+    """``value`` as a Python ``bool`` if it is ``True`` or ``False`` (``None`` too where ``none``);
+    a ``TypeError`` naming ``name`` (after ``where``, the function, when given) otherwise: a string
+    such as ``"no"`` or a number would silently read as true or false."""
+    if none and value is None:
+        return None
+    if not isinstance(value, bool | np.bool_):
+        allowed = "True, False or None" if none else "True or False"
+        prefix = f"{where}: " if where else ""
+        raise TypeError(f"{prefix}{name} must be {allowed}, got {value!r}.")
+    return bool(value)
 
 
 def check_positive_int(value, name: str, where: str):

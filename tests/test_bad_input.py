@@ -1848,11 +1848,11 @@ def test_a_negative_damping_coefficient_is_named_also_under_jit():
 def test_a_torque_function_of_the_wrong_arity_is_named(fn, without_runtime_typecheck):
     """fn(t) failed inside the integration with Python's own 'takes 1 positional argument but 3 were
     given', which names neither the torque nor the arguments it is called with."""
-    message = r"Torque: fn must (take three arguments|be a function) fn\(t, state, args\)"
+    message = r"Torque: fn must be callable as fn\(t, state, args\) \(three arguments"
     with pytest.raises(TypeError, match=message):
         rj.Torque(fn)
     if callable(fn):
-        with pytest.raises(TypeError, match=r"Torque: fn must take three arguments"):
+        with pytest.raises(TypeError, match=message):
             rj.RigidBody(I3, fn)
     # Defaults, *args and callables without a readable signature stay accepted.
     rj.Torque(lambda t, state, args=None, scale=1.0: np.zeros(3))

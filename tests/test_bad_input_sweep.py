@@ -444,5 +444,10 @@ def test_sequence_functions_reject_unknown_sequences():
 
 
 def test_vector_field_of_a_non_function(without_runtime_typecheck):
-    with pytest.raises(TypeError, match="angular_acceleration must be a function"):
+    """A function of the wrong arity failed only inside diffeqsolve, with Python's own message."""
+    message = r"angular_acceleration must be callable as f\(t, omega, q, args\)"
+    with pytest.raises(TypeError, match=message + r".*got array"):
         solvers.rigid_body_vector_field(np.zeros(3))
+    with pytest.raises(TypeError, match=message + r".*got .*\(t, omega\)"):
+        solvers.rigid_body_vector_field(lambda t, omega: -omega)
+    solvers.rigid_body_vector_field(lambda *arguments: jnp.zeros(3))

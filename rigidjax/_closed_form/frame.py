@@ -6,24 +6,20 @@ parameter ``m`` and its complement ``p = 1 - m`` computed on its own."""
 import jax
 import jax.numpy as jnp
 
+from .._numerics import power_of_two_scaled
+
 # The comparators of a sorting network for three elements.
 _NETWORK = ((0, 1), (1, 2), (0, 1))
 
 
 def unit_scaled(inertia):
-    """``inertia`` (principal moments, last axis) times the power of two that brings its largest
-    moment into ``[1/2, 1)``, per body: exact, no rounding. Two factors, each a normal number built by
-    ``ldexp`` (one subnormal factor is flushed to zero on CPU; ``exp2`` is not exact in float32 and
-    its rounding, amplified by ``1 / (C - A)``, cost the Earth's float32 wobble period 2e-5). Euler's
-    equations depend on the moments' ratios only, and the closed forms multiply moments together
-    (``I_a I_b I_c``, ``I_i (I_i - I_j) omega_i^2``): for a small body in SI units those products
-    underflowed (float32: moments of 1e-12 kg m^2 made a tumbling body rotate steadily, its period
-    infinite; float64 below about 1e-110). The factor carries no derivative: the motion does not
-    change along the scale."""
-    largest = jax.lax.stop_gradient(jnp.max(inertia, axis=-1, keepdims=True))
-    _, exponent = jnp.frexp(jnp.where(largest > 0, largest, 1.0))
-    half, one = exponent // 2, jnp.ones_like(largest)
-    return inertia * jnp.ldexp(one, -half) * jnp.ldexp(one, half - exponent)
+    """``inertia`` (principal moments, last axis) scaled exactly so that its largest moment lies in
+    ``[1/2, 1)``, per body (:func:`power_of_two_scaled`). Euler's equations depend on the moments'
+    ratios only, and the closed forms multiply moments together (``I_a I_b I_c``,
+    ``I_i (I_i - I_j) omega_i^2``): for a small body in SI units those products underflowed (float32:
+    moments of 1e-12 kg m^2 made a tumbling body rotate steadily, its period infinite; float64 below
+    about 1e-110). The motion does not change along the scale."""
+    return power_of_two_scaled(inertia, axis=-1)
 
 
 def _sorted_frame(inertia, omega0):

@@ -3,11 +3,10 @@
 float range neither overflows nor passes what it should not."""
 
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool
 
-from .._checks import as_float_array, branched_error_if, compiled_when_eager, is_full_tensor
-from .._numerics import _SYMMETRY_EPS, _TRIANGLE_EPS, _eigh3, _swap, eps, short_sum
+from .._checks import as_float_array, branched_error_if, check_flag, compiled_when_eager, is_full_tensor
+from .._numerics import _SYMMETRY_EPS, _TRIANGLE_EPS, _eigh3, _swap, eps, power_of_two_scaled, short_sum
 from .._types import Inertia
 
 
@@ -24,16 +23,6 @@ def _inertia_form(inertia, name: str, tensor: bool | None) -> tuple[bool, bool]:
 _OK, _TRIANGLE, _NOT_POSITIVE, _NOT_SYMMETRIC, _NOT_FINITE = 0, 1, 2, 3, 4
 
 
-def _scaled_to_one(values, axis):
-    """``values`` times the power of two that brings the largest ``|value|`` over ``axis`` into
-    ``[1, 2)``, exactly: a trace near the float range overflowed, and any moments passed the triangle
-    test. Two normal factors: XLA on CPU flushes a subnormal one such as ``2^-1023`` to zero."""
-    largest = jnp.max(jnp.abs(values), axis=axis, keepdims=True)
-    exponent = jnp.floor(jnp.log2(jnp.where(largest > 0, largest, 1.0)))
-    half = jnp.floor(exponent / 2)
-    return values * jnp.exp2(-half) * jnp.exp2(half - exponent)
-
-
 def _inertia_failure(inertia, zero_allowed: bool = False):
     """Per-body failure code (0 = physical) of principal moments or a tensor, shape ``(...)``. With
     ``zero_allowed``, zero moments pass (a part: a point mass, a thin rod), negative ones do not."""
@@ -42,7 +31,7 @@ def _inertia_failure(inertia, zero_allowed: bool = False):
     if is_full_tensor(inertia, "inertia"):
         finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
         safe = jnp.where(finite[..., None, None], inertia, jnp.eye(3, dtype=inertia.dtype))
-        safe = _scaled_to_one(safe, axis=(-2, -1))
+        safe = power_of_two_scaled(safe, axis=(-2, -1))
         scale = jnp.max(jnp.abs(safe), axis=(-2, -1))
         asym = jnp.max(jnp.abs(safe - _swap(safe)), axis=(-2, -1))
         symmetric = asym <= _SYMMETRY_EPS * tol_eps * scale
@@ -62,7 +51,7 @@ def _inertia_failure(inertia, zero_allowed: bool = False):
     else:
         finite = jnp.all(jnp.isfinite(inertia), axis=-1)
         moments = jnp.where(finite[..., None], inertia, jnp.ones_like(inertia))
-        moments = _scaled_to_one(moments, axis=-1)
+        moments = power_of_two_scaled(moments, axis=-1)
         symmetric = jnp.ones_like(finite)
         positive = jnp.all(moments >= 0 if zero_allowed else moments > 0, axis=-1)
         trace = short_sum(moments)
@@ -118,8 +107,7 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia", tensor: bool | Non
     than ``(..., 3)`` and ``(..., 3, 3)``. ``tensor``: whether the trailing axes are a tensor (None:
     a trailing ``(3, 3)`` is one; a scene knows the form of its own inertia).
     """
-    if tensor is not None and not isinstance(tensor, bool | np.bool_):
-        raise TypeError(f"check_inertia: tensor must be True, False or None, got {tensor!r}.")
+    tensor = check_flag(tensor, "tensor", "check_inertia", none=True)
     inertia = as_float_array(inertia, name)
     tensor, shape_says = _inertia_form(inertia, name, tensor)
     # Principal moments of shape (..., 3, 3): an axis before them keeps them from reading as tensors.

@@ -7,7 +7,6 @@ bodies' values.
 """
 
 import abc
-import inspect
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -16,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import as_float_array, check_last_axis, floats_as_arrays
+from .._checks import as_float_array, check_callable, check_flag, check_last_axis, floats_as_arrays
 from .._kinematics.quaternion import _quat_conjugate, _quat_rotate
 from .._repr import module_repr
 from .equations import _components, _cross_components
@@ -189,25 +188,13 @@ class Torque(AbstractTorque):
     needs_orientation: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
-        if not isinstance(self.needs_orientation, bool | np.bool_):
-            raise TypeError(
-                f"Torque: needs_orientation must be True or False, got {self.needs_orientation!r}."
-            )
-        if not callable(self.fn):
-            kind = type(self.fn).__name__
-            raise TypeError(f"Torque: fn must be a function fn(t, state, args), got {kind}.")
-        try:
-            signature = inspect.signature(self.fn)
-        except (TypeError, ValueError):  # builtins and some C callables have none to read
-            return
-        try:
-            signature.bind(None, None, None)
-        except TypeError:
-            name = getattr(self.fn, "__qualname__", type(self.fn).__name__)
-            raise TypeError(
-                f"Torque: fn must take three arguments fn(t, state, args) (args: simulate's args, or "
-                f"the torque's params), got {name}{signature}."
-            ) from None
+        check_flag(self.needs_orientation, "needs_orientation", "Torque")
+        check_callable(
+            self.fn,
+            "Torque: fn",
+            "fn(t, state, args) (three arguments; args: simulate's args, or the torque's params)",
+            3,
+        )
 
     def __call__(self, t, state, args):
         name = getattr(self.fn, "__qualname__", type(self.fn).__name__)

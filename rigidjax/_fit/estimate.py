@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_flag
 from .._dynamics.state import State
 from .._dynamics.torques import _total_torque
 from .data import _check_data
@@ -99,8 +100,7 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
             f"estimate_inertia needs at least 5 samples of omega_observed (each local quadratic fit "
             f"spans 2 half_width + 1 >= 5 of them), got {ts.shape[0]}."
         )
-    if not isinstance(full_tensor, bool | np.bool_):
-        raise TypeError(f"full_tensor must be True or False, got {full_tensor!r}.")
+    full_tensor = check_flag(full_tensor, "full_tensor", "estimate_inertia")
     if half_width is not None and (
         not isinstance(half_width, int | np.integer) or isinstance(half_width, bool) or half_width < 2
     ):

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._checks import compiled_once, is_positive_int, takes_arguments
+from .._checks import check_callable, check_flag, compiled_once, is_positive_int
 from .._dynamics.torques import _as_torque_tuple
 from .data import _check_data, _check_quaternions
 from .optimisers import _run
@@ -79,15 +79,12 @@ def _dispatch(iteration, loss, step_norm):
 
 def _hooks(callback, progress) -> _Hooks | None:
     """The iteration hooks of ``callback`` and ``progress``, or None when there are none."""
-    if callback is not None and not (callable(callback) and takes_arguments(callback, 2)[0]):
-        shown = takes_arguments(callback, 2)[1] if callable(callback) else repr(callback)
-        raise TypeError(f"callback must be callable as callback(iteration, loss), got {shown}.")
+    if callback is not None:
+        check_callable(callback, "callback", "callback(iteration, loss)", 2)
     if isinstance(progress, bool | np.bool_) or progress is None:
         print_lines, progress = bool(progress), None
     elif callable(progress):
-        fits, signature = takes_arguments(progress, 2)
-        if not fits:
-            raise TypeError(f"progress must be callable as progress(iteration, loss), got {signature}.")
+        check_callable(progress, "progress", "progress(iteration, loss)", 2)
         print_lines = False
     else:
         raise TypeError(
@@ -181,8 +178,7 @@ def _check_options(
                 f"optimizer must be an optax GradientTransformation (e.g. optax.lbfgs()), got "
                 f"{type(optimizer).__name__}."
             )
-    if not isinstance(full_tensor, bool | np.bool_):
-        raise TypeError(f"full_tensor must be True or False, got {full_tensor!r}.")
+    check_flag(full_tensor, "full_tensor", None)
     if inertia_trace is not None and known_moment is not None:
         raise ValueError("Give at most one scale: inertia_trace or known_moment, not both.")
     if inertia_trace is not None:

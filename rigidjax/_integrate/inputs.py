@@ -10,6 +10,7 @@ import numpy as np
 from .._checks import (
     as_float_array,
     check_finite,
+    check_flag,
     check_times,
     check_unit_quaternion,
     checks_done,
@@ -169,8 +170,7 @@ def check_options(*, flags, objects, dt0, lock_tolerance):
     None or a positive finite step where its value is known, and ``lock_tolerance`` a number in
     ``(0, 1)``. A ``TypeError`` or ``ValueError`` naming the option otherwise."""
     for name, value in flags.items():
-        if not isinstance(value, bool | np.bool_):
-            raise TypeError(f"simulate: {name} must be True or False, got {value!r}.")
+        check_flag(value, name, "simulate")
     for name, value in objects.items():
         base, example = _OBJECT_OPTIONS[name]
         if value is None or isinstance(value, base):

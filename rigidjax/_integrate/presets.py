@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_positive_int, known_values
+from .._checks import check_flag, check_positive_int, known_values
 from .solvers.unrolled import UnrolledDopri8
 
 PRESETS = MappingProxyType(
@@ -84,9 +84,8 @@ def preset(
     dtype = jnp.dtype(jnp.result_type(float) if dtype is None else dtype)
     if dtype not in (np.float32, np.float64):
         raise ValueError(f"preset: dtype must be float32 or float64, got {dtype}.")
-    if not isinstance(differentiated, bool | np.bool_):
-        raise TypeError(f"preset: differentiated must be True or False, got {differentiated!r}.")
-    return preset_solver(accuracy, bool(differentiated), n_bodies), preset_rtol(accuracy, dtype)
+    differentiated = check_flag(differentiated, "differentiated", "preset")
+    return preset_solver(accuracy, differentiated, n_bodies), preset_rtol(accuracy, dtype)
 
 
 BODIES_PER_ACCELERATOR_CORE = 512

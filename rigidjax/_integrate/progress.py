@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax._src import config as jax_config
 
-from .._checks import is_traced, takes_arguments
+from .._checks import check_callable, is_traced
 from . import batching
 from .chunked import plan_bodies
 from .cores import available_cores
@@ -46,12 +46,7 @@ def check_progress(progress) -> Callable[[int, int], None] | None:
     if progress is None:
         return None
     if callable(progress):
-        fits, signature = takes_arguments(progress, 2)
-        if not fits:
-            raise TypeError(
-                "progress must be callable as progress(done_bodies, total_bodies) (two arguments), "
-                f"got {signature}."
-            )
+        check_callable(progress, "progress", "progress(done_bodies, total_bodies) (two arguments)", 2)
         return progress
     raise TypeError(
         "progress must be True (a progress bar on stderr), False, or a callable "

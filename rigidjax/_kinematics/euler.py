@@ -22,11 +22,11 @@ Rigidjax's own integrators call unchecked private cores (``_euler_from_quat``...
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._checks import (
     check_batch_shapes,
     check_finite,
+    check_flag,
     check_last_axis,
     check_last_two_axes,
     check_rotation_matrix,
@@ -443,8 +443,7 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
     **Returns:** the rates ``(phi', theta', psi')`` (rad/s), shape ``(..., 3)``.
     """
     _parse_seq(seq)
-    if not isinstance(throw, bool | np.bool_):
-        raise TypeError(f"euler_rates: throw must be True or False, got {throw!r}.")
+    throw = check_flag(throw, "throw", "euler_rates")
     angles, omega = common_float(angles, omega, names=["angles", "omega"])
     check_last_axis(angles, 3, "angles")
     check_last_axis(omega, 3, "omega")

@@ -31,6 +31,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ..._checks import (
     as_float_array,
     check_batch_shapes,
+    check_callable,
     check_finite,
     check_last_axis,
     check_rotation_quaternion,
@@ -213,11 +214,12 @@ def rigid_body_vector_field(angular_acceleration: Callable) -> Callable:
     :class:`RKMK` uses only its first component (the orientation kinematics are built in); any
     other diffrax solver integrates it as a plain ODE (reference solutions)."""
 
-    if not callable(angular_acceleration):
-        raise TypeError(
-            "rigid_body_vector_field: angular_acceleration must be a function "
-            f"f(t, omega, q, args), got {type(angular_acceleration).__name__}."
-        )
+    check_callable(
+        angular_acceleration,
+        "rigid_body_vector_field: angular_acceleration",
+        "f(t, omega, q, args) (four arguments)",
+        4,
+    )
 
     return _RigidBodyVectorField(angular_acceleration)
 
