@@ -379,3 +379,71 @@ def test_a_fit_the_record_does_not_support_is_flagged():
     assert "(--segments auto) or with a robust --loss" in in_command_words(misfit)
     text = json.dumps(finite_or_none({"stderr": [0.1, float("inf")], "loss": float("nan")}), allow_nan=False)
     assert json.loads(text) == {"stderr": [0.1, None], "loss": None}
+
+
+def _rows(make, n=12):
+    return "".join(make(t) for t in range(n))
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        # A column with no value at all was reported as "too few samples: 0 complete rows".
+        ("t,wx,wy,wz\n" + _rows(lambda t: f"{t},1,nan,3\n"), "column wy has no values (all 12 data rows"),
+        ("t,wx,wy,wz\n" + _rows(lambda t: f"{t},1,,3\n"), "column wy has no values"),
+        ("t,wx,wy,wz\n" + _rows(lambda t: f"{t},,,\n"), "columns wx, wy, wz have no values"),
+        ("t,wx,wy,wz\n" + _rows(lambda t: ",1,2,3\n"), "column t has no values (all 12 data rows are empty"),
+        # Too few complete rows: the columns missing the most values, most first.
+        (
+            "t,wx,wy,wz\n" + _rows(lambda t: f"{t},1,{'' if t > 2 else 2},{'' if 5 <= t <= 9 else 3}\n"),
+            "too few samples: 3 complete rows (with all of wx, wy, wz) of 12 data rows; missing the most "
+            "values: wy (9 of 12 empty or nan), wz (5 of 12 empty or nan)",
+        ),
+        # An empty file, or one of comments only, was "missing column(s) t, wx, wy, wz".
+        ("", "the file is empty; a record needs a header row naming t, wx, wy, wz"),
+        ("\n# no samples yet\n", "no header row, only blank or comment lines"),
+        # Columns separated by something else than commas were "missing column(s) t, wx, wy, wz".
+        ("t;wx;wy;wz\n" + _rows(lambda t: f"{t};1,5;2;3\n"), "the columns are separated by semicolons (;)"),
+        ("t\twx\twy\twz\n" + _rows(lambda t: f"{t}\t1\t2\t3\n"), "the columns are separated by tabs"),
+        ("t wx wy wz\n" + _rows(lambda t: f"{t} 1 2 3\n"), "the columns are separated by spaces"),
+        # numpy.savetxt(..., header="t,wx,wy,wz") comments the header out.
+        (
+            "# t,wx,wy,wz\n" + _rows(lambda t: f"{t},1,2,3\n"),
+            "the header row is commented out ('# t,wx,wy,wz')",
+        ),
+    ],
+    ids=[
+        "wy-nan",
+        "wy-empty",
+        "wx-wy-wz-empty",
+        "t-empty",
+        "few-complete-rows",
+        "empty-file",
+        "comments-only",
+        "semicolons",
+        "tabs",
+        "spaces",
+        "commented-header",
+    ],
+)
+def test_unusable_columns_are_named(tmp_path, capsys, no_fit, text, message):
+    data = tmp_path / "gyro.csv"
+    data.write_text(text)
+    assert run_fit([str(data), "-q"]) == 2
+    _one_line_error(capsys.readouterr(), f"{data}: {message}")
+
+
+def test_comment_lines_before_the_header_and_after_its_names_are_skipped(tmp_path):
+    """Comment and blank lines are skipped, as the docstring says: also above the header (the
+    comment was read as the header: "missing column(s) t, wx, wy, wz") and after the column names
+    (read as part of the name wz). The file's line numbers count the lines above the header."""
+    from rigidjax._cli.fit import read_record
+
+    data = tmp_path / "gyro.csv"
+    data.write_text("# gyro, 100 Hz\n\nt,wx,wy,wz  # rad/s\n" + _rows(lambda t: f"{t},1,2,3\n"))
+    ts, omega = read_record(str(data))
+    np.testing.assert_array_equal(ts, np.arange(12.0))
+    np.testing.assert_array_equal(omega, np.tile([1.0, 2.0, 3.0], (12, 1)))
+    data.write_text("# gyro\nt,wx,wy,wz\n0,1,2,3\n1,1\n")
+    with pytest.raises(ValueError, match=r"data row 2 \(line 4\) has 2 cell\(s\)"):
+        read_record(str(data))

@@ -62,7 +62,16 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
         ) from None
     except csv.Error as error:  # a cell beyond the csv module's size limit, a NUL byte
         raise DataError(f"{path}: not a readable CSV file ({error}).") from None
-    names = [name.strip().lower() for name in rows[0]] if rows else []
+    header = _header_line(rows)
+    if header is None:
+        raise DataError(
+            f"{path}: "
+            + ("the file is empty" if not rows else "no header row, only blank or comment lines")
+            + "; a record needs a header row naming t, wx, wy, wz and then one row per sample."
+        )
+    names = [name.strip().lower() for name in rows[header]]
+    if not all(c in names for c in OMEGA_COLUMNS):  # a comment after the names: "t,wx,wy,wz  # rad/s"
+        names = [name.strip().lower() for name in _without_comment(rows[header])]
     if all(c in names for c in QUATERNION_COLUMNS) and not all(c in names for c in OMEGA_COLUMNS):
         raise DataError(
             f"{path}: orientation records (t, qw, qx, qy, qz) cannot be fitted from the command line "
@@ -70,16 +79,13 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
         )
     missing = [c for c in OMEGA_COLUMNS if c not in names]
     if missing:
-        raise DataError(
-            f"{path}: missing column(s) {', '.join(missing)}; the header must name t, wx, wy, wz "
-            f"(found: {', '.join(names) or 'nothing'})."
-        )
+        raise DataError(_missing_columns(path, missing, names, rows[:header]))
     repeated = [c for c in OMEGA_COLUMNS if names.count(c) > 1]
     if repeated:
         raise DataError(f"{path}: the header names column(s) {', '.join(repeated)} more than once.")
     index = [names.index(c) for c in OMEGA_COLUMNS]
     data = []
-    for line, cells in enumerate(rows[1:], start=2):
+    for line, cells in enumerate(rows[header + 1 :], start=header + 2):
         cells = _without_comment(cells)
         if not any(c.strip() for c in cells):
             continue  # a blank or comment line
@@ -97,6 +103,7 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
     if not data:
         raise DataError(f"{path}: no data rows after the header.")
     data = np.asarray(data, dtype=float)
+    _check_columns(path, data)
     ts, omega = data[:, 0], data[:, 1:4]
     if not np.all(np.isfinite(ts)):
         row = int(np.argmin(np.isfinite(ts)))
@@ -116,12 +123,73 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
             f"{path}: data row {row + 1} has an infinite {OMEGA_COLUMNS[column + 1]} "
             f"({omega[row, column]}); leave the cell empty (or write nan) for a missing sample."
         )
-    if np.isfinite(omega).all(axis=1).sum() < 10:
-        raise DataError(
-            f"{path}: too few samples: {int(np.isfinite(omega).all(axis=1).sum())} complete rows; "
-            "a fit needs at least 10 (and several wobble cycles to be well determined)."
-        )
+    _check_complete_rows(path, omega)
     return ts, omega
+
+
+def _header_line(rows: list[list[str]]) -> int | None:
+    """The index of the header row: the first line that is neither blank nor a ``#`` comment."""
+    for k, cells in enumerate(rows):
+        if any(c.strip() for c in _without_comment(cells)):
+            return k
+    return None
+
+
+def _missing_columns(path: str, missing: list[str], names: list[str], before: list[list[str]]) -> str:
+    """The message for a header without some of t, wx, wy, wz: the columns, and where the header is
+    there but unread (separated by semicolons, tabs or spaces; commented out), that cause."""
+    text = ",".join(names)
+    for separator, called in ((";", "semicolons (;)"), ("\t", "tabs"), ("|", "bars (|)"), (None, "spaces")):
+        parts = [part.strip().strip('"') for part in (text.split(separator) if separator else text.split())]
+        if len(names) == 1 and all(c in parts for c in OMEGA_COLUMNS):
+            return (
+                f"{path}: the columns are separated by {called}, not commas (header {text!r}); "
+                "save the record as comma-separated values, with '.' as the decimal point."
+            )
+    for cells in before:
+        commented = [c.strip().lstrip("#").strip().lower() for c in cells]
+        if all(c in commented for c in OMEGA_COLUMNS):
+            return (
+                f"{path}: the header row is commented out ({','.join(cells).strip()!r}); remove the '#' "
+                "before the column names (numpy.savetxt writes it unless given comments='')."
+            )
+    return (
+        f"{path}: missing column(s) {', '.join(missing)}; the header must name t, wx, wy, wz "
+        f"(found: {', '.join(names) or 'nothing'})."
+    )
+
+
+def _check_columns(path: str, data: np.ndarray) -> None:
+    """A column of t, wx, wy, wz with no value at all (every cell empty or nan) is named."""
+    empty = [name for name, column in zip(OMEGA_COLUMNS, data.T, strict=True) if np.isnan(column).all()]
+    if empty:
+        needs = ["every sample needs its time"] if "t" in empty else []
+        needs += ["the fit needs samples of each of wx, wy, wz"] if empty != ["t"] else []
+        raise DataError(
+            f"{path}: column{'s' if len(empty) > 1 else ''} {', '.join(empty)} "
+            f"{'has' if len(empty) == 1 else 'have'} no values (all {data.shape[0]} data rows are empty "
+            f"or nan there); {' and '.join(needs)}."
+        )
+
+
+def _check_complete_rows(path: str, omega: np.ndarray) -> None:
+    """At least 10 rows with all of wx, wy, wz; otherwise the columns missing the most values are named."""
+    complete = int(np.isfinite(omega).all(axis=1).sum())
+    if complete >= 10:
+        return
+    rows = omega.shape[0]
+    missing = np.isnan(omega).sum(axis=0)
+    worst = [
+        f"{OMEGA_COLUMNS[k + 1]} ({missing[k]} of {rows} empty or nan)"
+        for k in sorted(range(3), key=lambda k: -missing[k])
+        if missing[k]
+    ]
+    cause = f"; missing the most values: {', '.join(worst)}" if worst else ""
+    raise DataError(
+        f"{path}: too few samples: {complete} complete row{'' if complete == 1 else 's'} (with all of wx, "
+        f"wy, wz) of {rows} data row{'' if rows == 1 else 's'}{cause}. A fit needs at least 10 (and several "
+        "wobble cycles to be well determined)."
+    )
 
 
 def _without_comment(cells: list[str]) -> list[str]:
