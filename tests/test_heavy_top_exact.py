@@ -553,8 +553,14 @@ def test_errors_name_the_condition():
     )
     off = rj.HeavyTop(jnp.array([1.0, 1.0, 0.5]), 1.0, jnp.array([0.1, 0.0, 0.3]))
     expect_error(lambda: rj.simulate(off, state, ts, accuracy="exact"), "body z", "com = (0.1, 0, 0.3)")
-    tensor = rj.HeavyTop(jnp.diag(jnp.array([1.0, 1.0, 0.5])), 1.0, jnp.array([0.0, 0.0, 0.3]))
-    expect_error(lambda: rj.simulate(tensor, state, ts, accuracy="exact"), "principal moments")
+    tensor = rj.HeavyTop(jnp.diag(jnp.array([1.0, 1.1, 0.5])), 1.0, jnp.array([0.0, 0.0, 0.3]))
+    expect_error(
+        lambda: rj.simulate(tensor, state, ts, accuracy="exact"),
+        "symmetric about the line from the pivot through the centre of mass",
+        "departs from that symmetry by 0.091 of its transverse moment",
+    )
+    tilted = rj.HeavyTop(jnp.diag(jnp.array([1.0, 1.0, 0.5])), 1.0, jnp.array([0.1, 0.0, 0.3]))
+    expect_error(lambda: rj.simulate(tilted, state, ts, accuracy="exact"), "departs from that symmetry")
     damped = rj.HeavyTop(TOP, 1.0, jnp.array([0.0, 0.0, 0.3]), torque=rj.ViscousDamping(0.1))
     expect_error(lambda: rj.simulate(damped, state, ts, accuracy="exact"), "extra torques")
 
@@ -687,3 +693,61 @@ def test_time_derivative_in_reverse_mode_is_the_equations_of_motion(name):
     scale = np.max(np.abs(w_rate))
     np.testing.assert_allclose(rates[:, :3], w_rate, rtol=1e-9, atol=1e-9 * scale)
     np.testing.assert_allclose(rates[:, 3:], q_rate, rtol=1e-9, atol=1e-9 * np.max(np.abs(q_rate)))
+
+
+def _tensor_reference(tensor, mass, com, omega0, q0, ts):
+    """DOP853 of the heavy top in the tensor's own body axes, no principal axes:
+    ``J w' = (J w) x w + (R^T Z) x (m g com)``."""
+    inverse, c = np.linalg.inv(tensor), mass * G * np.asarray(com, float)
+
+    def accel(t, w, q):
+        qw, qx, qy, qz = q
+        up = [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), qw * qw - qx * qx - qy * qy + qz * qz]
+        return inverse @ (np.cross(tensor @ w, w) + np.cross(up, c))
+
+    return dop853(accel, omega0, ts, q0, omega_scale=max(np.linalg.norm(omega0), 1e-3))
+
+
+@pytest.mark.parametrize(
+    "moments, length",
+    [
+        ((1.0, 1.0, 0.5), 0.3),  # the odd moment the smallest (a long top)
+        ((1.0, 1.0, 0.5), -0.3),  # hanging below the pivot
+        ((1.0, 1.0, 1.8), 0.2),  # the odd moment the largest (a flat top)
+        ((1.0, 1.0, 0.5), 0.0),  # centre of mass at the pivot: the axes from the moments
+        ((1.0, 1.0, 1.8), 0.0),
+        ((1.0, 1.0, 1.0), 0.3),  # a sphere about the pivot: the axis from com alone
+    ],
+)
+def test_a_top_given_as_a_tensor(moments, length):
+    """A Lagrange top given by its tensor about the pivot in tilted body axes (as composite_inertia
+    gives one) takes the closed form in the axes of its symmetry; the reference integrates the tensor
+    in the body axes (scipy DOP853). A derivative with respect to the tensor or com is refused; one
+    with respect to the mass works and matches central differences."""
+    turn = Rotation.from_rotvec([0.4, -0.7, 0.9]).as_matrix()
+    tensor = turn @ np.diag(moments) @ turn.T
+    com = turn @ np.array([0.0, 0.0, length])
+    omega0 = turn @ np.array([0.3, 0.1, 4.0])
+    q0 = euler_zxz([0.1, 0.6, 0.2])
+    ts = np.linspace(0.0, 5.0, 41)
+    top = rj.HeavyTop(jnp.asarray(tensor), 1.0, jnp.asarray(com))
+    traj = rj.simulate(top, rj.State(jnp.asarray(omega0), jnp.asarray(q0)), jnp.asarray(ts), accuracy="exact")
+    w_ref, q_ref = _tensor_reference(tensor, 1.0, com, omega0, q0, ts)
+    assert np.all(np.asarray(traj.success))
+    assert np.max(np.abs(np.asarray(traj.omega) - w_ref)) <= 1e-9 * np.max(np.abs(w_ref))
+    assert np.max(np.abs(np.asarray(traj.orientation) - q_ref)) <= 1e-9
+    if length != 0.3 or moments != (1.0, 1.0, 0.5):
+        return
+
+    def loss(tensor, mass, com):
+        top = rj.HeavyTop(tensor, mass, com)
+        state = rj.State(jnp.asarray(omega0), jnp.asarray(q0))
+        return jnp.sum(rj.simulate(top, state, jnp.asarray(ts[:3]), accuracy="exact").omega[-1] ** 2)
+
+    args = (jnp.asarray(tensor), jnp.asarray(1.0), jnp.asarray(com))
+    for argnum in (0, 2):
+        with pytest.raises(ValueError, match="no derivative with respect to them"):
+            jax.grad(loss, argnums=argnum)(*args)
+    grad = jax.grad(loss, argnums=1)(*args)
+    expected = central_difference(lambda m: float(loss(args[0], m, args[2])), 1.0, 1e-5)
+    np.testing.assert_allclose(float(grad), expected, rtol=1e-7)

@@ -81,7 +81,9 @@ def _exact_inputs(model, omega0, q0, ts):
     ts = check_times(ts, "simulate")
     if isinstance(model, HeavyTop):
         model = eqx.tree_at(
-            lambda top: (top.inertia, top.com), model, _lagrange_checked(model.inertia, model.com)
+            lambda top: (top.inertia, top.com),
+            model,
+            _lagrange_checked(model.inertia, model.com, model.inertia_core_ndim == 2),
         )
     return model, omega0, q0, ts
 
@@ -137,8 +139,7 @@ def _exact_motion(model, omega0, q0, ts, chunk_size):
                 jnp.zeros_like(first_omega[:, :1]),
             )
         if heavy:
-            top = (bodies[name][:, None] for name in _TOP_INPUTS)
-            omega, q, phase = lagrange_top_motion(*top, t, phases=True)
+            omega, q, phase = _lagrange_top(bodies, t, tensor)
         else:
             omega, q, phase = _torque_free(bodies, t)
         if n_times == 2:
@@ -209,19 +210,31 @@ _TOP_INPUTS = ("inertia", "mass", "com", "gravity", "omega0", "q0")
 """Lagrange's top's per-body inputs, in the order of :func:`.lagrange_top_motion`'s arguments."""
 
 
+def _into_axes(axes, omega0, q0):
+    """``omega0`` and ``q0`` of bodies seen in ``axes`` (``(n, 3, 3)``, columns: the axes' body-frame
+    components, right-handed), and the axes' quaternion. A body given by a tensor turns as the body
+    of its moments in those axes does: the closed form runs there and :func:`_out_of_axes` turns its
+    omega and q back."""
+    axes_q = _quat_from_matrix(axes)
+    omega0 = jnp.einsum("nji,nj->ni", axes, omega0)
+    return omega0, None if q0 is None else _quat_multiply(q0, axes_q), axes_q
+
+
+def _out_of_axes(axes, axes_q, omega, q):
+    """omega ``(n, samples, 3)`` and q (or None) of :func:`_into_axes`'s frame in the body axes."""
+    omega = jnp.einsum("nij,nsj->nsi", axes, omega)
+    return omega, None if q is None else _quat_multiply(q, _quat_conjugate(axes_q)[:, None])
+
+
 def _torque_free(bodies, t):
     """omega, the orientation (or None) and the phases of torque-free bodies (per body ``inertia``,
     ``omega0`` and ``q0``, principal moments ``(n, 3)`` or tensors ``(n, 3, 3)``) at ``t``. A tensor's
-    body turns as the body of its principal moments does, seen in the principal axes: omega0 and q0
-    are expressed in those axes, the closed form evaluated, and its omega and q turned back. (The
-    moments and axes of a tensor come from its eigendecomposition; ``simulate`` refuses a derivative
-    with respect to the tensor here, which the axes do not carry where moments coincide.)"""
+    closed form runs in its principal axes (its eigendecomposition; ``simulate`` refuses a derivative
+    with respect to the tensor here, which the axes do not carry where moments coincide)."""
     inertia, omega0, q0 = bodies["inertia"], bodies["omega0"], bodies.get("q0")
     if inertia.ndim == 3:
-        inertia, axes = _symmetric_eigh(inertia)  # axes: principal -> body frame
-        omega0 = jnp.einsum("nji,nj->ni", axes, omega0)
-        axes_q = _quat_from_matrix(axes)
-        q0 = None if q0 is None else _quat_multiply(q0, axes_q)
+        inertia, axes = _symmetric_eigh(inertia)
+        omega0, q0, axes_q = _into_axes(axes, omega0, q0)
     if q0 is None:
         (omega, phase), q = (
             _torque_free_omega(inertia[:, None], omega0[:, None], t, checked=False, phases=True),
@@ -232,8 +245,47 @@ def _torque_free(bodies, t):
             inertia[:, None], omega0[:, None], q0[:, None], t, checked=False, phases=True
         )
     if bodies["inertia"].ndim == 3:
-        omega = jnp.einsum("nij,nsj->nsi", axes, omega)
-        q = None if q is None else _quat_multiply(q, _quat_conjugate(axes_q)[:, None])
+        omega, q = _out_of_axes(axes, axes_q, omega, q)
+    return omega, q, phase
+
+
+def _lagrange_axes(tensor, com):
+    """The axes (``(..., 3, 3)``, columns, right-handed) in which a top given by its ``tensor`` about
+    the pivot is Lagrange's, with its symmetry axis third: the line through the centre of mass
+    (completed by the body axis least aligned with it), or where ``com = 0`` the principal axes with
+    the moment that differs from the other two third."""
+    length = jnp.sqrt(jnp.sum(com * com, axis=-1, keepdims=True))
+    along = length > 0
+    z = com / jnp.where(along, length, 1.0)
+    helper = jax.nn.one_hot(jnp.argmin(jnp.abs(z), axis=-1), 3, dtype=com.dtype)
+    x = helper - jnp.sum(helper * z, axis=-1, keepdims=True) * z
+    x = x / jnp.sqrt(jnp.sum(x * x, axis=-1, keepdims=True))
+    from_com = jnp.stack([x, jnp.cross(z, x), z], axis=-1)
+    moments, principal = _symmetric_eigh(tensor)
+    odd_first = moments[..., 1] - moments[..., 0] > moments[..., 2] - moments[..., 1]
+    from_moments = jnp.where(odd_first[..., None, None], principal[..., :, (1, 2, 0)], principal)
+    return jnp.where(along[..., None], from_com, from_moments)
+
+
+def _in_lagrange_axes(tensor, com):
+    """``(axes, tensor, com)``: :func:`_lagrange_axes` and the tensor and com seen in them."""
+    axes = _lagrange_axes(tensor, com)
+    turned = jnp.einsum("...ji,...jk,...kl->...il", axes, tensor, axes)
+    return axes, turned, jnp.einsum("...ji,...j->...i", axes, com)
+
+
+def _lagrange_top(bodies, t, tensor: bool):
+    """omega, q and the phases of Lagrange's tops (per body inputs of :data:`_TOP_INPUTS`) at ``t``;
+    a top given by its tensor about the pivot in :func:`_lagrange_axes` (``simulate`` refuses a
+    derivative with respect to that tensor or com, which turn the axes)."""
+    top = dict(bodies)
+    if tensor:
+        axes, turned, top["com"] = _in_lagrange_axes(bodies["inertia"], bodies["com"])
+        top["inertia"] = jnp.diagonal(turned, axis1=-2, axis2=-1)
+        top["omega0"], top["q0"], axes_q = _into_axes(axes, bodies["omega0"], bodies["q0"])
+    omega, q, phase = lagrange_top_motion(*(top[name][:, None] for name in _TOP_INPUTS), t, phases=True)
+    if tensor:
+        omega, q = _out_of_axes(axes, axes_q, omega, q)
     return omega, q, phase
 
 
@@ -267,24 +319,47 @@ def _lagrange_tolerance(dtype) -> float:
     return 100 * float(jnp.finfo(dtype).eps)
 
 
-def _lagrange_failures(inertia, com):
-    """The conditions of Lagrange's top that ``inertia`` and ``com`` violate (elementwise masks).
+def _lagrange_deviations(inertia, com, tensor: bool = False):
+    """How far ``inertia`` and ``com`` are from Lagrange's top, relative (elementwise): the transverse
+    moments' difference ``|I1 - I2| / max(I1, I2)`` and com's distance from the axis
+    ``|(com_x, com_y)| / |com|``. A ``tensor`` (about the pivot) is seen in :func:`_lagrange_axes`:
+    its first measure also counts the products of inertia there, and com lies on the axis."""
+    if tensor:
+        _, turned, com = _in_lagrange_axes(inertia, com)
+        inertia = jnp.diagonal(turned, axis1=-2, axis2=-1)
+        products = jnp.stack([turned[..., 0, 1], turned[..., 0, 2], turned[..., 1, 2]], axis=-1)
+        products = jnp.max(jnp.abs(products), axis=-1)
+    transverse = jnp.maximum(jnp.abs(inertia[..., 0]), jnp.abs(inertia[..., 1]))
+    asymmetry = jnp.abs(inertia[..., 0] - inertia[..., 1])
+    if tensor:
+        asymmetry = jnp.maximum(asymmetry, products)
+    length = jnp.linalg.norm(com, axis=-1)
+    off_axis = jnp.hypot(com[..., 0], com[..., 1])
+    transverse, length = (jnp.where(x > 0, x, jnp.ones_like(x)) for x in (transverse, length))
+    return asymmetry / transverse, off_axis / length
 
-    ``|I1 - I2| <= 100 eps max(I1, I2)`` and ``|(com_x, com_y)| <= 100 eps |com|``: roundoff in moments
-    or positions computed by the user passes, a physical asymmetry does not.
-    """
+
+_DEVIATIONS = {False: _lagrange_deviations, True: functools.partial(_lagrange_deviations, tensor=True)}
+
+
+def _lagrange_failures(inertia, com, tensor: bool = False):
+    """The conditions of Lagrange's top that ``inertia`` and ``com`` violate (elementwise masks):
+    each deviation of :func:`_lagrange_deviations` at most ``100 eps``, so that roundoff in moments or
+    positions computed by the user passes and a physical asymmetry does not."""
     tol = _lagrange_tolerance(inertia.dtype)
-    asymmetric = jnp.abs(inertia[..., 0] - inertia[..., 1]) > tol * jnp.maximum(
-        jnp.abs(inertia[..., 0]), jnp.abs(inertia[..., 1])
-    )
-    off_axis = jnp.hypot(com[..., 0], com[..., 1]) > tol * jnp.linalg.norm(com, axis=-1)
-    return asymmetric, off_axis
+    return tuple(deviation > tol for deviation in _lagrange_deviations(inertia, com, tensor))
 
 
 _ASYMMETRIC = (
     "accuracy='exact' for a HeavyTop is Lagrange's top: it needs equal transverse moments I1 = I2 "
     "(inertia about the pivot, (I1, I1, I3) with body z the symmetry axis){}. Use "
     "accuracy='precise' (or 'balanced') to integrate an asymmetric top."
+)
+_ASYMMETRIC_TENSOR = (
+    "accuracy='exact' for a HeavyTop is Lagrange's top: given as a tensor about the pivot, it needs "
+    "the tensor symmetric about the line from the pivot through the centre of mass (equal moments "
+    "about every axis across it, no products of inertia with it){}. Use accuracy='precise' (or "
+    "'balanced') to integrate an asymmetric top."
 )
 _OFF_AXIS = (
     "accuracy='exact' for a HeavyTop is Lagrange's top: it needs the centre of mass on the body z "
@@ -293,11 +368,11 @@ _OFF_AXIS = (
 )
 
 
-def _lagrange_checked(inertia, com):
+def _lagrange_checked(inertia, com, tensor: bool):
     """``inertia`` and ``com`` with the conditions of Lagrange's top checked at run time (values traced
     under jit or vmap; known ones are checked earlier, in :func:`_check_lagrange_top`)."""
-    asymmetric, off_axis = _lagrange_failures(inertia, com)
-    inertia = error_if(inertia, asymmetric, _ASYMMETRIC.format(""))
+    asymmetric, off_axis = _lagrange_failures(inertia, com, tensor)
+    inertia = error_if(inertia, asymmetric, (_ASYMMETRIC_TENSOR if tensor else _ASYMMETRIC).format(""))
     com = error_if(com, off_axis, _OFF_AXIS.format(""))
     return inertia, com
 
@@ -309,11 +384,13 @@ def _check_lagrange_top(model, state0):
             "accuracy='exact' for a HeavyTop is Lagrange's top under gravity alone; it has no closed "
             "form with extra torques. Use accuracy='precise' (or 'balanced')."
         )
-    if model.inertia_core_ndim == 2:
+    tensor = model.inertia_core_ndim == 2
+    if tensor and (is_differentiated(model.inertia) or is_differentiated(model.com)):
         raise ValueError(
-            "accuracy='exact' for a HeavyTop needs principal moments (..., 3) about the pivot, with "
-            "body z the symmetry axis; diagonalise the tensor with rigidjax.principal_axes and express "
-            "com and omega in those axes first."
+            "accuracy='exact' for a HeavyTop given as an inertia tensor evaluates the closed form in "
+            "the axes of its symmetry, which turn with the tensor and com: it has no derivative with "
+            "respect to them. Differentiate with accuracy='precise' (or 'balanced'), or pass principal "
+            "moments (I1, I1, I3) about the pivot with com = (0, 0, l) and differentiate those."
         )
     if state0.orientation is None:
         raise ValueError(
@@ -326,13 +403,21 @@ def _check_lagrange_top(model, state0):
     inertia, com = (np.asarray(x, np.float64) for x in values)
     dtype = float_dtype(model.inertia, model.com)
     # One program (operation by operation: nine for each new batch shape).
-    failures = evaluated_now(
-        lambda: compiled_once(_lagrange_failures)(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
+    deviations = evaluated_now(
+        lambda: compiled_once(_DEVIATIONS[tensor])(jnp.asarray(inertia, dtype), jnp.asarray(com, dtype))
     )
-    asymmetric, off_axis = (np.asarray(x) for x in failures)
     # The tolerance and the relative deviation are printed too: I1 and I2 that differ by 1e-13 read
     # the same at a few significant digits.
     tol = _lagrange_tolerance(dtype)
+    asymmetric, off_axis = (np.asarray(x) > tol for x in deviations)
+    if tensor and np.any(asymmetric):
+        relative = float(np.max(np.asarray(deviations[0])))
+        raise ValueError(
+            _ASYMMETRIC_TENSOR.format(
+                f"; got a tensor that departs from that symmetry by {relative:.2g} of its transverse "
+                f"moment, more than the roundoff of {tol:.2g} ({dtype}) that passes"
+            )
+        )
     if np.any(asymmetric):
         bad = np.broadcast_to(inertia, asymmetric.shape + (3,))[asymmetric][0]
         relative = abs(bad[0] - bad[1]) / max(abs(bad[0]), abs(bad[1]))
