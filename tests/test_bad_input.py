@@ -1781,6 +1781,16 @@ def test_a_span_of_ten_million_turns_is_the_most_the_default_step_limit_takes():
         default_max_steps(omega0, np.array([0.0, 1.001 * most]))
 
 
+def test_an_angular_velocity_whose_square_overflows_is_named_by_its_turns():
+    """|omega0| = 1.7e200 rad/s: NumPy's norm of it overflowed (a RuntimeWarning), the span check saw
+    an infinite speed and passed, and the integration failed at its first step."""
+    state = rj.State(jnp.full(3, 1e200), jnp.array([1.0, 0.0, 0.0, 0.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"ts spans 2.76e\+199 turns .*\|omega0\| = 1.73e\+200 rad/s"):
+            rj.simulate(rj.FreeBody(I3), state, jnp.linspace(0.0, 1.0, 5))
+
+
 def test_the_default_step_limit_covers_a_step_per_sample_time():
     """ "precise" ends a step on every sample time: a slow body (0.37 rad/s) sampled 150,001 times
     over 10 s needs 150,000 steps, and stopped at the limit of 10^5 (checked without running; the

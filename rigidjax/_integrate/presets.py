@@ -150,7 +150,13 @@ _span_on_devices = jax.jit(lambda t: t[-1] - t[0])
 def _largest_norm(omega0) -> float:
     if _spread_over_processes(omega0):  # reduced on the devices: every process gets the same value
         return float(_largest_norm_on_devices(omega0))
-    return float(np.max(np.linalg.norm(np.asarray(omega0, np.float64), axis=-1)))
+    omega0 = np.asarray(omega0, np.float64)
+    # Scaled by the largest component first: the square of one above ~1e154 overflows (a
+    # RuntimeWarning from NumPy, and an infinite speed where the span check should name it).
+    largest = np.max(np.abs(omega0))
+    if not np.isfinite(largest) or largest == 0:
+        return float(largest)
+    return float(largest * np.max(np.linalg.norm(omega0 / largest, axis=-1)))
 
 
 def _span(ts) -> float:
