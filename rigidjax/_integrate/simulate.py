@@ -146,7 +146,9 @@ def simulate(
       :class:`HeavyTop` with principal moments ``I1 = I2`` about the pivot, the centre of mass on
       the body z axis (above or below the pivot) and no extra torques, the nutation by Jacobi
       functions and the precession and spin by third-kind integrals, including tops that pass
-      through the vertical; any other HeavyTop is a ``ValueError`` naming the condition it fails.
+      through the vertical; a top given by its tensor about the pivot, symmetric about the line
+      through the centre of mass, runs in the axes of that symmetry (no derivative with respect to
+      the tensor or com); any other HeavyTop is a ``ValueError`` naming the condition it fails.
       Accurate to roundoff at any time (up to the conditioning of the motion); the cost does not
       grow with the duration.
       Differentiable in both modes: with an orientation the derivative is every sample's Jacobian
