@@ -37,9 +37,9 @@ def use_compilation_cache(path: str | os.PathLike | None = None) -> str | None:
 
     Measured by ``benchmarks/first_calls.py`` (2-core CPU, float64, a new process each time), the
     first call without the cache against one with a cache an earlier process filled:
-    :func:`rigidjax.torque_free_motion` of 5 bodies 3.5 -> 1.0 s; :func:`rigidjax.simulate` of
-    1000 heavy tops at 200 sample times, ``"balanced"`` 3.2 -> 1.4 s, ``"exact"`` 6.3 -> 1.5 s;
-    :func:`rigidjax.fit_inertia` of 240 samples 7.6 -> 1.9 s. What remains is tracing the
+    :func:`rigidjax.torque_free_motion` of 5 bodies 2.3 -> 0.6 s; :func:`rigidjax.simulate` of
+    1000 heavy tops at 200 sample times, ``"balanced"`` 3.0 -> 1.0 s, ``"exact"`` 5.8 -> 1.2 s;
+    :func:`rigidjax.fit_inertia` of 240 samples 5.6 -> 1.4 s. What remains is tracing the
     functions, loading the programs and the run itself.
 
     **Arguments:**

@@ -15,6 +15,8 @@ import griffe
 
 NAMESPACES = ("rigidjax", "rigidjax.kinematics", "rigidjax.elliptic", "rigidjax.solvers")
 ROLE = re.compile(r":(?:py:)?(?:class|func|meth|attr|data|mod|obj|exc|const):`~?([^`]+)`")
+# Public methods the API reference leaves out (mkdocs.yml's filters): simulate's per-body machinery.
+HIDDEN = {"body_leaves", "leaf_rules", "replace_body_leaves"}
 LITERAL = re.compile(r"(\S)::[ \t]*$", re.MULTILINE)
 LONE_LITERAL = re.compile(r"^[ \t]*::[ \t]*$", re.MULTILINE)
 
@@ -31,7 +33,7 @@ def documented() -> set[str]:
             obj = getattr(module, export)
             if inspect.isclass(obj):
                 for member, value in vars(obj).items():
-                    if member.startswith("_"):
+                    if member.startswith("_") or member in HIDDEN:
                         continue
                     value = getattr(value, "__func__", value)
                     if inspect.getdoc(value) and (callable(value) or isinstance(value, property)):
@@ -60,6 +62,16 @@ class RstRoles(griffe.Extension):
         text = LONE_LITERAL.sub("", text)
         return LITERAL.sub(r"\1:", text)
 
+    @staticmethod
+    def _filled(obj) -> str:
+        """The docstring with the ``{common}`` placeholder that the fits fill in at import (their
+        shared arguments) filled in as Python sees it: the source's text is read statically."""
+        text = obj.docstring.value
+        if "{common}" not in text or obj.kind is not griffe.Kind.FUNCTION:
+            return text
+        module = importlib.import_module(obj.module.path)
+        return inspect.getdoc(getattr(module, obj.name)) or text
+
     def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
         if pkg.name != "rigidjax":
             return
@@ -70,5 +82,5 @@ class RstRoles(griffe.Extension):
                 continue
             seen.add(id(obj))
             if obj.docstring is not None:
-                obj.docstring.value = self._convert(obj.docstring.value)
+                obj.docstring.value = self._convert(self._filled(obj))
             stack.extend(obj.members.values())

@@ -30,11 +30,6 @@ from .equations import is_full_tensor
 from .inertia import check_inertia
 from .torques import POSITIVE_MASS
 
-# Default relative tolerance on ``I1 = I2`` and on the centre of mass lying on the symmetry axis in
-# :func:`sleeping_top`: well above the roundoff of moments from ``principal_axes`` (a few eps times
-# the largest moment, float32 included), tight enough to reject a visibly asymmetric top.
-_SYMMETRY_RTOL = 1e-4
-
 
 def _is_plain_number(a) -> bool:
     """A Python ``int``/``float``, or what ``jit`` makes of one (a weakly typed scalar tracer)."""
@@ -179,8 +174,8 @@ class SleepingTop(eqx.Module):
       top falls; 0 when ``l <= 0`` (centre of mass at or below the pivot: stable at any spin).
     - `stable`: ``margin > 0`` (at ``margin == 0`` the two modes merge and the tilt grows linearly).
     - `slow_rate`, `fast_rate`: the two roots ``lambda`` of ``I1 lambda^2 - I3 w3 lambda + m g l
-      = 0`` (rad/s): the tilt of the symmetry axis, as the complex number ``X + iY`` of its space
-      -frame direction, is a sum of two circular modes ``exp(i lambda t)``: the slow precession
+      = 0`` (rad/s): the tilt of the symmetry axis, as the complex number ``X + iY`` of its
+      space-frame direction, is a sum of two circular modes ``exp(i lambda t)``: the slow precession
       (``~ m g l / (I3 w3)`` for a fast top) and the fast nutation (``~ I3 w3 / I1``); positive in
       the sense of the spin. ``fast_rate`` is the root of larger magnitude. Below ``w_crit`` the
       roots are complex conjugates: both fields are then their common real part ``I3 w3 / (2 I1)``,
@@ -207,7 +202,7 @@ def sleeping_top(
     omega3: Scalar,
     gravity: Scalar = 9.81,
     *,
-    symmetry_rtol: float = _SYMMETRY_RTOL,
+    symmetry_rtol: float = 1e-4,
 ) -> SleepingTop:
     """Stability of a heavy symmetric top spinning upright about its vertical symmetry axis.
 
@@ -237,7 +232,9 @@ def sleeping_top(
     - `omega3`: spin about the symmetry axis (rad/s), shape ``(...)``; its sign sets the sense of
       the precession rates.
     - `gravity`: ``g`` (m/s^2), shape ``(...)``.
-    - `symmetry_rtol`: relative tolerance of the symmetry checks above.
+    - `symmetry_rtol`: relative tolerance of the symmetry checks above (default 1e-4: well above the
+      roundoff of moments from ``principal_axes``, float32 included, and tight enough to reject a
+      visibly asymmetric top).
 
     **Returns:** a :class:`SleepingTop` with ``margin``, ``critical_spin``, ``stable``,
     ``slow_rate``, ``fast_rate`` and ``growth_rate``, each ``(...)`` (the broadcast batch shape).

@@ -49,7 +49,7 @@ def use_cpu_cores(count: int | None = None) -> int:
     devices at its first computation. Afterwards it only confirms a count already in place.
 
     On one device ``simulate`` already runs its chunks from one Python thread per core, outside
-    ``jax.jit`` (``benchmarks/threaded_calls.py``: 1.5-1.65x on 2 cores); several devices spread the
+    ``jax.jit`` (``benchmarks/threaded_calls.py``: 1.65-1.77x on 2 cores); several devices spread the
     chunks in one compiled program, so also inside the user's ``jax.jit``. Measured with
     ``benchmarks/work_precision.py`` (10^4 tennis-racket bodies, "balanced", float64, 2-core CPU),
     before the threads: 2 devices ran 1.3-1.8x faster than one when the second core was free.

@@ -3,8 +3,8 @@
 Chosen by measurement (``benchmarks/batch_strategies.py``, 10^4 tennis-racket bodies, shared step,
 max norm): Dopri8 is faster at every error below ~1e-5; at rtol 1e-8 it needs 128 shared steps where
 Tsit5 needs 527. Large batches run it with its stages written out
-(:class:`.solvers.unrolled.UnrolledDopri8`, the same values at about 0.6 of the cost per step; see
-:func:`preset_solver`).
+(:class:`.solvers.unrolled.UnrolledDopri8`, the same values at about a third of the cost per step;
+see :func:`preset_solver`).
 """
 
 from types import MappingProxyType
@@ -37,8 +37,9 @@ Dopri8 (see :func:`preset_solver`)."""
 
 
 def preset_solver(accuracy: str, differentiated: bool, n_bodies: int) -> diffrax.AbstractSolver:
-    """The preset's solver. :class:`UnrolledDopri8` costs about 0.6 of diffrax's Dopri8 per body and
-    step but takes longer to compile (a free body with 11 samples: a first call 3.7-3.9 s against
+    """The preset's solver. :class:`UnrolledDopri8` costs about a third of diffrax's Dopri8 per body
+    and step (``benchmarks/results/step_cost.md``: 229 against 661 ns in ``simulate``) but takes
+    longer to compile (a free body with 11 samples: a first call 3.7-3.9 s against
     2.5-2.6 s, a first ``jax.grad`` 19-20 s against 7-8 s), so it runs where the steps outweigh the
     compile: batches of at least ``UNROLLED_MIN_BODIES`` bodies, not differentiated. Elsewhere
     diffrax's Dopri8 runs; the two agree to rounding."""
@@ -100,7 +101,7 @@ def default_chunk_size(n_samples: int = 2, itemsize: int = 8) -> int:
     """Bodies per shared-step chunk when the caller names none.
 
     On CPU 256, where a chunk's stages stay in the core's cache (``benchmarks/step_cost.py``, 10^4
-    tennis-racket bodies, "balanced": 134 ns per body and step in chunks of 256 against 195 in
+    tennis-racket bodies, "balanced": 229 ns per body and step in chunks of 256 against 318 in
     chunks of 1024).
 
     On an accelerator, ``BODIES_PER_ACCELERATOR_CORE`` per core (streaming multiprocessor), about

@@ -154,7 +154,7 @@ def simulate(
       Differentiable in both modes: with an orientation the derivative is every sample's Jacobian
       (forward mode, contracted with the tangents), so that a reverse-mode gradient costs about
       one JVP and keeps 7 numbers per body, sample time and differentiated input component (42
-      for the inertia and omega0; docs: Gradients).
+      for the inertia and omega0; the Gradients guide has the measurements).
       ``rigidjax.solvers.PRESETS`` lists the presets.
     - `solver`: any diffrax solver instead of the preset's; or a structure-preserving solver from
       ``rigidjax.solvers`` (:class:`RKMK`, :class:`LiePoissonSplitting`,
