@@ -17,11 +17,14 @@ also under ``jit`` and ``vmap``): NaN or inf raises in every function here excep
 raise in the shape helpers, :func:`parallel_axis` and :func:`composite_inertia` (whose total mass
 must be positive, and whose ``rotations`` must be rotation matrices); :func:`check_inertia` raises
 for a non-physical inertia. The shape helpers accept zero sizes (a thin rod has ``Iz = 0``): such
-moments are valid parts of a composite, and :func:`check_inertia` rejects them for a whole body.
+moments are valid parts of a composite, and :func:`check_inertia` rejects them for a whole body. They
+raise where a moment overflows the dtype, or underflows it (zero or subnormal from a positive mass
+and size): other units, or float64, keep the moments in range.
 """
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._checks import (  # noqa: F401 (re-exported)
@@ -152,6 +155,42 @@ def _moments(mass, *factors):
     return mass[..., None] * jnp.stack(jnp.broadcast_arrays(*factors), axis=-1)
 
 
+def _shape(where: str, formula, **values):
+    """``formula(mass, *sizes)``, the principal moments of a shape, after the checks of
+    :func:`_nonnegative`, with a run-time check that they are within the dtype's range.
+
+    A moment is out of range if it is not finite (it, or a squared length, overflowed), or if it is
+    zero or subnormal (below ``finfo.tiny``) while ``formula`` of the inputs' signs (0 or 1) is not
+    zero: a positive mass and size gave no moment (an underflow). Moments that are zero by the
+    formula (a thin rod about its axis, a zero mass or size) pass."""
+    mass, *sizes = _nonnegative(where, **values)
+    moments = formula(mass, *sizes)
+    # A NaN, inf or negative input is named by its own check, which comes first. (On CPU a subnormal
+    # input reads as 0, here and in the formula alike: its moments are zero as for a zero input, and
+    # check_inertia names them for a whole body.)
+    expected = formula(*[(a != 0).astype(moments.dtype) for a in (mass, *sizes)]) != 0
+    name, finfo = np.dtype(moments.dtype).name, np.finfo(moments.dtype)
+    hint = "." if name == "float64" else ", or compute in float64."
+    # The checks ride on the mass, and the moments are computed again from it: the program that
+    # returns them, and its derivatives, are those without the checks (checked moments changed the
+    # compiler's fusion of a derivative, and its last bit).
+    mass = error_if(
+        mass,
+        ~jnp.isfinite(moments),
+        f"{where}: the moments of inertia overflow {name}: they, or the squared lengths they are "
+        f"computed from, exceed its largest number ({finfo.max:.4g}). Give the mass and lengths in "
+        f"larger units (e.g. tonnes and km){hint}",
+    )
+    mass = error_if(
+        mass,
+        expected & (jnp.abs(moments) < finfo.tiny),
+        f"{where}: the moments of inertia underflow {name}: a positive mass and size give a moment, "
+        f"or a squared length, below its smallest normal number ({finfo.tiny:.4g}), which is "
+        f"subnormal or flushed to 0. Give the mass and lengths in smaller units (e.g. g and mm){hint}",
+    )
+    return formula(mass, *sizes)
+
+
 @compiled_when_eager
 def solid_box(mass: Scalar, size: Vector) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a uniform solid box (cuboid) about its centre.
@@ -161,7 +200,10 @@ def solid_box(mass: Scalar, size: Vector) -> VectorOut:
     """
     mass, size = common_float(mass, size, names=["mass", "size"])
     check_last_axis(size, 3, "size")
-    mass, size = _nonnegative("solid_box", mass=mass, size=size)
+    return _shape("solid_box", _box, mass=mass, size=size)
+
+
+def _box(mass, size):
     s2 = size * size
     a2, b2, c2 = s2[..., 0], s2[..., 1], s2[..., 2]
     return _moments(mass, (b2 + c2) / 12.0, (c2 + a2) / 12.0, (a2 + b2) / 12.0)
@@ -174,7 +216,10 @@ def solid_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     The symmetry axis is z; `radius` and `height` (full length along z) in m, `mass` in kg.
     ``Ix = Iy = m (3 r^2 + h^2) / 12``, ``Iz = m r^2 / 2``.
     """
-    mass, radius, height = _nonnegative("solid_cylinder", mass=mass, radius=radius, height=height)
+    return _shape("solid_cylinder", _cylinder, mass=mass, radius=radius, height=height)
+
+
+def _cylinder(mass, radius, height):
     r2, h2 = radius * radius, height * height
     transverse = (3.0 * r2 + h2) / 12.0
     return _moments(mass, transverse, transverse, r2 / 2.0)
@@ -187,7 +232,10 @@ def hollow_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
     All the mass is on the curved wall at `radius` (no end caps); the axis is z and `height` is the
     full length along it (m). ``Ix = Iy = m (6 r^2 + h^2) / 12``, ``Iz = m r^2``.
     """
-    mass, radius, height = _nonnegative("hollow_cylinder", mass=mass, radius=radius, height=height)
+    return _shape("hollow_cylinder", _tube, mass=mass, radius=radius, height=height)
+
+
+def _tube(mass, radius, height):
     r2, h2 = radius * radius, height * height
     transverse = (6.0 * r2 + h2) / 12.0
     return _moments(mass, transverse, transverse, r2)
@@ -196,7 +244,10 @@ def hollow_cylinder(mass: Scalar, radius: Scalar, height: Scalar) -> VectorOut:
 @compiled_when_eager
 def solid_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a uniform solid ball: ``2 m r^2 / 5`` each."""
-    mass, radius = _nonnegative("solid_sphere", mass=mass, radius=radius)
+    return _shape("solid_sphere", _ball, mass=mass, radius=radius)
+
+
+def _ball(mass, radius):
     i = 0.4 * radius * radius
     return _moments(mass, i, i, i)
 
@@ -204,7 +255,10 @@ def solid_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
 @compiled_when_eager
 def hollow_sphere(mass: Scalar, radius: Scalar) -> VectorOut:
     """Principal moments ``(..., 3)`` (kg m^2) of a thin spherical shell: ``2 m r^2 / 3`` each."""
-    mass, radius = _nonnegative("hollow_sphere", mass=mass, radius=radius)
+    return _shape("hollow_sphere", _shell, mass=mass, radius=radius)
+
+
+def _shell(mass, radius):
     i = (2.0 / 3.0) * radius * radius
     return _moments(mass, i, i, i)
 
@@ -218,7 +272,10 @@ def solid_ellipsoid(mass: Scalar, semi_axes: Vector) -> VectorOut:
     """
     mass, semi_axes = common_float(mass, semi_axes, names=["mass", "semi_axes"])
     check_last_axis(semi_axes, 3, "semi_axes")
-    mass, semi_axes = _nonnegative("solid_ellipsoid", mass=mass, semi_axes=semi_axes)
+    return _shape("solid_ellipsoid", _ellipsoid, mass=mass, semi_axes=semi_axes)
+
+
+def _ellipsoid(mass, semi_axes):
     s2 = semi_axes * semi_axes
     a2, b2, c2 = s2[..., 0], s2[..., 1], s2[..., 2]
     return _moments(mass, (b2 + c2) / 5.0, (c2 + a2) / 5.0, (a2 + b2) / 5.0)
@@ -232,7 +289,10 @@ def thin_rod(mass: Scalar, length: Scalar) -> VectorOut:
     only valid as a part of a composite body (:func:`composite_inertia`), not on its own; use
     :func:`solid_cylinder` for a rod of finite radius.
     """
-    mass, length = _nonnegative("thin_rod", mass=mass, length=length)
+    return _shape("thin_rod", _rod, mass=mass, length=length)
+
+
+def _rod(mass, length):
     transverse = length * length / 12.0
     return _moments(mass, transverse, transverse, jnp.zeros_like(transverse))
 
@@ -244,7 +304,10 @@ def thin_disc(mass: Scalar, radius: Scalar) -> VectorOut:
     ``Ix = Iy = m r^2 / 4``, ``Iz = m r^2 / 2 = Ix + Iy`` (exactly): the flat-plate limit of the
     triangle inequality, which :func:`check_inertia` accepts.
     """
-    mass, radius = _nonnegative("thin_disc", mass=mass, radius=radius)
+    return _shape("thin_disc", _disc, mass=mass, radius=radius)
+
+
+def _disc(mass, radius):
     quarter = radius * radius / 4.0
     return _moments(mass, quarter, quarter, 2.0 * quarter)
 

@@ -113,11 +113,18 @@ def check_inertia(inertia: Inertia, *, name: str = "inertia", tensor: bool | Non
     # Principal moments of shape (..., 3, 3): an axis before them keeps them from reading as tensors.
     code = _inertia_failure(inertia if tensor == shape_says else inertia[..., None, :])
     what = "tensor" if tensor else "principal moments"
+    dtype = jnp.dtype(inertia.dtype)
+    # XLA on CPU reads a subnormal as 0 in arithmetic and comparisons: such a moment fails as zero.
+    subnormal = (
+        f" A positive moment below {jnp.finfo(dtype).tiny:.3g} kg m^2 ({dtype.name}'s smallest normal "
+        "number) reads as 0 on CPU: give such a body's inertia in smaller units"
+        + ("." if dtype == jnp.float64 else ", or use float64.")
+    )
     problems = [
         "",
         _triangle_message(name),
         f"{name} has a non-positive principal moment: every moment of inertia of a rigid body must "
-        "be > 0 kg m^2.",
+        "be > 0 kg m^2." + subnormal,
         _asymmetric_message(name),
     ]
     msgs = [
