@@ -764,7 +764,7 @@ _ONCE_SILENT = {
         for c in _ONCE_SILENT
     ],
 )
-def test_once_silent_bad_values_now_raise(case):
+def test_values_without_a_meaningful_result_raise(case):
     """Each case returned NaN or meaningless output silently when this suite was written; the
     check named in the reason is now in place."""
     _raises_or_nan(_ONCE_SILENT[case][0])
