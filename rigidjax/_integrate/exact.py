@@ -35,6 +35,7 @@ from .._dynamics.gyrostat import Gyrostat
 from .._dynamics.inertia import _symmetric_eigh
 from .._dynamics.models import FreeBody, HeavyTop, keep_inertia_ndim
 from .._kinematics.quaternion import _quat_conjugate, _quat_from_matrix, _quat_multiply
+from .._numerics import short_norm
 from . import batching
 from .driver import is_differentiated
 from .inputs import check_model, check_state, checked_inputs
@@ -254,12 +255,12 @@ def _lagrange_axes(tensor, com):
     the pivot is Lagrange's, with its symmetry axis third: the line through the centre of mass
     (completed by the body axis least aligned with it), or where ``com = 0`` the principal axes with
     the moment that differs from the other two third."""
-    length = jnp.sqrt(jnp.sum(com * com, axis=-1, keepdims=True))
+    length = short_norm(com, keepdims=True)
     along = length > 0
     z = com / jnp.where(along, length, 1.0)
     helper = jax.nn.one_hot(jnp.argmin(jnp.abs(z), axis=-1), 3, dtype=com.dtype)
     x = helper - jnp.sum(helper * z, axis=-1, keepdims=True) * z
-    x = x / jnp.sqrt(jnp.sum(x * x, axis=-1, keepdims=True))
+    x = x / short_norm(x, keepdims=True)
     from_com = jnp.stack([x, jnp.cross(z, x), z], axis=-1)
     moments, principal = _symmetric_eigh(tensor)
     odd_first = moments[..., 1] - moments[..., 0] > moments[..., 2] - moments[..., 1]
