@@ -50,6 +50,13 @@ class Trajectory(eqx.Module):
     ``simulate(..., error_estimate=True)`` also ``error_estimate_omega`` and
     ``error_estimate_orientation`` (:meth:`error_estimate`).
 
+    ``traj[i]`` is body ``i``'s trajectory, with its own scene, success and per-body stats;
+    ``traj[:100]``, ``traj[traj.success]``, ``traj[[0, 5]]`` and ``traj[2, 1]`` (a two-axis batch)
+    select several bodies as NumPy selects from an array of shape :attr:`batch_shape`, and
+    ``for body in traj`` runs over the first batch axis. An index beyond the batch raises
+    ``IndexError`` naming it; ``stats["num_steps"]`` and ``stats["chunk_size"]`` stay those of the
+    whole run.
+
     The quantities along the trajectory (:meth:`euler_angles`, the energies, the angular momenta,
     :meth:`invariants`) are each one compiled program per trajectory shape: in a new process
     ``invariants()`` of a batch of heavy tops takes ~0.2 s, where its ~40 operations one by one took
@@ -66,6 +73,66 @@ class Trajectory(eqx.Module):
     @property
     def batch_shape(self) -> tuple[int, ...]:
         return self.omega.shape[:-2]
+
+    def __getitem__(self, index) -> "Trajectory":
+        """The trajectories of the bodies that ``index`` selects, as a :class:`Trajectory`.
+
+        ``index`` indexes the batch axes only, as NumPy indexes an array of shape
+        :attr:`batch_shape`: ``traj[3]`` (one body, batch shape ``()``), ``traj[:100]``,
+        ``traj[traj.success]`` (a boolean mask), ``traj[[0, 5, 9]]``, ``traj[2, 1]`` for a
+        two-axis batch, ``traj[..., 0]``. The samples, the model's per-body fields (broadcast to the
+        batch first, so ``traj[i].model`` is body ``i``'s scene), ``success`` and the per-body
+        stats (``result``, ``first_failed_sample``, ``quaternion_norm_error`` and the error
+        estimates) are those bodies'; ``stats["num_steps"]`` and ``stats["chunk_size"]`` stay
+        those of the whole run. Times are not indexed here: take ``traj.ts[k]`` and
+        ``traj.omega[..., k, :]`` for samples.
+
+        Raises ``IndexError`` naming the index and the batch shape for an index beyond the
+        batch (also an integer array's entries, when their values are known: under ``jit``,
+        traced integer indices are clamped to the batch as ``jax.numpy`` clamps them) and
+        ``TypeError`` for an index that is not an integer, a slice, an integer or boolean array
+        or ``...`` (``None`` adds no body).
+        """
+        batch = self.batch_shape
+        index = _body_index(index, batch)
+        success = self.success[index]
+
+        def per_body(x, leading=batch):
+            return jnp.broadcast_to(x, batch + x.shape[len(leading) :])[index]
+
+        ts = self.ts
+        if ts.ndim > 1:  # one time axis per body, from a jax.vmap of simulate over ts
+            lead = ts.shape[:-1]
+            ts = per_body(jnp.reshape(ts, lead + (1,) * (len(batch) - len(lead)) + ts.shape[-1:]))
+        leaves = self.model.body_leaves()
+        values = []
+        for leaf in leaves:
+            value = jnp.asarray(leaf.get(self.model))
+            values.append(
+                value if value.ndim == leaf.core else per_body(value, value.shape[: -leaf.core or None])
+            )
+        stats = {
+            name: per_body(x) if name in _PER_BODY_STATS and x is not None else x
+            for name, x in self.stats.items()
+        }
+        return Trajectory(
+            ts=ts,
+            omega=self.omega[index],
+            orientation=None if self.orientation is None else self.orientation[index],
+            model=self.model.replace_body_leaves(leaves, values),
+            success=success,
+            stats=stats,
+        )
+
+    def __iter__(self):
+        """The trajectories of the bodies along the first batch axis, one :class:`Trajectory` each
+        (``traj[0]``, ``traj[1]``, ...). Raises ``TypeError`` for a single body (batch shape
+        ``()``)."""
+        if not self.batch_shape:
+            raise TypeError(
+                "Trajectory: a single body's trajectory (batch_shape ()) has no bodies to iterate over."
+            )
+        return (self[i] for i in range(self.batch_shape[0]))
 
     def save(self, path: str | os.PathLike) -> None:
         """Writes the trajectory to one ``.npz`` file that :meth:`Trajectory.load` reads back exactly.
@@ -253,6 +320,73 @@ class Trajectory(eqx.Module):
             # The solver's own record keeps the steps before the failure: a clean-looking value.
             out["quaternion_norm"] = jnp.where(self.success, q_norm, jnp.nan)
         return out
+
+
+_PER_BODY_STATS = frozenset(
+    {
+        "result",
+        "first_failed_sample",
+        "quaternion_norm_error",
+        "error_estimate_omega",
+        "error_estimate_orientation",
+    }
+)
+
+
+def _body_index(index, batch: tuple[int, ...]) -> tuple:
+    """``index`` as a tuple over the batch axes ``batch``, ``...`` spelled out and lists as arrays,
+    checked where its values are known: see :meth:`Trajectory.__getitem__`."""
+    shown = f"Trajectory[{index!r}]"
+    entries = []
+    for entry in index if isinstance(index, tuple) else (index,):
+        if isinstance(entry, list):
+            entry = np.asarray(entry)
+        if entry is Ellipsis or isinstance(entry, slice):
+            entries.append((entry, 1))
+        elif isinstance(entry, int | np.integer) and not isinstance(entry, bool | np.bool_):
+            entries.append((entry, 1))
+        elif isinstance(entry, jax.Array | np.ndarray) and np.dtype(entry.dtype) == np.bool_ and entry.ndim:
+            entries.append((entry, entry.ndim))
+        elif isinstance(entry, jax.Array | np.ndarray) and np.issubdtype(np.dtype(entry.dtype), np.integer):
+            entries.append((entry, 1))
+        else:
+            raise TypeError(
+                f"{shown}: {type(entry).__name__} {entry!r} is not an index of bodies; use an integer, a "
+                "slice, an integer or boolean array, or ...."
+            )
+    ellipses = [i for i, (entry, _) in enumerate(entries) if entry is Ellipsis]
+    if len(ellipses) > 1:
+        raise IndexError(f"{shown}: an index can hold only one ... (batch_shape {batch}).")
+    taken = sum(count for entry, count in entries if entry is not Ellipsis)
+    if taken > len(batch):
+        takes = f"{taken} axis" if taken == 1 else f"{taken} axes"
+        has = f"{len(batch)} batch axis" if len(batch) == 1 else f"{len(batch)} batch axes"
+        raise IndexError(
+            f"{shown}: the index takes {takes}, but the trajectory has {has} (batch_shape {batch}); it "
+            "selects bodies. For samples, index traj.ts and traj.omega[..., k, :]."
+        )
+    if ellipses:
+        at = ellipses[0]
+        entries[at : at + 1] = [(slice(None), 1)] * (len(batch) - taken)
+    axis = 0
+    for entry, count in entries:
+        sizes = batch[axis : axis + count]
+        known = None if isinstance(entry, slice | jax.core.Tracer) else np.asarray(entry)
+        if known is not None and known.dtype == np.bool_:
+            if known.shape != sizes:
+                raise IndexError(
+                    f"{shown}: a boolean mask of shape {known.shape} for batch axes of sizes {sizes} "
+                    f"(batch_shape {batch})."
+                )
+        elif known is not None:
+            beyond = known[(known >= sizes[0]) | (known < -sizes[0])]
+            if beyond.size:
+                raise IndexError(
+                    f"{shown}: index {beyond.ravel()[0]} is beyond batch axis {axis} of size {sizes[0]} "
+                    f"(batch_shape {batch})."
+                )
+        axis += count
+    return tuple(entry for entry, _ in entries)
 
 
 def _unwrapped_euler_angles(q, omega, ts, seq):
