@@ -262,8 +262,12 @@ def _check_inertia_init(inertia_init, full_tensor):
         raise ValueError(f"inertia_init must have shape {expected} ({form}), got shape {start.shape}.")
     code = int(_inertia_failure(start))
     if code != _OK:
+        problem = _INERTIA_PROBLEMS[code]
+        if code == _NOT_POSITIVE:
+            tiny = np.finfo(start.dtype).tiny
+            problem += f" (a moment below {start.dtype.name}'s smallest normal number, {tiny:.3g}, is 0)"
         raise ValueError(
-            f"inertia_init {_INERTIA_PROBLEMS[code]}: it is not the inertia of a rigid body; got "
+            f"inertia_init {problem}: it is not the inertia of a rigid body; got "
             f"{start.tolist()}. Any positive scale will do (only ratios matter)."
         )
     return start
