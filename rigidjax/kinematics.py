@@ -21,12 +21,15 @@ from ._kinematics.euler import matrix_from_euler as matrix_from_euler
 from ._kinematics.euler import quat_from_euler as quat_from_euler
 from ._kinematics.euler import space_angular_velocity as space_angular_velocity
 from ._kinematics.quaternion import matrix_from_quat as matrix_from_quat
+from ._kinematics.quaternion import quat_angle_between as quat_angle_between
 from ._kinematics.quaternion import quat_conjugate as quat_conjugate
 from ._kinematics.quaternion import quat_exp as quat_exp
 from ._kinematics.quaternion import quat_from_matrix as quat_from_matrix
+from ._kinematics.quaternion import quat_log as quat_log
 from ._kinematics.quaternion import quat_multiply as quat_multiply
 from ._kinematics.quaternion import quat_normalize as quat_normalize
 from ._kinematics.quaternion import quat_rotate as quat_rotate
+from ._kinematics.quaternion import quat_slerp as quat_slerp
 
 __all__ = [
     "PROPER_SEQUENCES",
@@ -39,12 +42,15 @@ __all__ = [
     "is_proper_sequence",
     "matrix_from_euler",
     "matrix_from_quat",
+    "quat_angle_between",
     "quat_conjugate",
     "quat_exp",
     "quat_from_euler",
     "quat_from_matrix",
+    "quat_log",
     "quat_multiply",
     "quat_normalize",
     "quat_rotate",
+    "quat_slerp",
     "space_angular_velocity",
 ]

@@ -79,6 +79,13 @@ SWEEP = {
     "quat_rotate": (rj.quat_rotate, [_vec(Q, "q"), _vec(W, "v")], "raise"),
     "quat_normalize": (rj.quat_normalize, [_vec(Q, "q")], "raise"),
     "quat_exp": (kinematics.quat_exp, [_vec(W, "theta")], "raise"),
+    "quat_log": (kinematics.quat_log, [_vec(Q, "q")], "raise"),
+    "quat_slerp": (
+        kinematics.quat_slerp,
+        [_vec(Q, "p"), _vec(QS[5], "q"), _scalar(0.3, "fraction")],
+        "raise",
+    ),
+    "quat_angle_between": (kinematics.quat_angle_between, [_vec(Q, "p"), _vec(QS[5], "q")], "raise"),
     "body_angular_velocity": (
         lambda a, r: rj.body_angular_velocity(a, r, "zxz"),
         [_vec(ANG, "angles"), _vec(W, "rates")],

@@ -304,6 +304,106 @@ def _quat_exp(theta):
     return jnp.concatenate([w, s * theta], axis=-1)
 
 
+@compiled_when_eager
+def quat_log(q: Quaternion) -> VectorOut:
+    """Rotation vector (axis times angle, rad) of a quaternion: the inverse of :func:`quat_exp`.
+
+    ``q`` and ``-q`` are the same rotation and give the same vector, of the angle in ``[0, pi]``
+    (the shorter way round; at exactly ``pi`` both directions of the axis are that rotation, and
+    the sign of the vector follows the sign of ``q``'s vector part). Value and gradient are NaN-free
+    at the identity (a Taylor branch is used for small angles).
+
+    **Arguments:**
+
+    - `q`: orientation, scalar first ``(w, x, y, z)``, shape ``(..., 4)``; normalised first.
+
+    **Returns:** the rotation vector ``theta``, shape ``(..., 3)``, with
+    ``quat_exp(theta) = ±q / |q|``. A zero `q`, or NaN or inf, raises at run time.
+    """
+    (q,) = common_float(q, names=["q"])
+    check_last_axis(q, 4, "q")
+    return _quat_log(_quat_normalize(check_rotation_quaternion(q, "q", "quat_log")))
+
+
+def _quat_log(q):
+    """Rotation vector of a unit quaternion, angle in ``[0, pi]``."""
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., :1], q[..., 1:]
+    s2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    small = s2 < math.sqrt(eps(q.dtype))
+    s = jnp.sqrt(jnp.where(small, jnp.ones_like(s2), s2))  # safe input for the exact branch
+    # angle / s = 2 atan(x) / s with x = s / w: 2 / w (1 - x^2 / 3 + x^4 / 5) for small x (w ~ 1);
+    # w is 0 at half a turn, so the Taylor branch gets a safe w too.
+    near = jnp.where(small, w, jnp.ones_like(w))
+    x2 = s2 / (near * near)
+    factor = jnp.where(small, 2.0 / near * (1.0 - x2 / 3.0 + x2 * x2 / 5.0), 2.0 * jnp.arctan2(s, w) / s)
+    return factor * v
+
+
+@compiled_when_eager
+def quat_slerp(p: Quaternion, q: Quaternion, fraction: Float[ArrayLike, "..."]) -> QuaternionOut:
+    """Spherical linear interpolation of rotations: the orientation a ``fraction`` of the way from
+    ``p`` to ``q`` along the shorter great arc, turning at a constant rate about one axis.
+
+    ``p ⊗ quat_exp(fraction * quat_log(p* ⊗ q))``: ``p`` at ``fraction = 0``, the rotation of ``q``
+    at ``fraction = 1`` (``q`` or ``-q``, whichever is nearer ``p``), and the geodesic continued
+    beyond ``[0, 1]``. The same rotations as scipy's ``Slerp``.
+
+    **Arguments:**
+
+    - `p`: start orientation, scalar first ``(w, x, y, z)``, shape ``(..., 4)``; normalised first.
+    - `q`: end orientation, shape ``(..., 4)``; normalised first.
+    - `fraction`: how far from `p` towards `q` (0 at `p`, 1 at `q`), shape ``(...)``, broadcast
+      against the batch axes of `p` and `q`: a ``fraction`` of shape ``(T,)`` with `p` and `q` of
+      shape ``(4,)`` gives ``(T, 4)`` samples of one arc.
+
+    **Returns:** unit quaternions, shape ``(..., 4)``. A zero `p` or `q`, or NaN or inf in any
+    input, raises at run time.
+    """
+    p, q, fraction = common_float(p, q, fraction, names=["p", "q", "fraction"])
+    check_last_axis(p, 4, "p")
+    check_last_axis(q, 4, "q")
+    check_batch_shapes("quat_slerp", ("p", p, 1), ("q", q, 1), ("fraction", fraction, 0))
+    p = _quat_normalize(check_rotation_quaternion(p, "p", "quat_slerp"))
+    q = _quat_normalize(check_rotation_quaternion(q, "q", "quat_slerp"))
+    fraction = check_finite(fraction, "fraction", "quat_slerp")
+    relative = _quat_multiply(_quat_conjugate(p), q)
+    step = _quat_exp(fraction[..., None] * _quat_log(relative))
+    return _quat_normalize(_quat_multiply(p, step))
+
+
+@compiled_when_eager
+def quat_angle_between(p: Quaternion, q: Quaternion) -> Float[Array, "..."]:
+    """The angle (rad, in ``[0, pi]``) of the rotation that takes orientation ``p`` to ``q``: the
+    geodesic distance of the two rotations, ``|quat_log(p* ⊗ q)|``.
+
+    ``q`` and ``-q`` are the same rotation and give the same angle. Computed as
+    ``2 atan2(|v|, |w|)`` of ``p* ⊗ q = (w, v)``, accurate for small and large angles alike (the
+    often used ``2 acos(|p . q|)`` loses half the digits of a small angle). Where ``p`` and ``q``
+    coincide the angle has a kink, as ``|x|`` at 0: its gradient there is finite (at most 2 in
+    norm), not NaN, and the squared angle, smooth there, has gradient 0: use it in a loss.
+
+    **Arguments:**
+
+    - `p`, `q`: orientations, scalar first ``(w, x, y, z)``, shape ``(..., 4)``, broadcast against
+      each other; normalised first.
+
+    **Returns:** the angle, shape ``(...)``. A zero `p` or `q`, or NaN or inf, raises at run time.
+    """
+    p, q = common_float(p, q, names=["p", "q"])
+    check_last_axis(p, 4, "p")
+    check_last_axis(q, 4, "q")
+    check_batch_shapes("quat_angle_between", ("p", p, 1), ("q", q, 1))
+    p = _quat_normalize(check_rotation_quaternion(p, "p", "quat_angle_between"))
+    q = _quat_normalize(check_rotation_quaternion(q, "q", "quat_angle_between"))
+    relative = _quat_multiply(_quat_conjugate(p), q)
+    w, v = relative[..., 0], relative[..., 1:]
+    s2 = jnp.sum(v * v, axis=-1)
+    turned = s2 > 0
+    s = jnp.sqrt(jnp.where(turned, s2, 1.0))
+    return jnp.where(turned, 2.0 * jnp.arctan2(s, jnp.abs(w)), 0.0)
+
+
 def _quat_kinematics(q, omega):
     """``dq/dt = q ⊗ (0, omega) / 2`` for body-frame ``omega``."""
     pure = jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
