@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import float_dtype
-from .._kinematics.quaternion import _quat_conjugate, _quat_multiply
+from .._kinematics.quaternion import _quat_angle_between
 from .._numerics import safe_norm
 from . import driver
 from . import progress as _progress
@@ -132,9 +132,7 @@ def _estimate_from_arrays(omega, q, success, fine_omega, fine_q, fine_success, s
     diff = jnp.max(safe_norm(omega - fine_omega), axis=-1)
     out = {"error_estimate_omega": diff / jnp.maximum(size, tiny)}
     if q is not None:
-        # The angle of the rotation between the two: 2 atan2(|v|, |w|) of q_coarse* q_fine.
-        rel = _quat_multiply(_quat_conjugate(q), fine_q.astype(dtype))
-        angle = 2 * jnp.arctan2(safe_norm(rel[..., 1:]), jnp.abs(rel[..., 0]))
+        angle = _quat_angle_between(q, fine_q.astype(dtype))
         out["error_estimate_orientation"] = jnp.max(angle, axis=-1)
     for name, value in out.items():
         value = jnp.maximum(scale * value, floor)  # NaN stays NaN

@@ -38,7 +38,7 @@ from .._checks import (
     compiled_when_eager,
     error_if,
 )
-from .._numerics import eps
+from .._numerics import eps, safe_norm
 from .._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
 
 
@@ -396,12 +396,13 @@ def quat_angle_between(p: Quaternion, q: Quaternion) -> Float[Array, "..."]:
     check_batch_shapes("quat_angle_between", ("p", p, 1), ("q", q, 1))
     p = _quat_normalize(check_rotation_quaternion(p, "p", "quat_angle_between"))
     q = _quat_normalize(check_rotation_quaternion(q, "q", "quat_angle_between"))
+    return _quat_angle_between(p, q)
+
+
+def _quat_angle_between(p, q):
+    """The angle of ``p* ⊗ q``, ``2 atan2(|v|, |w|)``, with gradient 0 where ``v`` is exactly 0."""
     relative = _quat_multiply(_quat_conjugate(p), q)
-    w, v = relative[..., 0], relative[..., 1:]
-    s2 = jnp.sum(v * v, axis=-1)
-    turned = s2 > 0
-    s = jnp.sqrt(jnp.where(turned, s2, 1.0))
-    return jnp.where(turned, 2.0 * jnp.arctan2(s, jnp.abs(w)), 0.0)
+    return 2.0 * jnp.arctan2(safe_norm(relative[..., 1:]), jnp.abs(relative[..., 0]))
 
 
 def _quat_kinematics(q, omega):
