@@ -12,16 +12,18 @@ from .._dynamics.equations import _kinetic_energy
 from .._dynamics.models import AbstractModel
 from .._kinematics.euler import _euler_from_quat, _euler_rates
 from .._kinematics.quaternion import _quat_rotate
+from .._numerics import safe_norm
 from .._repr import _concrete
 from . import storage
 from .batching import model_per_time
 
 
 def _stable_norm(v):
-    """Vector norm without overflow of the squares (|L| of the Earth is 6e33 kg m^2/s)."""
+    """Vector norm without overflow of the squares (|L| of the Earth is 6e33 kg m^2/s), with
+    gradient 0 at the zero vector (a drift is 0 at the first sample), not NaN."""
     big = jnp.max(jnp.abs(v), axis=-1, keepdims=True)
     safe = jnp.where(big > 0, big, 1.0)
-    return big[..., 0] * jnp.linalg.norm(v / safe, axis=-1)
+    return big[..., 0] * safe_norm(v / safe)
 
 
 def first_failed_sample(bad):
@@ -281,10 +283,13 @@ class Trajectory(eqx.Module):
     def invariants(self) -> dict[str, Float[Array, "*batch"]]:
         """Largest relative drift of each quantity the scene conserves, per body.
 
-        ``energy`` (torque-free and conservative scenes), ``angular_momentum_norm`` (no external
-        torque, a gyrostat's rotors included: ``L = I omega + h``), ``space_angular_momentum`` (the
-        same, with orientation, ``|L(t) - L(0)| / |L(0)|``),
-        ``vertical_angular_momentum`` (heavy top, relative to |L(0)|), ``quaternion_norm``
+        ``energy`` (torque-free and conservative scenes; relative to the largest kinetic plus
+        absolute potential energy along the trajectory, which is not 0 for a body that moves, as
+        the energy itself is for a top released at rest with its centre of mass level with the
+        pivot), ``angular_momentum_norm`` (no external torque, a gyrostat's rotors included:
+        ``L = I omega + h``), ``space_angular_momentum`` (the same, with orientation,
+        ``|L(t) - L(0)| / |L(0)|``), ``vertical_angular_momentum`` (heavy top, relative to the
+        largest |L| along the trajectory: a top released at rest has ``L(0) = 0``), ``quaternion_norm``
         (``| |q| - 1 |`` before the output was normalised; for ``accuracy="exact"``, whose output
         nothing normalises, ``| |q| - 1 |`` of the samples). NaN for a body that failed
         (``success`` False), whose samples stop being a motion where it failed.
@@ -297,10 +302,8 @@ class Trajectory(eqx.Module):
             return jnp.max(jnp.abs(x - x[..., :1]), axis=-1) / jnp.maximum(scale, tiny)
 
         if model.conserves_energy:
-            e = self.energy()
-            ke0 = self.kinetic_energy()[..., 0]
-            v0 = jnp.abs(self.potential_energy()[..., 0])
-            out["energy"] = drift(e, jnp.maximum(jnp.abs(e[..., 0]), ke0 + v0))
+            kinetic, potential = self.kinetic_energy(), self.potential_energy()
+            out["energy"] = drift(kinetic + potential, jnp.max(kinetic + jnp.abs(potential), axis=-1))
         L = self.angular_momentum()
         L_norm = _stable_norm(L)
         if model.conserves_angular_momentum:
@@ -312,7 +315,7 @@ class Trajectory(eqx.Module):
                 ) / jnp.maximum(L_norm[..., 0], tiny)
         if model.conserves_vertical_angular_momentum:
             Lz = self.space_angular_momentum()[..., 2]
-            out["vertical_angular_momentum"] = drift(Lz, L_norm[..., 0])
+            out["vertical_angular_momentum"] = drift(Lz, jnp.max(L_norm, axis=-1))
         if self.orientation is not None:
             q_norm = self.stats.get("quaternion_norm_error")
             if q_norm is None:
