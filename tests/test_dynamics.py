@@ -440,6 +440,19 @@ def test_torques_and_scenes_as_a_user_writes_them(without_runtime_typecheck):
     reads_q = rj.Torque(lambda t, s, a: s.orientation[1:], needs_orientation=False)
     with pytest.raises(TypeError, match="without an orientation.*needs_orientation=True"):
         rj.simulate(rj.RigidBody(jnp.full(3, sphere), reads_q), rj.State(jnp.zeros(3)), jnp.array([0.0, 1.0]))
+    # A function that fails on something else is not blamed on the orientation: simulate's args
+    # forgotten (the third argument None), or an error of its own.
+    reads_args = rj.Torque(lambda t, s, a: a["k"] * s.omega, needs_orientation=False)
+    with pytest.raises(TypeError, match=r"its third argument was None: pass simulate\(..., args=...\)"):
+        rj.simulate(
+            rj.RigidBody(jnp.full(3, sphere), reads_args), rj.State(jnp.ones(3)), jnp.array([0.0, 1.0])
+        )
+    own_error = rj.Torque(lambda t, s, a: s.omega.no_such_method(), needs_orientation=False)
+    with pytest.raises(AttributeError, match="no_such_method") as raised:
+        rj.simulate(
+            rj.RigidBody(jnp.full(3, sphere), own_error), rj.State(jnp.ones(3)), jnp.array([0.0, 1.0])
+        )
+    assert "orientation" not in str(raised.value)
     with pytest.raises(ValueError, match="Gyrostat's rotors"):
         rj.simulate(rj.Gyrostat(jnp.array([1.0, 2.0, 2.5]), jnp.array([0.0, 0.0, 0.5])),
                     rj.State(jnp.ones(3)), jnp.array([0.0, 1.0]), accuracy="exact")  # fmt: skip

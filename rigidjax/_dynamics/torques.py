@@ -198,14 +198,25 @@ class Torque(AbstractTorque):
 
     def __call__(self, t, state, args):
         name = getattr(self.fn, "__qualname__", type(self.fn).__name__)
+        given = self.params if self.params is not None else args
         try:
-            out = self.fn(t, state, self.params if self.params is not None else args)
+            out = self.fn(t, state, given)
         except (TypeError, AttributeError) as error:
-            if state.orientation is None:
+            if state.orientation is None and _reads_absent(
+                self.fn,
+                t,
+                eqx.tree_at(lambda s: s.orientation, state, _Absent(), is_leaf=lambda x: x is None),
+                given,
+            ):
                 raise TypeError(
                     f"Torque({name}) failed on a state without an orientation ({error}). A torque "
                     "that reads state.orientation needs needs_orientation=True (the default) and an "
                     "orientation in the initial state."
+                ) from error
+            if given is None and _reads_absent(self.fn, t, state, _Absent()):
+                raise TypeError(
+                    f"Torque({name}) failed ({type(error).__name__}: {error}); its third argument "
+                    "was None: pass simulate(..., args=...) or give the Torque params=..."
                 ) from error
             raise
         try:
@@ -219,6 +230,35 @@ class Torque(AbstractTorque):
                 "(N m) as real numbers, shape (3,)."
             )
         return jnp.asarray(out, state.omega.dtype)
+
+
+class _AbsentRead(Exception):
+    """Raised by :class:`_Absent` on any use."""
+
+
+class _Absent:
+    """Stands in for a missing input (``state.orientation`` or ``args``, None) to tell whether a
+    torque function that failed reads it: any use of it (an attribute, an index, arithmetic,
+    conversion to an array) raises :class:`_AbsentRead`."""
+
+    def _read(self, *args, **kwargs):
+        raise _AbsentRead
+
+    __getattr__ = __getitem__ = __iter__ = __len__ = __array__ = __jax_array__ = _read
+    __add__ = __radd__ = __sub__ = __rsub__ = __mul__ = __rmul__ = _read
+    __truediv__ = __rtruediv__ = __matmul__ = __rmatmul__ = __neg__ = __pow__ = _read
+    __float__ = __bool__ = _read
+
+
+def _reads_absent(fn, t, state, args) -> bool:
+    """Whether ``fn(t, state, args)``, given a stand-in for a missing input, fails by using it."""
+    try:
+        fn(t, state, args)
+    except _AbsentRead:
+        return True
+    except Exception:
+        return False
+    return False
 
 
 class GravityTorque(AbstractTorque):
