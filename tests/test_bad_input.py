@@ -790,7 +790,8 @@ def _gravity_runs():
 @pytest.mark.parametrize("gravity", [0.0, -9.81, (0.0, 0.0, -9.81)], ids=["zero", "negative", "vector"])
 def test_gravity_is_a_positive_magnitude(gravity):
     """gravity = 0 or -9.81 ran (and sleeping_top called an upright top stable at any spin), and a
-    gravity vector (0, 0, -9.81) ran as three tops with g = 0, 0 and -9.81; also under jit."""
+    gravity vector (0, 0, -9.81) ran as three tops with g = 0, 0 and -9.81; also under jit.
+    sleeping_top took g = 0, so (0, 0, 9.81) read as three tops, two of them stable."""
     gravity = jnp.asarray(gravity)
     state, ts, runs = _gravity_runs()
     pattern = r"model field '(torques\[0\]\.)?gravity' must be positive \(m/s\^2\).*not a vector"
@@ -801,9 +802,9 @@ def test_gravity_is_a_positive_magnitude(gravity):
             jitted(gravity).block_until_ready()
     with pytest.raises(ValueError, match=r"torque \(GravityTorque\): gravity must be positive.*not a vector"):
         rj.fit_inertia_to_orientation(_TS_FIT, _Q_FIT, torque=rj.GravityTorque(0.5, COM, gravity=gravity))
-    if gravity.ndim == 0 and gravity < 0:  # sleeping_top takes g = 0: a spinning top without gravity
-        with pytest.raises(ValueError, match=r"sleeping_top: gravity must not be negative"):
-            rj.sleeping_top(I3, 0.5, COM, 5.0, gravity)
+    # sleeping_top read the vector as three tops, two of them "stable" without gravity.
+    with pytest.raises(ValueError, match=r"sleeping_top: gravity must be positive.*not a vector"):
+        rj.sleeping_top(np.array([1.0, 1.0, 0.5]), 0.5, COM, 5.0, gravity)
     if gravity.ndim == 0:
         with pytest.raises(ValueError, match=r"split_heavy_top: gravity must be positive"):
             rj.solvers.split_heavy_top(I3, 0.5, COM, gravity, I3 * W, Q, 0.1, 3)

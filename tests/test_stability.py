@@ -419,9 +419,11 @@ def test_sleeping_top_edge_cases_without_nan():
     back = TOP(inertia, mass, com, jnp.asarray(-2.0 * critical))
     np.testing.assert_allclose([back.slow_rate, back.fast_rate], [-fwd.slow_rate, -fwd.fast_rate])
     assert bool(back.stable)
-    # A hanging top (l < 0) is stable at any spin, a spinning top without gravity too; w_crit = 0.
-    # (Without gravity and without spin the margin is 0: marginal, reported not stable.)
-    for c, g, spins in ((jnp.asarray([0.0, 0.0, -0.04]), 9.81, (0.0, 5.0)), (com, 0.0, (5.0,))):
+    # A hanging top (l < 0) is stable at any spin, a spinning top held at its centre of mass (no
+    # torque of gravity) too; w_crit = 0. (At l = 0 without spin the margin is 0: marginal, reported
+    # not stable.)
+    at_pivot = jnp.zeros(3)
+    for c, g, spins in ((jnp.asarray([0.0, 0.0, -0.04]), 9.81, (0.0, 5.0)), (at_pivot, 9.81, (5.0,))):
         for w in spins:
             result = TOP(inertia, mass, c, jnp.asarray(w), jnp.asarray(g))
             assert bool(result.stable) and float(result.critical_spin) == 0.0
@@ -431,7 +433,7 @@ def test_sleeping_top_edge_cases_without_nan():
     points = [
         (inertia, mass, com, 0.0, G),
         (unit, jnp.asarray(1.0), up, 2.0, 1.0),
-        (inertia, mass, com, 0.0, 0.0),
+        (inertia, mass, jnp.zeros(3), 0.0, G),
     ]
     fields = ("growth_rate", "slow_rate", "fast_rate", "critical_spin", "margin")
 

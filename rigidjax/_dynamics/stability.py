@@ -231,7 +231,8 @@ def sleeping_top(
       the z axis: ``(0, 0, l)``.
     - `omega3`: spin about the symmetry axis (rad/s), shape ``(...)``; its sign sets the sense of
       the precession rates.
-    - `gravity`: ``g`` (m/s^2), shape ``(...)``.
+    - `gravity`: ``g`` (m/s^2), positive, shape ``(...)``: one magnitude per top (gravity points
+      along space -Z), not a vector.
     - `symmetry_rtol`: relative tolerance of the symmetry checks above (default 1e-4: well above the
       roundoff of moments from ``principal_axes``, float32 included, and tight enough to reject a
       visibly asymmetric top).
@@ -258,9 +259,10 @@ def sleeping_top(
     mass = error_if(mass, jnp.any(mass <= 0), f"sleeping_top: mass {POSITIVE_MASS}.")
     gravity = error_if(
         gravity,
-        jnp.any(gravity < 0),
-        "sleeping_top: gravity must not be negative (m/s^2): the magnitude of gravity, which points "
-        "along space -Z (0: no gravity).",
+        jnp.any(gravity <= 0),
+        "sleeping_top: gravity must be positive (m/s^2): the magnitude of gravity, which points along "
+        "space -Z, one number per top (not a vector); a top without gravity spins as a torque-free "
+        "body (spin_stability).",
     )
     inertia = _principal_moments(inertia, "sleeping_top")
     check_batch_shapes(
