@@ -111,6 +111,20 @@ def test_selection_under_jit_and_from_a_vmap_over_times(free_bodies):
     np.testing.assert_allclose(second.euler_angles(), alone.euler_angles(), rtol=1e-10, atol=1e-12)
 
 
+def test_a_vmapped_trajectory_is_saved_body_by_body(tmp_path):
+    times = jnp.stack([TS, 2.0 * TS])
+    model = rj.FreeBody(jnp.asarray(INERTIA[0]))
+    state = rj.State(jnp.asarray(OMEGA[0]), jnp.asarray(IDENTITY[0]))
+    mapped = jax.vmap(lambda ts: rj.simulate(model, state, ts))(times)
+    with pytest.raises(ValueError, match=r"ts has shape \(2, 5\), one time axis per body.*traj\[i\]\.save"):
+        mapped.save(tmp_path / "all.npz")
+    assert not (tmp_path / "all.npz").exists()
+    mapped[1].save(tmp_path / "second.npz")
+    loaded = rj.Trajectory.load(tmp_path / "second.npz")
+    np.testing.assert_array_equal(loaded.ts, 2.0 * TS)
+    np.testing.assert_array_equal(loaded.omega, mapped.omega[1])
+
+
 def test_a_selection_saves_and_loads(free_bodies, tmp_path):
     part = free_bodies[[0, 2]]
     part.save(tmp_path / "part.npz")

@@ -162,6 +162,13 @@ class _Encoder:
 def encode(traj: eqx.Module) -> dict[str, np.ndarray]:
     """The named NumPy arrays of the file for the :class:`Trajectory` ``traj``; a ``ValueError`` for
     anything that cannot be stored faithfully (a user torque, a custom scene, an object array)."""
+    if np.ndim(traj.ts) > 1:  # one time axis per body: a jax.vmap of simulate over its inputs
+        raise ValueError(
+            f"Trajectory.save: ts has shape {tuple(np.shape(traj.ts))}, one time axis per body (a "
+            "jax.vmap of simulate), where the file holds one time axis for all bodies: save each "
+            "body's trajectory, traj[i].save(path_i), or simulate the batch in one call (a leading "
+            "batch axis) instead of vmapping."
+        )
     enc = _Encoder()
     enc.module("model", traj.model, "model")
     enc.array("ts", traj.ts)
