@@ -297,8 +297,9 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
     ratio = _residual_ratio(robust_rms, data)
     if ratio > NOISE_RATIO_LIMIT:
         warnings.warn(
-            f"the fit's residuals are {ratio:.1f} times the record's noise estimate (their median "
-            "absolute value, which outliers do not move): the fitted motion does not follow the record, "
+            f"the fit's residuals are {ratio:.1f} times the record's noise estimate (measured by "
+            "1.4826 times their median absolute value, which outliers do not move, where "
+            "InertiaFit.warnings compares residual_rms): the fitted motion does not follow the record, "
             "whatever `converged` says. Check the time unit (seconds), and try segments='auto' (a "
             "wrong wobble frequency over a long record) or a robust loss (many outliers).",
             RuntimeWarning,

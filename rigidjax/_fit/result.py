@@ -255,8 +255,8 @@ def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
     ratio = np.max(rms / np.maximum(noise, np.finfo(float).tiny))
     if np.all(np.isfinite(noise)) and np.all(noise > 0) and ratio > NOISE_RATIO_LIMIT:
         out.append(
-            f"the residuals are {ratio:.1f} times the record's noise estimate: the fit explains the record "
-            "worse than its noise, most often a wrong wobble frequency. Check the time unit (seconds), "
-            "and fit in windows (segments='auto') or with a robust loss (outliers)."
+            f"the residuals (residual_rms) are {ratio:.1f} times the record's noise estimate: the fit "
+            "explains the record worse than its noise, most often a wrong wobble frequency. Check the "
+            "time unit (seconds), and fit in windows (segments='auto') or with a robust loss (outliers)."
         )
     return out
