@@ -397,8 +397,12 @@ def compiled_when_eager(
             return function(*args, **kwargs)
         for name, choices in case_insensitive.items():
             value = arguments.get(name, signature.parameters[name].default)
-            if isinstance(value, str) and value.lower() in choices:
-                arguments[name] = value.lower()
+            if (
+                isinstance(value, str)
+                and value.lower() in choices
+                and value in (value.lower(), value.upper())
+            ):
+                arguments[name] = value.lower()  # (a mix of cases is left to the function to refuse)
         arrays, codes, out_static = program(**arguments)
         # The tracers of an eager grad or jvp: the program is differentiated as a whole (op by op,
         # each operation was a program of its own: 34 for euler_from_quat's gradient), and its

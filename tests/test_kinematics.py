@@ -192,6 +192,10 @@ def test_default_sequence_is_zxz_and_case_insensitive():
     a = ANGLES["zxz"]
     np.testing.assert_array_equal(rj.matrix_from_euler(a), rj.matrix_from_euler(a, "zxz"))
     np.testing.assert_array_equal(rj.matrix_from_euler(a, "ZXZ"), rj.matrix_from_euler(a, "zxz"))
+    # A mix of cases, which scipy refuses (its lower case means extrinsic), is refused too.
+    for call in (lambda: rj.matrix_from_euler(a, "ZXz"), lambda: rj.euler_from_quat(np.eye(4)[0], "zXz")):
+        with pytest.raises(ValueError, match=r"seq '(ZXz|zXz)' mixes upper and lower case: write it in one"):
+            call()
     # API.md: matrix_from_euler(angles, "zxz") = Rz(phi) Rx(theta) Rz(psi); the passive A is its transpose.
     phi, theta, psi = a[0]
     Rz = lambda t: np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])  # noqa: E731

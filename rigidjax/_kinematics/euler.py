@@ -56,6 +56,12 @@ def _parse_seq(seq: str, name: str = "seq") -> tuple[int, int, int]:
             f"{name} must be one of the twelve intrinsic Euler sequences {SEQUENCES} "
             f"(case-insensitive), got {seq!r}."
         )
+    if seq not in (seq.lower(), seq.upper()):
+        # scipy reads case as meaning: upper case intrinsic, lower case extrinsic, and refuses a mix.
+        raise ValueError(
+            f"{name} {seq!r} mixes upper and lower case: write it in one case ({seq.lower()!r}; both "
+            "cases mean intrinsic rotations here, where scipy's lower case means extrinsic ones)."
+        )
     return tuple(_AXIS[c] for c in seq.lower())
 
 
