@@ -397,9 +397,10 @@ def _programs_traced(call) -> int:
 
 
 def test_a_sequence_in_another_case_runs_the_same_program():
-    """Euler sequences are case-insensitive: "ZXZ", "ZxZ" and the default after "zxz" (and "YXZ" after
+    """Euler sequences are case-insensitive: "ZXZ" and the default after "zxz" (and "YXZ" after
     "yxz" for the rates) run the program of the first call, with the same values. Each spelling
-    traced and compiled a program of its own before. Reference: JAX's trace events."""
+    traced and compiled a program of its own before. (A mix, "ZxZ", is refused: test_kinematics.)
+    Reference: JAX's trace events."""
     angles = jnp.asarray([[0.3, 0.7, -1.1], [2.0, 0.2, 0.4]])
     rates = jnp.asarray([[0.1, -0.2, 0.3], [0.0, 0.5, 1.0]])
     calls = {
@@ -410,7 +411,7 @@ def test_a_sequence_in_another_case_runs_the_same_program():
     }
     for name, call in calls.items():
         first = np.asarray(call(("zxz",)))
-        for seq in [("ZXZ",), ("ZxZ",), ()]:
+        for seq in [("ZXZ",), ()]:
             assert _programs_traced(lambda call=call, seq=seq: call(seq)) == 0, (name, seq)
             np.testing.assert_array_equal(np.asarray(call(seq)), first)
     rj.euler_rates(angles, rates, "yxz")

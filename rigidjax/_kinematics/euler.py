@@ -44,7 +44,8 @@ PROPER_SEQUENCES = ("zxz", "zyz", "xyx", "xzx", "yxy", "yzy")
 TAIT_BRYAN_SEQUENCES = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx")
 """The six Tait-Bryan sequences (three different axes), singular at ``cos(theta) = 0``."""
 SEQUENCES = PROPER_SEQUENCES + TAIT_BRYAN_SEQUENCES
-"""All twelve intrinsic sequences accepted as ``seq`` (lower case; the argument is case-insensitive)."""
+"""All twelve intrinsic sequences accepted as ``seq`` (lower case; the argument may be given in
+upper case too, meaning the same intrinsic rotations, but not in a mix of cases)."""
 _AXIS = {"x": 0, "y": 1, "z": 2}
 
 
@@ -54,7 +55,7 @@ def _parse_seq(seq: str, name: str = "seq") -> tuple[int, int, int]:
     if not isinstance(seq, str) or seq.lower() not in SEQUENCES:
         raise ValueError(
             f"{name} must be one of the twelve intrinsic Euler sequences {SEQUENCES} "
-            f"(case-insensitive), got {seq!r}."
+            f"(in lower or upper case), got {seq!r}."
         )
     if seq not in (seq.lower(), seq.upper()):
         # scipy reads case as meaning: upper case intrinsic, lower case extrinsic, and refuses a mix.
@@ -70,7 +71,7 @@ def is_proper_sequence(seq: str) -> bool:
 
     **Arguments:**
 
-    - `seq`: one of the twelve sequences of ``SEQUENCES``, case-insensitive. Any other value raises
+    - `seq`: one of the twelve sequences of ``SEQUENCES``, in lower or upper case. Any other value raises
       ``ValueError``.
 
     **Returns:** True for proper sequences (``"zxz"``...), False for Tait-Bryan (``"xyz"``...).
@@ -294,7 +295,7 @@ def matrix_from_euler(angles: Angles, seq: str = "zxz") -> MatrixOut:
 
     - `angles`: Euler angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``.
     - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
-      case-insensitive; any other value raises ``ValueError``.
+      in lower or upper case (not a mix); any other value raises ``ValueError``.
 
     **Returns:** the rotation matrix ``(..., 3, 3)``, mapping body-frame to space-frame components.
     NaN or inf raises at run time.
@@ -311,7 +312,7 @@ def quat_from_euler(angles: Angles, seq: str = "zxz") -> Quaternion:
 
     - `angles`: Euler angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``.
     - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
-      case-insensitive; any other value raises ``ValueError``.
+      in lower or upper case (not a mix); any other value raises ``ValueError``.
 
     **Returns:** the unit quaternion ``(w, x, y, z)``, shape ``(..., 4)``, mapping body-frame to
     space-frame components. NaN or inf raises at run time.
@@ -333,7 +334,7 @@ def euler_from_quat(q: Quaternion, seq: str = "zxz") -> Angles:
       (as scipy's ``from_quat``), and ``q`` and ``-q`` give the same angles. A zero `q`, or NaN or
       inf, raises at run time.
     - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
-      case-insensitive; any other value raises ``ValueError``.
+      in lower or upper case (not a mix); any other value raises ``ValueError``.
 
     **Returns:** the angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``: ``phi, psi`` in
     ``[-pi, pi]``; ``theta`` in ``[0, pi]`` for proper sequences and ``[-pi/2, pi/2]`` for
@@ -355,7 +356,7 @@ def euler_from_matrix(R: Matrix, seq: str = "zxz") -> Angles:
       inf, ``max|R R^T - 1|`` beyond ``1e-6`` (float64) / ``1e-4`` (float32), or ``det R < 0`` raises
       at run time; tiny non-orthogonality is accepted.
     - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
-      case-insensitive; any other value raises ``ValueError``.
+      in lower or upper case (not a mix); any other value raises ``ValueError``.
 
     **Returns:** the angles ``(phi, theta, psi)`` (rad), shape ``(..., 3)``, with the same ranges
     and gimbal-lock split as :func:`euler_from_quat`.
@@ -380,7 +381,7 @@ def body_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> Ve
     - `rates`: their time derivatives ``(phi', theta', psi')`` (rad/s), shape ``(..., 3)``,
       broadcast against `angles`.
     - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
-      case-insensitive; any other value raises ``ValueError``.
+      in lower or upper case (not a mix); any other value raises ``ValueError``.
 
     **Returns:** ``omega`` in body-frame components (rad/s), shape ``(..., 3)``. NaN or inf raises at
     run time.
@@ -409,7 +410,7 @@ def space_angular_velocity(angles: Angles, rates: Vector, seq: str = "zxz") -> V
     - `rates`: their time derivatives ``(phi', theta', psi')`` (rad/s), shape ``(..., 3)``,
       broadcast against `angles`.
     - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
-      case-insensitive; any other value raises ``ValueError``.
+      in lower or upper case (not a mix); any other value raises ``ValueError``.
 
     **Returns:** ``omega`` in space-frame components (rad/s), shape ``(..., 3)``. NaN or inf raises
     at run time.
@@ -441,7 +442,7 @@ def euler_rates(angles: Angles, omega: Vector, seq: str = "zxz", *, throw: bool 
     - `omega`: angular velocity in body-frame components (rad/s), shape ``(..., 3)``, broadcast
       against `angles`.
     - `seq`: the intrinsic sequence, one of the twelve of ``SEQUENCES`` (default ``"zxz"``, 3-1-3),
-      case-insensitive; any other value raises ``ValueError``.
+      in lower or upper case (not a mix); any other value raises ``ValueError``.
     - `throw`: at gimbal lock with an ``omega`` the angles cannot follow, True fails with an error
       naming gimbal lock; False returns NaN rates instead (for ``vmap`` users). NaN or inf in the
       input raises with ``throw=True`` and propagates as NaN with ``throw=False``.
