@@ -173,22 +173,20 @@ def _check_columns(path: str, data: np.ndarray) -> None:
 
 
 def _check_complete_rows(path: str, omega: np.ndarray) -> None:
-    """At least 10 rows with all of wx, wy, wz; otherwise the columns missing the most values are named."""
-    complete = int(np.isfinite(omega).all(axis=1).sum())
-    if complete >= 10:
-        return
+    """At least 10 values in each of wx, wy, wz (a row may miss some, as ``fit_inertia`` takes
+    them); otherwise the columns with too few are named, the fewest first."""
     rows = omega.shape[0]
-    missing = np.isnan(omega).sum(axis=0)
-    worst = [
-        f"{OMEGA_COLUMNS[k + 1]} ({missing[k]} of {rows} empty or nan)"
-        for k in sorted(range(3), key=lambda k: -missing[k])
-        if missing[k]
+    observed = np.isfinite(omega).sum(axis=0)
+    if np.all(observed >= 10):
+        return
+    short = [
+        f"{OMEGA_COLUMNS[k + 1]} has {observed[k]} ({rows - observed[k]} of {rows} empty or nan)"
+        for k in sorted(range(3), key=lambda k: observed[k])
+        if observed[k] < 10
     ]
-    cause = f"; missing the most values: {', '.join(worst)}" if worst else ""
     raise DataError(
-        f"{path}: too few samples: {complete} complete row{'' if complete == 1 else 's'} (with all of wx, "
-        f"wy, wz) of {rows} data row{'' if rows == 1 else 's'}{cause}. A fit needs at least 10 (and several "
-        "wobble cycles to be well determined)."
+        f"{path}: too few samples: {', '.join(short)}. A fit needs at least 10 values of each of wx, wy, "
+        "wz (a row may miss some), and several wobble cycles to be well determined."
     )
 
 
@@ -313,6 +311,15 @@ def add_parser(subparsers) -> None:
         default=None,
         help="iteration limit (default: 2000 for optax, 200 for levenberg-marquardt)",
     )
+    p.add_argument(
+        "--inertia-init",
+        nargs=3,
+        type=float,
+        metavar=("I1", "I2", "I3"),
+        default=None,
+        help="starting principal moments, any scale (only their ratios matter); default: estimated "
+        "from the record, which needs enough neighbouring samples of each column",
+    )
     p.add_argument("--trace", type=float, default=None, help="known trace of the inertia (kg m^2)")
     p.add_argument(
         "--known-moment",
@@ -372,7 +379,18 @@ def _options(args) -> tuple[int | str, tuple[int, float] | None]:
         known_moment = (axis, value)
     if args.trace is not None and known_moment is not None:
         raise UsageError("give at most one scale: --trace or --known-moment, not both.")
+    if args.inertia_init is not None and not all(math.isfinite(v) and v > 0 for v in args.inertia_init):
+        raise UsageError(f"--inertia-init needs three positive finite moments, got {args.inertia_init}.")
     return segments, known_moment
+
+
+def _inertia_init(args):
+    """``--inertia-init`` as ``fit_inertia`` takes it: the moments, or their diagonal tensor with
+    ``--full-tensor``."""
+    if args.inertia_init is None:
+        return None
+    moments = np.asarray(args.inertia_init, float)
+    return np.diag(moments) if args.full_tensor else moments
 
 
 def _outputs(args) -> tuple[str, str | None]:
@@ -425,11 +443,12 @@ def run(args) -> int:
                 steps=args.steps,
                 inertia_trace=args.trace,
                 known_moment=known_moment,
+                inertia_init=_inertia_init(args),
                 callback=None if args.quiet else progress,
             )
     except ValueError as error:
         progress.close()
-        print(f"rigidjax fit: error: {error}", file=sys.stderr)
+        print(f"rigidjax fit: error: {str(error).replace('inertia_init', '--inertia-init')}", file=sys.stderr)
         return 2
     progress.close()
     seconds = time.perf_counter() - t0
