@@ -339,11 +339,13 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def in_command_words(warning: str) -> str:
-    """An :attr:`InertiaFit.warnings` text with its advice in this command's options rather than
-    ``fit_inertia``'s keyword arguments."""
-    return warning.replace("(segments='auto')", "(--segments auto)").replace(
-        "a robust loss", "a robust --loss"
+def in_command_words(text: str) -> str:
+    """An :attr:`InertiaFit.warnings` text or a ``fit_inertia`` error with its advice in this
+    command's options rather than ``fit_inertia``'s keyword arguments."""
+    return (
+        text.replace("(segments='auto')", "(--segments auto)")
+        .replace("a robust loss", "a robust --loss")
+        .replace("inertia_init", "--inertia-init")
     )
 
 
@@ -448,7 +450,7 @@ def run(args) -> int:
             )
     except ValueError as error:
         progress.close()
-        print(f"rigidjax fit: error: {str(error).replace('inertia_init', '--inertia-init')}", file=sys.stderr)
+        print(f"rigidjax fit: error: {in_command_words(str(error))}", file=sys.stderr)
         return 2
     progress.close()
     seconds = time.perf_counter() - t0
