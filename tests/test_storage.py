@@ -390,6 +390,35 @@ def test_files_whose_arrays_do_not_fit_together(tmp_path, without_runtime_typech
             rj.Trajectory.load(bad)
 
 
+def test_a_model_that_simulate_refuses_is_refused_by_load_and_save(tmp_path):
+    """A file whose scene was edited to a negative moment, moments that no mass distribution has
+    (I3 > I1 + I2) or a negative mass loaded, and its invariants were computed with them."""
+    path = tmp_path / "t.npz"
+    top = rj.HeavyTop(inertia=jnp.asarray([1.0, 1.0, 0.5]), mass=1.0, com=jnp.asarray([0.0, 0.0, 0.1]))
+    traj = _hand_made(top)
+    for key, value, message in [
+        ("model__inertia", np.array([1.0, 1.0, -0.5]), "non-positive principal moment"),
+        ("model__inertia", np.array([1.0, 1.0, 5.0]), "triangle inequality"),
+        ("model__mass", np.array(-1.0), "'mass' must be positive"),
+        ("model__com", np.array([0.0, np.nan, 0.1]), "'com' contains NaN"),
+    ]:
+        traj.save(path)
+        _rewrite(path, **{key: value})
+        with pytest.raises(ValueError, match=f"^Trajectory.load: .*t.npz.*its model: .*{message}"):
+            rj.Trajectory.load(path)
+    unphysical = rj.Trajectory(
+        traj.ts,
+        traj.omega,
+        traj.orientation,
+        rj.FreeBody(jnp.asarray([1.0, 1.0, 5.0])),
+        traj.success,
+        traj.stats,
+    )
+    with pytest.raises(ValueError, match="^Trajectory.save: its model: .*triangle.*loaded back"):
+        unphysical.save(tmp_path / "hand.npz")
+    assert not (tmp_path / "hand.npz").exists()
+
+
 def test_float64_file_in_32_bit_mode(tmp_path):
     traj64 = _hand_made(rj.FreeBody(jnp.asarray([1.0, 2.0, 3.0])))
     traj64.save(tmp_path / "t64.npz")

@@ -46,6 +46,7 @@ from .._dynamics.gyrostat import Gyrostat
 from .._dynamics.models import AbstractModel, FreeBody, HeavyTop, RigidBody, inertia_ndim
 from .._dynamics.torques import ConstantTorque, GravityTorque, Torque, ViscousDamping
 from . import batching
+from .inputs import check_model
 
 FORMAT = "rigidjax.Trajectory"
 FORMAT_VERSION = 1
@@ -486,6 +487,10 @@ def _check_consistent(fail: Callable[[str], Exception], arrays: dict[str, np.nda
         ok = False
     if not ok:
         raise fail(f"the model's bodies do not broadcast to the {batch} bodies of omega")
+    try:  # the checks simulate makes: a hand-edited negative moment loaded, then gave wrong energies
+        check_model(model, "its model")
+    except ValueError as err:
+        raise fail(str(err).rstrip(".")) from None
     if not (np.all(np.isfinite(ts)) and np.all(np.diff(ts) > 0)):
         raise fail("ts should be finite and strictly increasing")
     pairs = [("ts", ts)] + ([("orientation", q)] if has_q else [])

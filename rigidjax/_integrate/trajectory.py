@@ -179,7 +179,8 @@ class Trajectory(eqx.Module):
         with the same dtypes and values bit for bit, the same stats (so ``invariants()`` agrees).
         Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the path for a
         file that is not a rigidjax trajectory, is damaged, is of a format version this rigidjax
-        does not read, or holds float64 arrays while JAX runs in 32-bit mode.
+        does not read, holds a scene that :func:`rigidjax.simulate` refuses (a non-physical
+        inertia, a negative mass), or holds float64 arrays while JAX runs in 32-bit mode.
         """
         return cls(**storage.read(path))
 
