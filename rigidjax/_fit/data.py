@@ -6,7 +6,7 @@ import jax
 import numpy as np
 
 from .._checks import evaluated_now
-from .._kinematics.quaternion import _quat_multiply
+from .._kinematics.quaternion import _quat_log, _quat_multiply
 
 
 def _check_times(ts):
@@ -128,12 +128,11 @@ def _rotation_steps(q):
     """The rotation vector of each step, ``log(q_k^* q_{k+1})`` (the shorter of the two rotations),
     ``(T - 1, 3)``, NaN where a sample is missing."""
     conj = q[:-1] * np.array([1.0, -1.0, -1.0, -1.0])
-    rel = np.asarray(evaluated_now(_quat_multiply, conj, q[1:]))
-    rel = rel * np.where(rel[:, :1] < 0, -1.0, 1.0)  # the shorter rotation: angle <= pi
-    vec_norm = np.linalg.norm(rel[:, 1:], axis=1)
-    angle = 2.0 * np.arctan2(vec_norm, rel[:, 0])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(vec_norm[:, None] > 0, rel[:, 1:] / vec_norm[:, None], 0.0) * angle[:, None]
+    return np.asarray(evaluated_now(_step_rotation, conj, q[1:]), float)
+
+
+def _step_rotation(conj_start, end):
+    return _quat_log(_quat_multiply(conj_start, end))
 
 
 def orientation_noise(ts, q):

@@ -38,7 +38,7 @@ from .._checks import (
     compiled_when_eager,
     error_if,
 )
-from .._numerics import eps, safe_norm
+from .._numerics import eps, safe_norm, short_sum
 from .._types import Matrix, MatrixOut, Quaternion, QuaternionOut, Vector, VectorOut
 
 
@@ -94,7 +94,7 @@ def _matrix_from_quat(q: Quaternion) -> MatrixOut:
     (q,) = common_float(q, names=["q"])
     check_last_axis(q, 4, "q")
     w, x, y, z = jnp.moveaxis(q, -1, 0)
-    s = 2.0 / jnp.sum(q * q, axis=-1)
+    s = 2.0 / short_sum(q * q)
     wx, wy, wz = s * w * x, s * w * y, s * w * z
     xx, xy, xz = s * x * x, s * x * y, s * x * z
     yy, yz, zz = s * y * y, s * y * z, s * z * z
@@ -294,7 +294,7 @@ def quat_exp(theta: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
 
 
 def _quat_exp(theta):
-    n2 = jnp.sum(theta * theta, axis=-1, keepdims=True)
+    n2 = short_sum(theta * theta, keepdims=True)
     small = n2 < math.sqrt(eps(theta.dtype))
     n = jnp.sqrt(jnp.where(small, jnp.ones_like(n2), n2))  # safe input for the exact branch
     half = 0.5 * n
@@ -329,7 +329,7 @@ def _quat_log(q):
     """Rotation vector of a unit quaternion, angle in ``[0, pi]``."""
     q = jnp.where(q[..., :1] < 0, -q, q)
     w, v = q[..., :1], q[..., 1:]
-    s2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    s2 = short_sum(v * v, keepdims=True)
     small = s2 < math.sqrt(eps(q.dtype))
     s = jnp.sqrt(jnp.where(small, jnp.ones_like(s2), s2))  # safe input for the exact branch
     # angle / s = 2 atan(x) / s with x = s / w: 2 / w (1 - x^2 / 3 + x^4 / 5) for small x (w ~ 1);
