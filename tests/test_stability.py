@@ -219,6 +219,24 @@ def test_spin_stability_gradient_matches_finite_differences(field, axis):
     np.testing.assert_allclose(d_spin, float(value(jnp.asarray(inertia))) / spin, rtol=1e-12)
 
 
+def test_an_angular_velocity_vector_is_not_read_as_three_spin_rates():
+    """``spin_stability(I, omega)`` with a body's angular velocity vector gave a (3, 3) result, each
+    component read as a spin rate of its own, without a word. Reference: the intermediate axis's
+    growth rate ``Omega sqrt((I2 - I3)(I1 - I2) / (I3 I1))`` at the rate ``|omega|``."""
+    inertia, omega = jnp.asarray([1.0, 2.0, 2.5]), jnp.asarray([0.1, 3.0, 0.2])
+    for bad in (omega, jnp.stack([omega, 2 * omega])):
+        for call in (spin_stability, jax.jit(spin_stability)):
+            with pytest.raises(ValueError, match=r"omega_magnitude has shape .*norm\(omega, axis=-1\)"):
+                call(inertia, bad)
+    rate = float(np.linalg.norm(omega))
+    expected = np.sqrt((2.0 - 2.5) * (1.0 - 2.0) / (2.5 * 1.0))
+    np.testing.assert_allclose(spin_stability(inertia, rate).growth_rate[1], rate * expected, rtol=1e-14)
+    rates = jnp.asarray([1.0, 2.0, 3.0])
+    three = spin_stability(inertia[None], rates)
+    assert three.growth_rate.shape == (3, 3)
+    np.testing.assert_allclose(three.growth_rate[:, 1], rates * expected, rtol=1e-14)
+
+
 @pytest.mark.parametrize("shape", [(), (1,), (3, 1, 2, 1)])
 def test_spin_stability_batch_shapes(shape):
     rng = np.random.default_rng(5)

@@ -123,7 +123,7 @@ def read_record(path: str) -> tuple[np.ndarray, np.ndarray]:
             f"{path}: data row {row + 1} has an infinite {OMEGA_COLUMNS[column + 1]} "
             f"({omega[row, column]}); leave the cell empty (or write nan) for a missing sample."
         )
-    _check_complete_rows(path, omega)
+    _check_values_per_column(path, omega)
     return ts, omega
 
 
@@ -172,7 +172,7 @@ def _check_columns(path: str, data: np.ndarray) -> None:
         )
 
 
-def _check_complete_rows(path: str, omega: np.ndarray) -> None:
+def _check_values_per_column(path: str, omega: np.ndarray) -> None:
     """At least 10 values in each of wx, wy, wz (a row may miss some, as ``fit_inertia`` takes
     them); otherwise the columns with too few are named, the fewest first."""
     rows = omega.shape[0]

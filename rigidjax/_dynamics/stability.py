@@ -132,7 +132,9 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
       Non-physical moments (non-positive, violating the triangle inequality, NaN) are an error
       (``ValueError``; ``equinox.error_if`` inside ``jit``).
     - `omega_magnitude`: spin rate ``Omega`` (rad/s), shape ``(...)``, broadcast against the batch
-      axes of `inertia`; its sign does not matter.
+      axes of `inertia`; its sign does not matter. Beside one body's moments ``(3,)`` a trailing
+      axis of 3 is refused (``ValueError``): it looks like an angular velocity vector, whose
+      magnitude is the rate; three rates of one body go with ``inertia[None]``.
 
     **Returns:** a :class:`SpinStability` with ``growth_rate``, ``frequency``, ``stable`` and
     ``marginal``, each ``(..., 3)``. Gradients with respect to both arguments are finite everywhere;
@@ -141,6 +143,13 @@ def spin_stability(inertia: Inertia, omega_magnitude: Scalar) -> SpinStability:
     inertia, omega = _common_float(inertia, omega_magnitude, names=["inertia", "omega_magnitude"])
     omega = check_finite(omega, "omega_magnitude", "spin_stability")
     inertia = _principal_moments(inertia, "spin_stability")
+    if inertia.ndim == 1 and omega.ndim >= 1 and omega.shape[-1] == 3:
+        raise ValueError(
+            f"spin_stability: omega_magnitude has shape {omega.shape} beside the one body of inertia "
+            f"{inertia.shape}: its last axis would read as three spin rates, but an angular velocity "
+            "vector is not a spin rate. Pass the rate, jnp.linalg.norm(omega, axis=-1); for three "
+            "rates of one body, give the body a batch axis: spin_stability(inertia[None], rates)."
+        )
     check_batch_shapes("spin_stability", ("inertia", inertia, 1), ("omega_magnitude", omega, 0))
     # Axis i with its neighbours j = i + 1 and k = i + 2 (cyclic); the product is symmetric in j, k.
     I_i = inertia

@@ -22,23 +22,46 @@ _MOMENT_ENTRIES = [(0, 0), (1, 1), (2, 2)]
 
 def _local_derivatives(ts, omega, half_width: int):
     """Value and time derivative of each component by a local quadratic least-squares fit over
-    ``2 half_width + 1`` neighbouring samples (NaN-aware; a Savitzky–Golay filter for uneven times)."""
+    ``2 half_width + 1`` neighbouring samples (a Savitzky–Golay filter for uneven times), and each
+    sample's leverage in its own fit.
+
+    NaN is a missing value. Where the rows hold fewer than four values of a component, the fit is
+    over the two nearest observed values on each side (and the row's own): a record with values
+    missing at random then has a fit at nearly every row, where the rows alone often held too few
+    (60 % missing left no row with a fit of all three components). Not across a gap of more than
+    four times the rows' span, nor beyond a component's first or last value: a quadratic
+    extrapolated there would not follow the motion."""
     T = ts.shape[0]
     value = np.full_like(omega, np.nan)
     slope = np.full_like(omega, np.nan)
     leverage = np.full_like(omega, np.nan)  # the hat-matrix diagonal of each sample in its own fit
-    for i in range(T):
-        lo, hi = max(0, i - half_width), min(T, i + half_width + 1)
-        dt = ts[lo:hi] - ts[i]
-        for c in range(3):
-            y = omega[lo:hi, c]
-            ok = np.isfinite(y)
-            if ok.sum() < 4:
-                continue
-            scale = np.max(np.abs(dt[ok])) or 1.0
-            x = dt[ok] / scale
+    rows = np.arange(T)
+    row_span = ts[np.minimum(rows + half_width, T - 1)] - ts[np.maximum(rows - half_width, 0)]
+    for c in range(3):
+        observed = np.flatnonzero(np.isfinite(omega[:, c]))
+        if observed.size < 4:
+            continue
+        y_all = omega[observed, c]
+        first_at_or_after = np.searchsorted(observed, rows)
+        for i in range(T):
+            p = first_at_or_after[i]
+            own = p < observed.size and observed[p] == i
+            lo = np.searchsorted(observed, i - half_width)
+            hi = np.searchsorted(observed, i + half_width, side="right")
+            if hi - lo < 4:
+                # Too few values among the rows: the two nearest observed on each side.
+                lo, hi = p - 2, p + 2 + (1 if own else 0)
+                if (
+                    lo < 0
+                    or hi > observed.size
+                    or ts[observed[hi - 1]] - ts[observed[lo]] > 4.0 * row_span[i]
+                ):
+                    continue
+            dt = ts[observed[lo:hi]] - ts[i]
+            scale = np.max(np.abs(dt)) or 1.0
+            x = dt / scale
             V = np.stack([np.ones_like(x), x, x * x], axis=1)
-            coef, *_ = np.linalg.lstsq(V, y[ok], rcond=None)
+            coef, *_ = np.linalg.lstsq(V, y_all[lo:hi], rcond=None)
             value[i, c] = coef[0]
             slope[i, c] = coef[1] / scale
             gram = V.T @ V
@@ -90,9 +113,12 @@ def estimate_inertia(ts, omega_observed, *, full_tensor: bool = False, half_widt
     - `half_width`: each local fit spans ``2 half_width + 1`` samples; by default about a sixteenth
       of the period below which 90 % of the record's power lies (the wobble period, or shorter
       for sharp features such as tennis-racket flips; at least 2, at most 50 samples each side).
+      Where those samples hold fewer than four values of a component, its fit is over the two
+      nearest observed values on each side instead (a record with most values missing at random),
+      but not across a gap longer than four fit spans or beyond the component's first or last value.
 
     **Returns:** ``(inertia, smoothed_omega)``: moments ``(3,)`` or a tensor ``(3, 3)`` with trace 1,
-    and the smoothed record ``(T, 3)`` (NaN where too few neighbours were observed).
+    and the smoothed record ``(T, 3)`` (NaN where a component has no local fit).
     """
     ts, omega = _check_data(ts, omega_observed)
     if ts.shape[0] < 5:
