@@ -632,6 +632,10 @@ def test_orientation_fit_principal():
     valid = ~np.isnan(q[:, 0])
     overlap = np.abs(np.sum(predicted[valid] * q[valid], axis=1))
     assert np.all(2 * np.arccos(np.minimum(overlap, 1.0)) < 5 * 2e-3 * np.sqrt(3))
+    # The same record scalar last, (x, y, z, w), is a motion no torque-free body makes: the fit
+    # says so and names the order.
+    with pytest.warns(RuntimeWarning, match=r"times the record's noise.*scalar first, \(w, x, y, z\)"):
+        fit_inertia_to_orientation(ts, q[:, [1, 2, 3, 0]])
 
 
 @pytest.mark.slow

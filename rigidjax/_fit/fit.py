@@ -300,8 +300,14 @@ def _solve(data: _Data, *, full_tensor, method, optimizer, steps, tol, dtype, ca
             f"the fit's residuals are {ratio:.1f} times the record's noise estimate (measured by "
             "1.4826 times their median absolute value, which outliers do not move, where "
             "InertiaFit.warnings compares residual_rms): the fitted motion does not follow the record, "
-            "whatever `converged` says. Check the time unit (seconds), and try segments='auto' (a "
-            "wrong wobble frequency over a long record) or a robust loss (many outliers).",
+            "whatever `converged` says. Check the time unit (seconds)"
+            + (
+                ", the quaternions' order (scalar first, (w, x, y, z): a scalar-last record fits nothing)"
+                if problem.q_reference is not None
+                else ""
+            )
+            + ", and try segments='auto' (a wrong wobble frequency over a long record) or a robust "
+            "loss (many outliers).",
             RuntimeWarning,
             stacklevel=3,
         )
