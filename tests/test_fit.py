@@ -635,7 +635,9 @@ def test_orientation_fit_principal():
     # The same record scalar last, (x, y, z, w), is a motion no torque-free body makes: the fit
     # says so and names the order.
     with pytest.warns(RuntimeWarning, match=r"times the record's noise.*scalar first, \(w, x, y, z\)"):
-        fit_inertia_to_orientation(ts, q[:, [1, 2, 3, 0]])
+        scalar_last = fit_inertia_to_orientation(ts, q[:, [1, 2, 3, 0]])
+    assert any("scalar first" in warning for warning in scalar_last.warnings)
+    assert fit.warnings == []
 
 
 @pytest.mark.slow

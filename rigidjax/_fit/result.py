@@ -98,6 +98,7 @@ class InertiaFit(eqx.Module):
             np.asarray(self.residual_rms, float),
             np.asarray(self.noise_estimate, float),
             np.asarray(self.principal_moments, float),
+            orientations=self.orientation0 is not None,
         )
 
     def __repr__(self) -> str:
@@ -236,9 +237,9 @@ class InertiaFit(eqx.Module):
         return _quat_multiply(q, _quat_conjugate(q_axes))
 
 
-def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
+def _fit_warnings(stderr, rms, noise, moments, orientations: bool = False) -> list[str]:
     """:attr:`InertiaFit.warnings` from the standard errors, residuals, noise estimate and principal
-    moments (numpy arrays)."""
+    moments (numpy arrays) of a fit to angular velocities or, with ``orientations``, quaternions."""
     out = []
     if not np.all(np.isfinite(stderr)) and _on_flat_body_edge(moments):
         out.append(
@@ -257,6 +258,8 @@ def _fit_warnings(stderr, rms, noise, moments) -> list[str]:
         out.append(
             f"the residuals (residual_rms) are {ratio:.1f} times the record's noise estimate: the fit "
             "explains the record worse than its noise, most often a wrong wobble frequency. Check the "
-            "time unit (seconds), and fit in windows (segments='auto') or with a robust loss (outliers)."
+            "time unit (seconds)"
+            + (", the quaternions' order (scalar first, (w, x, y, z))" if orientations else "")
+            + ", and fit in windows (segments='auto') or with a robust loss (outliers)."
         )
     return out
