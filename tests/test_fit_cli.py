@@ -379,6 +379,29 @@ def test_sparse_records_are_fitted(tmp_path, capsys):
     assert "--inertia-init needs three positive finite moments" in capsys.readouterr().err
 
 
+def test_the_progress_line_says_when_the_fit_starts_again():
+    """A fit from the estimated start that ends badly runs again from six other starts, each
+    counting from iteration 1: the status line fell back to iteration 1 without a word, and a log
+    ended on the last start's count, not the chosen one's."""
+    import io
+
+    from rigidjax._cli.fit import _Progress
+
+    stream = io.StringIO()
+    progress = _Progress(200, stream, enabled=True)
+    for iterations in (range(1, 31), range(1, 9), range(1, 5)):
+        for iteration in iterations:
+            progress(iteration, 1.0 / iteration)
+    progress.close()
+    lines = stream.getvalue().splitlines()
+    notices = [k for k, line in enumerate(lines) if "fitting again from the moments (2, 3, 4)" in line]
+    assert [lines[k].split()[-3] for k in notices] == ["1", "2"] and "of 6" in lines[notices[0]]
+    # Each start's last iteration is in the log, before the notice of the next.
+    assert "iteration   30 (at most 200)" in lines[notices[0] - 1]
+    assert "iteration    8 (at most 200)" in lines[notices[1] - 1]
+    assert "iteration    4 (at most 200)" in lines[-1]
+
+
 def test_fit_program_is_kept_between_invocations(tmp_path):
     """With no cache directory chosen, ``rigidjax fit`` keeps its compiled fit in
     $XDG_CACHE_HOME/rigidjax/jax (the program holds no host callback, which JAX would refuse to

@@ -223,13 +223,25 @@ class _Progress:
         self.steps, self.line = steps, StatusLine(stream, enabled)
         self.start = self.shown = time.perf_counter()
         self.pending = None
+        # A fit from the estimated start that ends badly runs again from the moments (2, 3, 4) in
+        # each of the six orders, each counting its iterations from 1.
+        self.last_iteration, self.other_starts = 0, 0
 
     def __call__(self, iteration, loss) -> None:
         if not self.line.enabled:
             return
+        iteration = int(iteration)
+        if iteration < self.last_iteration:
+            self.close()  # the previous start's last iteration stays on screen
+            self.other_starts += 1
+            self.line.show(
+                f"  fitting again from the moments (2, 3, 4) in each order: start {self.other_starts} of 6",
+                last=True,
+            )
+        self.last_iteration = iteration
         now = time.perf_counter()
         text = (
-            f"  iteration {int(iteration):4d} (at most {self.steps}), loss {float(loss):.3e}, "
+            f"  iteration {iteration:4d} (at most {self.steps}), loss {float(loss):.3e}, "
             f"{now - self.start:5.1f} s"
         )
         if self.line.tty or now - self.shown >= 1.0:

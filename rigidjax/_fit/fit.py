@@ -453,7 +453,8 @@ _COMMON_ARGS_DOC = """\
       of `dtype` (2.2e-15 in float64, 1.2e-6 in float32).
     - `dtype`: float dtype of the fit (default: JAX's default float; float64 with x64 enabled).
     - `callback`: called on the host as ``callback(iteration, loss)`` after every iteration; the
-      loss is in the optimiser's scaled units.
+      loss is in the optimiser's scaled units. A fit run again from other starts (see
+      `inertia_init`) counts its iterations from 1 again.
     - `progress`: ``True`` prints the iteration, the loss (scaled units) and the norm of the step in
       the scaled parameters to stderr (iterations 1-10, then every 10th up to 100, then every 100th)
       and a last line with the iteration count and whether the fit converged; a callable is called
