@@ -237,6 +237,20 @@ def test_an_angular_velocity_vector_is_not_read_as_three_spin_rates():
     np.testing.assert_allclose(three.growth_rate[:, 1], rates * expected, rtol=1e-14)
 
 
+def test_a_top_s_angular_velocity_vector_is_not_read_as_three_spins():
+    """``sleeping_top`` takes the spin about the symmetry axis; the vector (0, 0, 30) gave three
+    tops' results, two of them spinning at 0, without a word. Reference: the critical spin
+    ``2 sqrt(m g l I1) / I3`` of the one top."""
+    inertia, com = jnp.asarray([1.0, 1.0, 0.5]), jnp.asarray([0.0, 0.0, 0.1])
+    with pytest.raises(ValueError, match=r"omega3 has shape \(3,\) .*pass omega\[\.\.\., 2\]"):
+        sleeping_top(inertia, 2.0, com, jnp.asarray([0.0, 0.0, 30.0]))
+    spins = jnp.asarray([10.0, 20.0, 30.0])
+    three = sleeping_top(inertia[None], 2.0, com[None], spins)
+    critical = 2.0 * np.sqrt(2.0 * 9.81 * 0.1 * 1.0) / 0.5
+    np.testing.assert_allclose(three.critical_spin, critical, rtol=1e-12)
+    np.testing.assert_array_equal(three.stable, np.asarray(spins) > critical)
+
+
 @pytest.mark.parametrize("shape", [(), (1,), (3, 1, 2, 1)])
 def test_spin_stability_batch_shapes(shape):
     rng = np.random.default_rng(5)

@@ -239,7 +239,8 @@ def sleeping_top(
     - `com`: body-frame position of the centre of mass relative to the pivot ``(..., 3)`` (m), on
       the z axis: ``(0, 0, l)``.
     - `omega3`: spin about the symmetry axis (rad/s), shape ``(...)``; its sign sets the sense of
-      the precession rates.
+      the precession rates. Beside one top (`inertia` ``(3,)``, `com` ``(3,)``) a trailing axis of
+      3 is refused (``ValueError``): it looks like the angular velocity vector.
     - `gravity`: ``g`` (m/s^2), positive, shape ``(...)``: one magnitude per top (gravity points
       along space -Z), not a vector.
     - `symmetry_rtol`: relative tolerance of the symmetry checks above (default 1e-4: well above the
@@ -274,6 +275,13 @@ def sleeping_top(
         "body (spin_stability).",
     )
     inertia = _principal_moments(inertia, "sleeping_top")
+    if inertia.ndim == 1 and com.ndim == 1 and omega3.ndim >= 1 and omega3.shape[-1] == 3:
+        raise ValueError(
+            f"sleeping_top: omega3 has shape {omega3.shape} beside the one top of inertia {inertia.shape}: "
+            "its last axis would read as three spins, but omega3 is the spin about the symmetry "
+            "axis, a number, not the angular velocity vector: pass omega[..., 2]; for three spins of "
+            "one top, give the top a batch axis: sleeping_top(inertia[None], mass, com[None], spins)."
+        )
     check_batch_shapes(
         "sleeping_top",
         *[("inertia", inertia, 1), ("mass", mass, 0), ("com", com, 1), ("omega3", omega3, 0)],
