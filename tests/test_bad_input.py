@@ -1352,6 +1352,15 @@ def test_no_made_up_starting_inertia(case, monkeypatch, without_runtime_typechec
         fn()
 
 
+def test_a_ragged_record_is_named():
+    """A nested list with rows of different lengths gave NumPy's "inhomogeneous shape" error
+    without the argument's name."""
+    with pytest.raises(ValueError, match="omega_observed is a ragged nested list"):
+        rj.fit_inertia(_TS_FIT[:2], [[1.0, 2.0, 3.0], [1.0, 2.0]])
+    with pytest.raises(ValueError, match="ts is a ragged nested list"):
+        rj.estimate_inertia([[0.0, 1.0], [2.0]], np.ones((2, 3)))
+
+
 def test_an_interleaved_record_is_estimated():
     """A record whose samples each observe one component in turn has local fits of each component
     over its own values (the two nearest on each side), so the torque-free equations hold at every

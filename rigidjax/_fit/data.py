@@ -33,7 +33,12 @@ def _real_array(x, name):
             f"{name} is traced (inside jax.jit, vmap or grad): the fitting functions read a record's "
             "values on the host, so call them outside jit with NumPy or JAX arrays."
         )
-    x = np.asarray(x)
+    try:
+        x = np.asarray(x)
+    except ValueError:  # NumPy's "inhomogeneous shape" of a ragged nested list
+        raise ValueError(
+            f"{name} is a ragged nested list (its rows have different lengths); give an array of one shape."
+        ) from None
     if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
         raise TypeError(f"{name} must hold real numbers, got dtype {x.dtype}.")
     return x.astype(float)
